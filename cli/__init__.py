@@ -1,0 +1,1 @@
+"""Thin command-line front ends: they parse arguments (tyro) and call library functions."""

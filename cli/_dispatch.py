@@ -1,0 +1,67 @@
+"""Shared subcommand dispatch for the console scripts.
+
+Each console script is a table ``{name: function}``; a function's signature (typed arguments and
+dataclass configs with field docstrings) is its CLI, parsed by tyro. A script may also have a
+default command, run when the first argument is not a subcommand name (``evaluate MESH --gt GT``).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Callable
+
+import tyro
+
+
+def setup_logging(verbose: bool = False) -> None:
+    """Route the package loggers to stderr; the library itself never configures logging."""
+    level = logging.DEBUG if verbose else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s] %(message)s", "%H:%M:%S"))
+    for name in ("geocues", "splat", "evaluation"):
+        logger = logging.getLogger(name)
+        logger.setLevel(level)
+        if not logger.handlers:
+            logger.addHandler(handler)
+
+
+def _usage(prog: str, commands: dict[str, Callable], default: str | None) -> str:
+    lines = [f"usage: {prog} COMMAND [ARGS...]   ({prog} COMMAND --help for its options)", "", "commands:"]
+    for name, fn in commands.items():
+        doc = (fn.__doc__ or "").strip().splitlines()
+        lines.append(f"  {name:<14} {doc[0] if doc else ''}")
+    if default is not None:
+        lines.append(f"\nWith no command name, `{prog} ARGS...` runs `{default}`.")
+    return "\n".join(lines)
+
+
+def dispatch(prog: str, commands: dict[str, Callable], default: str | None = None,
+             argv: list[str] | None = None) -> int:
+    """Pick the subcommand from ``argv[0]`` and let tyro parse the rest against its signature."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        if default is not None and argv:
+            # `evaluate --help` shows the default command's options after the command list.
+            print(_usage(prog, commands, default) + "\n")
+            tyro.cli(commands[default], args=["--help"], prog=prog)
+        print(_usage(prog, commands, default))
+        return 0 if argv else 2
+    if argv[0] in commands:
+        name, rest = argv[0], argv[1:]
+    elif default is not None:
+        name, rest = default, argv
+    else:
+        print(f"{prog}: unknown command {argv[0]!r}\n\n" + _usage(prog, commands, default), file=sys.stderr)
+        return 2
+    fn = commands[name]
+    sub_prog = prog if (name == default and argv[0] != name) else f"{prog} {name}"
+    setup_logging("--verbose" in rest or "-v" in rest)
+    rest = [a for a in rest if a not in ("--verbose", "-v")]
+    try:
+        result = tyro.cli(fn, args=rest, prog=sub_prog)
+    except (FileNotFoundError, ValueError) as exc:
+        # Bad input: one clear line naming what is wrong, no traceback.
+        print(f"{sub_prog}: error: {exc}", file=sys.stderr)
+        return 1
+    return int(result) if isinstance(result, int) else 0

@@ -1,0 +1,18 @@
+"""`geocues` console script: scene inspection, SfM and cue extraction."""
+
+from __future__ import annotations
+
+import sys
+
+from cli._dispatch import dispatch
+
+# Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
+COMMANDS: dict = {}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return dispatch("geocues", COMMANDS, argv=argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

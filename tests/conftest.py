@@ -1,0 +1,18 @@
+"""Shared fixtures. Paths to the shared data live beside the repository (../shared)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+ICL = SHARED / "data" / "icl_livingroom1"
+
+
+@pytest.fixture(scope="session")
+def icl_dir() -> Path:
+    if not (ICL / "sparse" / "0").is_dir():
+        pytest.skip(f"ICL-NUIM scene not found at {ICL}")
+    return ICL
