@@ -1,0 +1,221 @@
+"""COLMAP model I/O at the project boundary.
+
+Everything that touches pycolmap's conventions lives here: pycolmap's ``Rotation3d.quat`` is
+``xyzw`` and the project uses ``wxyz``; ``image.cam_from_world()`` is a method in pycolmap 4.2.
+Readers go through pycolmap (binary or text); the writer emits COLMAP's text format (simple, exact,
+diffable) and can convert it to binary with pycolmap.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+# Camera models read as they are; every other model has distortion and must be undistorted first.
+PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+
+
+def quat_xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
+    """pycolmap ``Rotation3d.quat`` (x, y, z, w) -> project convention (w, x, y, z)."""
+    q = np.asarray(q, dtype=np.float64)
+    return np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+
+
+def quat_wxyz_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) -> 3x3 rotation matrix."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def rotmat_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+@dataclass
+class RawImage:
+    """One registered image as stored in the model (before any downscaling)."""
+
+    image_id: int
+    camera_id: int
+    name: str
+    model: str  # COLMAP camera model name, e.g. "PINHOLE"
+    width: int
+    height: int
+    K: np.ndarray  # [3, 3] intrinsics, COLMAP pixel convention
+    R: np.ndarray  # [3, 3] world-to-camera rotation
+    t: np.ndarray  # [3] world-to-camera translation
+
+
+@dataclass
+class RawPoints:
+    """3D points of a model with their tracks."""
+
+    ids: np.ndarray  # [N] int64 COLMAP point3D ids
+    xyz: np.ndarray  # [N, 3] float64, metres
+    rgb: np.ndarray  # [N, 3] uint8
+    error: np.ndarray  # [N] float64 mean reprojection error, pixels
+    track_length: np.ndarray  # [N] int32
+    track_image_ids: list[np.ndarray]  # N arrays of the image ids observing each point
+
+    @staticmethod
+    def empty() -> "RawPoints":
+        return RawPoints(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
+                         np.zeros(0), np.zeros(0, np.int32), [])
+
+
+def find_model_dir(scene_or_model: Path) -> Path:
+    """Return the folder holding cameras/images/points3D for ``SCENE`` (``sparse/0``, ``sparse``) or
+    for a model folder given directly. Raises FileNotFoundError naming the folder otherwise."""
+    p = Path(scene_or_model)
+    if not p.exists():
+        raise FileNotFoundError(f"scene folder does not exist: {p}")
+    for cand in (p / "sparse" / "0", p / "sparse", p):
+        if any((cand / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+            return cand
+    raise FileNotFoundError(
+        f"no cameras.txt or cameras.bin in {p}, {p / 'sparse'} or {p / 'sparse' / '0'}")
+
+
+def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
+    """Read a COLMAP model (binary or text) with pycolmap; images sorted by name."""
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    for stem in ("cameras", "images", "points3D"):
+        if not any((model_dir / f"{stem}.{ext}").is_file() for ext in ("bin", "txt")):
+            raise FileNotFoundError(f"no {stem}.txt or {stem}.bin in {model_dir}")
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on broken files
+        raise ValueError(f"could not read COLMAP model in {model_dir}: {exc}") from exc
+
+    images: list[RawImage] = []
+    for image_id in rec.reg_image_ids():
+        im = rec.images[image_id]
+        cam = rec.cameras[im.camera_id]
+        pose = im.cam_from_world()  # a method in pycolmap 4.2
+        images.append(RawImage(
+            image_id=int(image_id), camera_id=int(im.camera_id), name=im.name,
+            model=cam.model.name, width=int(cam.width), height=int(cam.height),
+            K=np.asarray(cam.calibration_matrix(), dtype=np.float64),
+            R=np.asarray(pose.rotation.matrix(), dtype=np.float64),
+            t=np.asarray(pose.translation, dtype=np.float64),
+        ))
+    images.sort(key=lambda r: r.name)
+
+    n = len(rec.points3D)
+    if n == 0:
+        return images, RawPoints.empty()
+    ids = np.empty(n, np.int64)
+    xyz = np.empty((n, 3))
+    rgb = np.empty((n, 3), np.uint8)
+    err = np.empty(n)
+    tlen = np.empty(n, np.int32)
+    tracks: list[np.ndarray] = []
+    for k, (pid, pt) in enumerate(rec.points3D.items()):
+        ids[k], xyz[k], rgb[k], err[k] = pid, pt.xyz, pt.color, pt.error
+        elems = pt.track.elements
+        tlen[k] = len(elems)
+        tracks.append(np.fromiter((e.image_id for e in elems), dtype=np.int64, count=len(elems)))
+    return images, RawPoints(ids, xyz, rgb, err, tlen, tracks)
+
+
+def _atomic_dir(final: Path):
+    """Context: write into a temp sibling folder, then move it over ``final`` (nothing half-written)."""
+    class _Ctx:
+        def __enter__(self):
+            final.parent.mkdir(parents=True, exist_ok=True)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+            return self.tmp
+
+        def __exit__(self, exc_type, exc, tb):
+            if exc_type is not None:
+                shutil.rmtree(self.tmp, ignore_errors=True)
+                return False
+            if final.exists():
+                backup = final.with_name(f".{final.name}.old")
+                shutil.rmtree(backup, ignore_errors=True)
+                os.replace(final, backup)
+                os.replace(self.tmp, final)
+                shutil.rmtree(backup, ignore_errors=True)
+            else:
+                os.replace(self.tmp, final)
+            return False
+    return _Ctx()
+
+
+def write_model(model_dir: Path, images: list[RawImage], points: RawPoints | None = None,
+                binary: bool = False) -> Path:
+    """Write a COLMAP model (text, or binary via pycolmap) atomically into ``model_dir``.
+
+    Cameras are deduplicated by ``camera_id``; only PINHOLE intrinsics are written (fx, fy, cx, cy).
+    Points are written without 2D observations (their tracks list image ids only), which COLMAP
+    accepts; use pycolmap's triangulation to make full tracks.
+    """
+    model_dir = Path(model_dir)
+    if not images:
+        raise ValueError(f"refusing to write an empty model to {model_dir}: no images")
+    with _atomic_dir(model_dir) as tmp:
+        cams: dict[int, RawImage] = {}
+        for im in images:
+            cams.setdefault(im.camera_id, im)
+        with open(tmp / "cameras.txt", "w") as f:
+            f.write("# Camera list with one line of data per camera:\n"
+                    "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
+            for cid, im in sorted(cams.items()):
+                K = im.K
+                f.write(f"{cid} PINHOLE {im.width} {im.height} "
+                        f"{K[0, 0]:.10g} {K[1, 1]:.10g} {K[0, 2]:.10g} {K[1, 2]:.10g}\n")
+        with open(tmp / "images.txt", "w") as f:
+            f.write("# Image list with two lines of data per image:\n"
+                    "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+                    "#   POINTS2D[] as (X, Y, POINT3D_ID)\n")
+            for im in images:
+                q = rotmat_to_quat_wxyz(im.R)
+                f.write(f"{im.image_id} {' '.join(f'{v:.12g}' for v in q)} "
+                        f"{' '.join(f'{v:.12g}' for v in im.t)} {im.camera_id} {im.name}\n\n")
+        with open(tmp / "points3D.txt", "w") as f:
+            f.write("# 3D point list with one line of data per point:\n"
+                    "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
+            if points is not None:
+                for k in range(len(points.ids)):
+                    x, y, z = points.xyz[k]
+                    r, g, b = (int(v) for v in points.rgb[k])
+                    f.write(f"{points.ids[k]} {x:.10g} {y:.10g} {z:.10g} {r} {g} {b} {points.error[k]:.6g}\n")
+        if binary:
+            import pycolmap
+
+            rec = pycolmap.Reconstruction(str(tmp))
+            for stem in ("cameras", "images", "points3D"):
+                (tmp / f"{stem}.txt").unlink()
+            rec.write_binary(str(tmp))
+    return model_dir

@@ -1,0 +1,280 @@
+"""The ``Scene`` type: a posed COLMAP scene folder with optional priors and ground truth.
+
+Layout of a scene folder::
+
+    SCENE/images/<name>             RGB images (names as in the model)
+    SCENE/sparse/0/cameras|images|points3D.{bin,txt}   (or SCENE/sparse/)
+    SCENE/priors/depth/<stem>.npy   optional monocular depth (H x W float32, metres, 0 = invalid)
+                         <stem>.png 16-bit, divided by scene.json "depth_png_scale" (units per metre)
+    SCENE/priors/normal/<stem>.npy  optional normals (H x W x 3 float32, camera frame, facing camera)
+                          <stem>.png 8/16-bit, [0, max] mapped to [-1, 1]
+    SCENE/gt/mesh.ply               optional ground-truth mesh
+    SCENE/scene.json                optional metadata (priors' provenance, PNG scales, ...)
+
+Conventions (docs/conventions.md): metres, world-to-camera OpenCV cameras, COLMAP pixel centres.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".PNG", ".JPEG")
+
+
+@dataclass
+class Camera:
+    """One posed view. Intrinsics are for the (possibly downscaled) size ``width`` x ``height``."""
+
+    index: int  # position in Scene.cameras (name order)
+    image_id: int  # COLMAP image id
+    name: str  # image file name relative to SCENE/images
+    image_path: Path
+    width: int
+    height: int
+    K: np.ndarray  # [3, 3] float64, COLMAP pixel convention (top-left pixel centre = (0.5, 0.5))
+    R: np.ndarray  # [3, 3] world-to-camera rotation
+    t: np.ndarray  # [3] world-to-camera translation (metres)
+
+    @property
+    def stem(self) -> str:
+        return Path(self.name).stem
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates, [3]."""
+        return -self.R.T @ self.t
+
+    @property
+    def world_to_camera(self) -> np.ndarray:
+        """[4, 4] world-to-camera matrix."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points X [N, 3] -> (uv [N, 2] pixels, z [N] depth; z <= 0 is behind)."""
+        Xc = np.asarray(X, dtype=np.float64) @ self.R.T + self.t
+        z = Xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (Xc[:, :2] / z[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
+        return uv, z
+
+    def pixel_rays(self) -> np.ndarray:
+        """Camera-frame ray directions (z = 1) through every pixel centre, [H, W, 3]."""
+        j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+        x = (j - self.K[0, 2]) / self.K[0, 0]
+        y = (i - self.K[1, 2]) / self.K[1, 1]
+        return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+@dataclass
+class Points3D:
+    """SfM points of the model (possibly empty)."""
+
+    ids: np.ndarray  # [N] int64 COLMAP ids
+    xyz: np.ndarray  # [N, 3] float64
+    rgb: np.ndarray  # [N, 3] uint8
+    error: np.ndarray  # [N] reprojection error, pixels
+    track_length: np.ndarray  # [N] int32
+    visible_in: dict[int, np.ndarray] = field(default_factory=dict)  # camera index -> point indices
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def _read_image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return im.size  # (width, height)
+
+
+class Scene:
+    """A posed scene read from a COLMAP model. Build it with :meth:`Scene.load`."""
+
+    def __init__(self, root: Path, cameras: list[Camera], points: Points3D, metadata: dict,
+                 test_every: int, downscale: float, model_dir: Path):
+        self.root, self.cameras, self.points, self.metadata = root, cameras, points, metadata
+        self.test_every, self.downscale, self.model_dir = test_every, downscale, model_dir
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def load(cls, root: str | Path, *, downscale: float = 1.0, test_every: int = 8,
+             images_dir: str | Path | None = None, check_priors: bool = True) -> "Scene":
+        """Read ``root`` (a scene folder). ``downscale`` divides image size and intrinsics;
+        every ``test_every``-th image in name order (index % test_every == 0) is a test view
+        (0 = no test views). Raises FileNotFoundError / ValueError naming the bad path."""
+        root = Path(root)
+        if downscale <= 0:
+            raise ValueError(f"downscale must be > 0, got {downscale}")
+        if test_every < 0 or test_every == 1:
+            raise ValueError(f"test_every must be 0 (no test views) or >= 2, got {test_every}")
+        model_dir = find_model_dir(root)
+        scene_root = root
+        if model_dir == root:  # a model folder given directly: the scene is the folder above sparse/
+            scene_root = next((p for p in (root, root.parent, root.parent.parent)
+                               if (p / "images").is_dir()), root)
+        raw_images, raw_points = read_model(model_dir)
+        if not raw_images:
+            raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
+        img_dir = Path(images_dir) if images_dir is not None else scene_root / "images"
+        if not img_dir.is_dir():
+            raise FileNotFoundError(f"no images folder at {img_dir}")
+        meta_path = scene_root / "scene.json"
+        metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+
+        cameras: list[Camera] = []
+        for k, im in enumerate(raw_images):
+            if im.model not in PINHOLE_MODELS:
+                raise ValueError(
+                    f"image {im.name} in {model_dir} uses the distorted camera model {im.model}; "
+                    f"undistort the scene first: `geocues undistort {scene_root} -o OUT`")
+            path = img_dir / im.name
+            if not path.is_file():
+                raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: {path}")
+            w, h = _read_image_size(path)
+            if (w, h) != (im.width, im.height):
+                raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "
+                                 f"{im.width}x{im.height}")
+            nw, nh = max(1, int(round(im.width / downscale))), max(1, int(round(im.height / downscale)))
+            S = np.diag([nw / im.width, nh / im.height, 1.0])  # exact under COLMAP pixel centres
+            cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path,
+                                  width=nw, height=nh, K=S @ im.K, R=im.R, t=im.t))
+        points = cls._points_from_raw(raw_points, cameras)
+        scene = cls(scene_root, cameras, points, metadata, test_every, downscale, model_dir)
+        if check_priors:
+            scene._check_priors(raw_images)
+        log.info("scene %s: %d images (%d train / %d test), %d points, priors: depth %d, normal %d",
+                 scene_root, len(cameras), len(scene.train_indices), len(scene.test_indices),
+                 len(points), sum(p is not None for p in map(scene.depth_prior_path, range(len(cameras)))),
+                 sum(p is not None for p in map(scene.normal_prior_path, range(len(cameras)))))
+        return scene
+
+    @staticmethod
+    def _points_from_raw(raw: RawPoints, cameras: list[Camera]) -> Points3D:
+        by_image_id = {c.image_id: c.index for c in cameras}
+        vis: dict[int, list[int]] = {c.index: [] for c in cameras}
+        for k, track in enumerate(raw.track_image_ids):
+            for image_id in np.unique(track):
+                if int(image_id) in by_image_id:
+                    vis[by_image_id[int(image_id)]].append(k)
+        return Points3D(raw.ids, raw.xyz, raw.rgb, raw.error, raw.track_length,
+                        {i: np.asarray(v, np.int64) for i, v in vis.items()})
+
+    def _check_priors(self, raw_images) -> None:
+        for cam, raw in zip(self.cameras, raw_images):
+            for kind in ("depth", "normal"):
+                path = self._prior_path(kind, cam.index)
+                if path is None:
+                    continue
+                shape = (np.load(path, mmap_mode="r").shape if path.suffix == ".npy"
+                         else _read_image_size(path)[::-1])
+                ok_hw = {(raw.height, raw.width), (cam.height, cam.width)}
+                if tuple(shape[:2]) not in ok_hw or (kind == "normal" and path.suffix == ".npy"
+                                                     and (len(shape) != 3 or shape[2] != 3)):
+                    want = f"{raw.height}x{raw.width}" + ("x3" if kind == "normal" else "")
+                    raise ValueError(f"{kind} prior {path} has shape {tuple(shape)}, expected {want} "
+                                     f"(the size of {cam.image_path.name})")
+
+    # ------------------------------------------------------------------ views
+    @property
+    def test_indices(self) -> list[int]:
+        if self.test_every == 0:
+            return []
+        return [c.index for c in self.cameras if c.index % self.test_every == 0]
+
+    @property
+    def train_indices(self) -> list[int]:
+        test = set(self.test_indices)
+        return [c.index for c in self.cameras if c.index not in test]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def load_image(self, i: int) -> np.ndarray:
+        """RGB image of camera ``i`` at the scene's scale, float32 [H, W, 3] in [0, 1]."""
+        import cv2
+
+        cam = self.cameras[i]
+        bgr = cv2.imread(str(cam.image_path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise FileNotFoundError(f"could not read image {cam.image_path}")
+        if bgr.shape[:2] != (cam.height, cam.width):
+            bgr = cv2.resize(bgr, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        return bgr[:, :, ::-1].astype(np.float32) / 255.0
+
+    # ------------------------------------------------------------------ priors
+    def _prior_path(self, kind: str, i: int) -> Path | None:
+        base = self.root / "priors" / kind / self.cameras[i].stem
+        for ext in (".npy", ".png"):
+            if base.with_suffix(ext).is_file():
+                return base.with_suffix(ext)
+        return None
+
+    def depth_prior_path(self, i: int) -> Path | None:
+        return self._prior_path("depth", i)
+
+    def normal_prior_path(self, i: int) -> Path | None:
+        return self._prior_path("normal", i)
+
+    @property
+    def has_depth_priors(self) -> bool:
+        return any(self.depth_prior_path(i) is not None for i in range(len(self.cameras)))
+
+    @property
+    def has_normal_priors(self) -> bool:
+        return any(self.normal_prior_path(i) is not None for i in range(len(self.cameras)))
+
+    def depth_prior(self, i: int) -> np.ndarray | None:
+        """Depth prior of camera ``i`` at the scene's scale, [H, W] float32 metres (0 = invalid)."""
+        import cv2
+
+        path = self.depth_prior_path(i)
+        if path is None:
+            return None
+        if path.suffix == ".npy":
+            d = np.load(path).astype(np.float32)
+        else:
+            scale = self.metadata.get("depth_png_scale")
+            if scale is None:
+                raise ValueError(f"{path} is a PNG depth prior but {self.root / 'scene.json'} "
+                                 f"has no 'depth_png_scale' (units per metre)")
+            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            d = raw.astype(np.float32) / float(scale)
+        d[~np.isfinite(d)] = 0.0
+        cam = self.cameras[i]
+        if d.shape != (cam.height, cam.width):  # nearest keeps 0 = invalid intact
+            d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+        return d
+
+    def normal_prior(self, i: int) -> np.ndarray | None:
+        """Normal prior of camera ``i``, [H, W, 3] float32 unit, camera frame (zeros = invalid)."""
+        import cv2
+
+        path = self.normal_prior_path(i)
+        if path is None:
+            return None
+        if path.suffix == ".npy":
+            n = np.load(path).astype(np.float32)
+        else:
+            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+            n = raw.astype(np.float32) / float(np.iinfo(raw.dtype).max) * 2.0 - 1.0
+        cam = self.cameras[i]
+        if n.shape[:2] != (cam.height, cam.width):
+            n = cv2.resize(n, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+        norm = np.linalg.norm(n, axis=-1, keepdims=True)
+        return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+
+    @property
+    def gt_mesh_path(self) -> Path | None:
+        p = self.root / "gt" / "mesh.ply"
+        return p if p.is_file() else None
