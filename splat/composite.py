@@ -1,0 +1,175 @@
+"""Front-to-back alpha compositing of projected Gaussians: the one function backends implement.
+
+``composite`` takes Gaussians already projected to the image (2D means, conics, opacities, any
+per-Gaussian channels) and blends them per pixel. It is the only part of the rasterizer with more
+than one implementation ("backend"):
+
+- ``"torch"``: :mod:`splat.composite_torch`, the reference and oracle; pure torch, CPU or CUDA.
+- ``"cpu"``: :mod:`splat.composite_cpu`, a C++ kernel (CPU tensors only), built on first use.
+- ``"auto"``: ``"cpu"`` for CPU tensors when it imports and builds, else ``"torch"``.
+
+Exact per-pixel rule (3DGS ``forward.cu`` semantics; every backend follows it)
+-----------------------------------------------------------------------------
+Pixel (row i, col j) has centre ``(px, py) = (j + 0.5, i + 0.5)`` (COLMAP convention). Gaussian g
+*touches* the pixel iff ``radii[g] > 0`` and ``|px - means2d[g, 0]| <= radii[g]`` and
+``|py - means2d[g, 1]| <= radii[g]`` (its radius box, inclusive). Touching Gaussians are visited in
+ascending ``depths`` (ties: ascending index). With ``T = 1``, for each::
+
+    dx, dy = means2d[g] - (px, py)
+    power  = -0.5 * (a * dx**2 + c * dy**2) - b * dx * dy        # (a, b, c) = conics[g]
+    if power > 0: skip
+    alpha  = min(0.99, opacities[g] * exp(power))
+    if alpha < 1/255: skip
+    test_T = T * (1 - alpha)
+    if test_T < 1e-4: stop                                      # this Gaussian is not included
+    out   += features[g] * alpha * T
+    if T > 0.5 and test_T <= 0.5: median = median_features[g]   # median stays 0 if never crossed
+    T      = test_T
+    n_contrib += 1
+
+then ``out += T * background`` and ``alpha_out = 1 - T``. ``n_contrib`` counts the Gaussians that
+were blended (not those skipped). Gradients are the exact derivatives of this rule w.r.t. means2d,
+conics, opacities, features, background and median_features (``min(0.99, .)`` has zero gradient
+where it clamps; the skip/stop decisions and the median choice are piecewise constant). ``depths``
+and ``radii`` get no gradient.
+
+A backend may cap the number of blended Gaussians per pixel (the torch backend's ``max_per_pixel``,
+default 64): after the cap the pixel stops as if ``test_T`` had dropped below 1e-4.
+
+A backend module (``splat.composite_cpu``) exposes ``composite(means2d, conics, opacities, features,
+depths, radii, width, height, *, background=None, median_features=None) -> CompositeOut`` taking
+tensors already checked by :func:`check_composite_inputs`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("torch", "cpu", "auto")
+
+_cpu_module = None  # the imported splat.composite_cpu module, once it has been tried
+_cpu_error: str | None = None  # why it failed to import/build, if it did
+
+
+class CompositeOut(NamedTuple):
+    """What a compositing backend returns for one view."""
+
+    features: Tensor  # [H, W, C] blended channels, background included
+    alpha: Tensor  # [H, W] 1 - final transmittance, in [0, 1]
+    median: Tensor | None  # [H, W, M] median_features of the Gaussian where T crosses 0.5 (0 if none)
+    n_contrib: Tensor  # [H, W] int32 number of Gaussians blended at the pixel
+
+
+def _load_cpu_backend():
+    """Import (and thereby build) the C++ backend once; return the module or None, logging why."""
+    global _cpu_module, _cpu_error
+    if _cpu_module is None and _cpu_error is None:
+        try:
+            from splat import composite_cpu  # lazy: building takes ~30 s the first time
+
+            _cpu_module = composite_cpu
+        except Exception as exc:  # noqa: BLE001 - any build/import failure means "fall back"
+            _cpu_error = f"{type(exc).__name__}: {exc}"
+            log.warning("C++ compositing backend unavailable, using torch: %s", _cpu_error)
+    return _cpu_module
+
+
+def cpu_backend_available() -> bool:
+    """True when :mod:`splat.composite_cpu` imports (building it if needed)."""
+    return _load_cpu_backend() is not None
+
+
+def available_backends() -> list[str]:
+    """The concrete backends that work here ("torch" always, "cpu" if it builds)."""
+    return ["torch"] + (["cpu"] if cpu_backend_available() else [])
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """Map "auto" and unavailable choices to a concrete backend name ("torch" or "cpu")."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "torch":
+        return "torch"
+    if device.type != "cpu":
+        if backend == "cpu":
+            log.warning("backend 'cpu' needs CPU tensors, got %s; using torch", device)
+        return "torch"
+    if _load_cpu_backend() is None:
+        if backend == "cpu":
+            log.warning("backend 'cpu' requested but unavailable (%s); using torch", _cpu_error)
+        return "torch"
+    return "cpu"
+
+
+def check_composite_inputs(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None,
+    median_features: Tensor | None,
+) -> None:
+    """Raise ValueError with expected vs actual shapes when the inputs do not fit the contract."""
+    if features.dim() != 2:
+        raise ValueError(f"features must be [N, C], got shape {tuple(features.shape)}")
+    n, c = features.shape
+    expected = {
+        "means2d": (means2d, (n, 2)),
+        "conics": (conics, (n, 3)),
+        "opacities": (opacities, (n,)),
+        "depths": (depths, (n,)),
+        "radii": (radii, (n,)),
+    }
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {tuple(tensor.shape)}")
+    if background is not None and tuple(background.shape) != (c,):
+        raise ValueError(f"background must have shape ({c},), got {tuple(background.shape)}")
+    if median_features is not None and (median_features.dim() != 2 or median_features.shape[0] != n):
+        raise ValueError(f"median_features must be [{n}, M], got {tuple(median_features.shape)}")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"image size must be positive, got width={width}, height={height}")
+
+
+def composite(
+    means2d: Tensor,  # [N, 2] pixel coordinates (COLMAP centres)
+    conics: Tensor,  # [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]]
+    opacities: Tensor,  # [N] in (0, 1)
+    features: Tensor,  # [N, C] channels to blend
+    depths: Tensor,  # [N] view-space z, sort key only
+    radii: Tensor,  # [N] int32 pixel radius, 0 = culled
+    width: int,
+    height: int,
+    *,
+    background: Tensor | None = None,  # [C] or None (zeros)
+    median_features: Tensor | None = None,  # [N, M] or None
+    backend: str = "torch",
+    max_per_pixel: int = 64,
+) -> CompositeOut:
+    """Blend Gaussians front to back per pixel (rule in the module docstring) with a backend.
+
+    ``max_per_pixel`` caps the Gaussians blended per pixel in the torch backend (its cost grows
+    with it); backends without a cap ignore it.
+    """
+    check_composite_inputs(means2d, conics, opacities, features, depths, radii, width, height,
+                           background, median_features)
+    name = resolve_backend(backend, means2d.device)
+    if name == "cpu":
+        return _load_cpu_backend().composite(
+            means2d, conics, opacities, features, depths, radii, int(width), int(height),
+            background=background, median_features=median_features)
+    from splat.composite_torch import composite_torch
+
+    return composite_torch(means2d, conics, opacities, features, depths, radii, int(width), int(height),
+                           background=background, median_features=median_features,
+                           max_per_pixel=max_per_pixel)
