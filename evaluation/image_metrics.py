@@ -1,0 +1,194 @@
+"""Image metrics for held-out views: PSNR, SSIM and (with user-supplied weights) LPIPS.
+
+Images are torch tensors, float, H x W x C (C = 3 for RGB), values in [0, 1]
+(docs/conventions.md). SSIM follows 3DGS's ``utils/loss_utils.py`` (the code behind the
+published splatting numbers): an 11 x 11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03, each
+channel filtered separately with zero padding ("same" size), the SSIM map averaged over all pixels
+and channels. ``padding="valid"`` averages only where the window fits inside the image, as
+pytorch-msssim and scikit-image do; the two differ in the border pixels only.
+
+LPIPS needs a learned network. Nothing is downloaded: pass a TorchScript file you made yourself
+(see ``load_lpips``) or leave it out.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from pathlib import Path
+from typing import Callable, Literal, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+log = logging.getLogger(__name__)
+
+
+def _check_pair(img: torch.Tensor, ref: torch.Tensor) -> None:
+    """Both tensors, floating point, the same H x W x C shape."""
+    for name, x in (("img", img), ("ref", ref)):
+        if not isinstance(x, torch.Tensor):
+            raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+        if not x.is_floating_point():
+            raise ValueError(f"{name}: expected a float image in [0, 1], got dtype {x.dtype}")
+        if x.ndim != 3:
+            raise ValueError(f"{name}: expected shape [H, W, C], got {tuple(x.shape)}")
+    if img.shape != ref.shape:
+        raise ValueError(f"img and ref differ in shape: {tuple(img.shape)} vs {tuple(ref.shape)}")
+
+
+def mse(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Mean squared error over all pixels and channels (a 0-dim tensor)."""
+    _check_pair(img, ref)
+    return torch.mean((img - ref) ** 2)
+
+
+def psnr(img: torch.Tensor, ref: torch.Tensor, data_range: float = 1.0) -> float:
+    """PSNR = 10 log10( data_range^2 / MSE ) in dB; +inf for identical images.
+
+    img, ref: [H, W, C] in [0, data_range].
+    """
+    _check_pair(img, ref)
+    err = float(mse(img.double(), ref.double()))
+    if err == 0.0:
+        return math.inf
+    return 10.0 * math.log10(data_range**2 / err)
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Normalised 1D Gaussian g[k] ~ exp(-(k - size//2)^2 / (2 sigma^2)), k = 0..size-1 (shape [size])."""
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"window size must be odd and positive, got {size}")
+    k = torch.arange(size, dtype=dtype) - size // 2
+    g = torch.exp(-(k**2) / (2.0 * sigma**2))
+    return g / g.sum()
+
+
+def ssim_map(img: torch.Tensor, ref: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
+             data_range: float = 1.0, padding: Literal["same", "valid"] = "same") -> torch.Tensor:
+    """Per-pixel SSIM (Wang et al. 2004), shape [C, H', W'].
+
+    SSIM = ((2 mu_x mu_y + C1)(2 sigma_xy + C2)) / ((mu_x^2 + mu_y^2 + C1)(sigma_x^2 + sigma_y^2 + C2)),
+    C1 = (0.01 L)^2, C2 = (0.03 L)^2, local moments from a separable Gaussian window.
+    padding "same": zero padding, H' = H (3DGS); "valid": H' = H - window_size + 1 (pytorch-msssim).
+    """
+    _check_pair(img, ref)
+    if padding not in ("same", "valid"):
+        raise ValueError(f"padding must be 'same' or 'valid', got {padding!r}")
+    h, w, c = img.shape
+    if padding == "valid" and min(h, w) < window_size:
+        raise ValueError(f"image {h}x{w} is smaller than the {window_size}x{window_size} SSIM window")
+    x = img.permute(2, 0, 1).unsqueeze(0)  # [1, C, H, W]
+    y = ref.permute(2, 0, 1).unsqueeze(0).to(x.dtype)  # [1, C, H, W]
+    g = gaussian_window(window_size, sigma, dtype=x.dtype).to(x.device)
+    wy = g.view(1, 1, -1, 1).expand(c, 1, window_size, 1)  # vertical pass
+    wx = g.view(1, 1, 1, -1).expand(c, 1, 1, window_size)  # horizontal pass
+    pad = window_size // 2 if padding == "same" else 0
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        t = F.conv2d(t, wy, padding=(pad, 0), groups=c)
+        return F.conv2d(t, wx, padding=(0, pad), groups=c)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x**2
+    syy = blur(y * y) - mu_y**2
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
+    den = (mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2)
+    return (num / den)[0]  # [C, H', W']
+
+
+def ssim(img: torch.Tensor, ref: torch.Tensor, window_size: int = 11, sigma: float = 1.5,
+         data_range: float = 1.0, padding: Literal["same", "valid"] = "same") -> float:
+    """Mean SSIM over pixels and channels (see ``ssim_map``); 1.0 for identical images."""
+    return float(ssim_map(img, ref, window_size, sigma, data_range, padding).mean())
+
+
+# ----------------------------------------------------------------------------------------------
+# LPIPS: a hook, no weights shipped, nothing downloaded.
+
+LPIPS_HELP = (
+    "LPIPS needs a learned network and this toolkit downloads no weights. Make a TorchScript file "
+    "once, on a machine that has the `lpips` package and its weights, e.g.\n"
+    "  import lpips, torch; m = lpips.LPIPS(net='vgg').eval()\n"
+    "  x = torch.rand(1, 3, 64, 64) * 2 - 1; torch.jit.trace(m, (x, x)).save('lpips_vgg.pt')\n"
+    "then pass that file (inputs [N, 3, H, W] in [-1, 1], output one distance per image). A "
+    "torch.export archive (.pt2) works too."
+)
+
+
+def load_lpips(weights: str | Path | None) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """Load a user-supplied TorchScript LPIPS network (see ``LPIPS_HELP``); no download."""
+    if weights is None:
+        raise ValueError("no LPIPS weights given. " + LPIPS_HELP)
+    path = Path(weights)
+    if not path.is_file():
+        raise FileNotFoundError(f"LPIPS weights not found: {path}. " + LPIPS_HELP)
+    try:
+        if path.suffix == ".pt2":  # torch.export archive
+            return torch.export.load(str(path)).module()
+        with warnings.catch_warnings():  # torch.jit is deprecated in torch 2.13 but still loads
+            warnings.simplefilter("ignore", DeprecationWarning)
+            return torch.jit.load(str(path), map_location="cpu").eval()
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"{path}: not a TorchScript (.pt) or torch.export (.pt2) file ({exc}). "
+                         + LPIPS_HELP) from exc
+
+
+def lpips(img: torch.Tensor, ref: torch.Tensor, model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> float:
+    """LPIPS distance between two [H, W, 3] images in [0, 1] with a model from ``load_lpips``."""
+    _check_pair(img, ref)
+    to_net = lambda t: (t.permute(2, 0, 1).unsqueeze(0).float() * 2.0 - 1.0)  # [1, 3, H, W] in [-1, 1]
+    with torch.no_grad():
+        return float(model(to_net(img), to_net(ref)).reshape(-1)[0])
+
+
+# ----------------------------------------------------------------------------------------------
+# Files and averages.
+
+def load_image(path: str | Path) -> torch.Tensor:
+    """Read an 8/16-bit image file as a float32 RGB tensor [H, W, 3] in [0, 1]."""
+    import cv2  # lazy: only needed for files
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise ValueError(f"{path}: could not be read as an image")
+    scale = 65535.0 if arr.dtype == np.uint16 else 255.0
+    if arr.ndim == 2:
+        arr = np.repeat(arr[:, :, None], 3, axis=2)
+    arr = cv2.cvtColor(arr[:, :, :3], cv2.COLOR_BGR2RGB)  # OpenCV reads BGR
+    return torch.from_numpy(arr.astype(np.float32) / scale)
+
+
+def evaluate_images(imgs: Sequence[torch.Tensor | str | Path], refs: Sequence[torch.Tensor | str | Path],
+                    lpips_weights: str | Path | None = None,
+                    padding: Literal["same", "valid"] = "same") -> dict:
+    """Mean PSNR / SSIM (and LPIPS when weights are given) over image pairs (tensors or paths).
+
+    Returns ``{"psnr", "ssim", "lpips" (or None), "n_images", "per_image": [...]}``; the mean PSNR is
+    the mean of per-image PSNRs (as 3DGS's metrics.py).
+    """
+    if len(imgs) != len(refs):
+        raise ValueError(f"{len(imgs)} images but {len(refs)} references")
+    if len(imgs) == 0:
+        raise ValueError("no images to evaluate")
+    model = load_lpips(lpips_weights) if lpips_weights is not None else None
+    rows = []
+    for img, ref in tqdm(list(zip(imgs, refs)), desc="image metrics", leave=False):
+        name = str(img) if isinstance(img, (str, Path)) else f"#{len(rows)}"
+        a = load_image(img) if isinstance(img, (str, Path)) else img
+        b = load_image(ref) if isinstance(ref, (str, Path)) else ref
+        row = {"name": name, "psnr": psnr(a, b), "ssim": ssim(a, b, padding=padding)}
+        row["lpips"] = lpips(a, b, model) if model is not None else None
+        rows.append(row)
+    mean = lambda k: float(np.mean([r[k] for r in rows]))
+    return {"psnr": mean("psnr"), "ssim": mean("ssim"),
+            "lpips": mean("lpips") if model is not None else None,
+            "n_images": len(rows), "ssim_padding": padding, "per_image": rows}

@@ -1,0 +1,374 @@
+"""Mesh metrics by the MonoSDF / GO-Surf protocol: accuracy, completeness, Chamfer-L1, F-score, NC.
+
+Protocol (MonoSDF ``replica_eval/eval_recon.py``, GO-Surf ``tools/mesh_metrics.py``):
+
+1. optionally keep only the surface the GT cameras saw (view frusta, optionally an occlusion
+   test; ``evaluation.culling``) -- for the predicted mesh and, by default, for the GT mesh;
+2. crop the predicted surface to the GT mesh's bounding box (plus a margin);
+3. sample points uniformly on both surfaces (MonoSDF: 200k each), with the normal of the triangle
+   each point lies on;
+4. measure each sample's distance to the other surface and average (equations below).
+
+Steps 1-2 are applied to the samples, by rejection: points are drawn uniformly on the whole mesh
+and those outside the kept region are discarded until ``n_samples`` remain, so the kept samples are
+uniform on the kept part of the surface whatever the tessellation.
+
+Distances: ``mode="point"`` (the protocol; what published numbers use) takes the nearest *sample*
+of the other surface (scipy cKDTree). This overestimates the true distance by a sampling bias of a
+few millimetres at 200k samples per room. ``mode="surface"`` takes the exact distance to the other
+mesh's triangles (Open3D ``RaycastingScene.compute_closest_points``); the target is then the whole
+other mesh (culling and cropping choose which points are *measured*, not what they are measured
+against). The output's ``protocol`` object records which was used.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal, Sequence
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from evaluation.culling import CameraSet, bounds_mask, raycasting_scene, visible_mask
+
+log = logging.getLogger(__name__)
+
+METRIC_KEYS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f_score",
+               "normal_consistency")
+
+
+@dataclass
+class MeshMetricsConfig:
+    """Mesh metrics by the MonoSDF / GO-Surf protocol."""
+
+    n_samples: int = 200_000
+    """points sampled on each surface after culling and cropping (MonoSDF: 200k)."""
+    threshold: float = 0.05
+    """distance threshold (metres) of precision, recall and F-score (a distance counts if < it)."""
+    mode: Literal["point", "surface"] = "point"
+    """point: to the nearest sample of the other surface (the protocol); surface: exact distance to the other mesh's triangles."""
+    cull_to_frusta: bool = True
+    """when cameras are given (--scene): keep only surface inside at least one camera's view frustum."""
+    occlusion: Literal["none", "gt", "self"] = "none"
+    """occlusion test with cameras: none; gt: a point must not lie behind the GT mesh as seen from the camera; self: not behind its own mesh (GO-Surf)."""
+    occlusion_tolerance: float = 0.02
+    """how far (metres, along the viewing ray) a point may lie behind the occluding surface and still count as seen."""
+    cull_gt: bool = True
+    """with cameras: cull the GT surface too, so completeness only asks for what the cameras saw."""
+    max_cameras: int = 0
+    """use at most this many cameras for culling, evenly spread (0 = all)."""
+    crop_to_gt_bounds: bool = True
+    """drop predicted surface outside the GT mesh's axis-aligned bounding box (plus the margin)."""
+    crop_margin: float = 0.05
+    """margin (metres) added to the GT bounding box on every side before cropping."""
+    seed: int = 0
+    """seed of the surface sampling."""
+
+    def validate(self) -> None:
+        """Raise ValueError on an impossible setting."""
+        if self.n_samples <= 0:
+            raise ValueError(f"n_samples must be positive, got {self.n_samples}")
+        if self.threshold <= 0:
+            raise ValueError(f"threshold must be positive, got {self.threshold}")
+        if self.mode not in ("point", "surface"):
+            raise ValueError(f"mode must be 'point' or 'surface', got {self.mode!r}")
+        if self.occlusion not in ("none", "gt", "self"):
+            raise ValueError(f"occlusion must be 'none', 'gt' or 'self', got {self.occlusion!r}")
+        if self.occlusion_tolerance < 0 or self.crop_margin < 0 or self.max_cameras < 0:
+            raise ValueError("occlusion_tolerance, crop_margin and max_cameras must be >= 0")
+
+
+@dataclass
+class TriMesh:
+    """A triangle mesh as numpy arrays (metres)."""
+
+    vertices: np.ndarray  # [V, 3] float64
+    faces: np.ndarray  # [F, 3] int64
+    name: str = "mesh"
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, dtype=np.float64)
+        self.faces = np.asarray(self.faces, dtype=np.int64)
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
+            raise ValueError(f"{self.name}: vertices must be [V, 3], got {self.vertices.shape}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
+            raise ValueError(f"{self.name}: mesh has no triangles (faces shape {self.faces.shape})")
+        if self.faces.min() < 0 or self.faces.max() >= len(self.vertices):
+            raise ValueError(f"{self.name}: face indices outside [0, {len(self.vertices)})")
+        if not np.isfinite(self.vertices[self.faces]).all():
+            raise ValueError(f"{self.name}: mesh has non-finite vertex coordinates")
+        tri = self.vertices[self.faces]  # [F, 3, 3]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3]
+        norm = np.linalg.norm(cross, axis=1)  # [F]
+        self.areas = 0.5 * norm  # [F] m^2
+        self.face_normals = cross / np.maximum(norm, 1e-300)[:, None]  # [F, 3], zero-area faces: 0
+        if not self.areas.sum() > 0:
+            raise ValueError(f"{self.name}: mesh has zero surface area")
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounds (lower [3], upper [3]) of the vertices used by faces."""
+        used = self.vertices[np.unique(self.faces)]
+        return used.min(axis=0), used.max(axis=0)
+
+
+def load_mesh(path: str | Path) -> TriMesh:
+    """Read a triangle mesh (PLY/OBJ/OFF/...) with Open3D; errors name the path."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(filename=str(path))
+    faces = np.asarray(mesh.triangles)
+    if len(faces) == 0:
+        raise ValueError(f"{path}: no triangles in this file (empty mesh, point cloud or unreadable)")
+    return TriMesh(np.asarray(mesh.vertices), faces, name=str(path))
+
+
+def sample_surface(mesh: TriMesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Sample ``n`` points uniformly on the surface (area-weighted triangle, uniform barycentric).
+
+    Returns points [n, 3] and the index [n] of the triangle each lies on.
+    """
+    cdf = np.cumsum(mesh.areas)  # [F]
+    face = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+    face = np.minimum(face, len(cdf) - 1)  # [n]
+    r1 = np.sqrt(rng.random(n))[:, None]  # [n, 1]
+    r2 = rng.random(n)[:, None]  # [n, 1]
+    a, b, c = (mesh.vertices[mesh.faces[face, k]] for k in range(3))  # [n, 3] each
+    points = (1.0 - r1) * a + r1 * (1.0 - r2) * b + r1 * r2 * c  # [n, 3]
+    return points, face
+
+
+def sample_kept_surface(mesh: TriMesh, n: int, rng: np.random.Generator,
+                        keep: Callable[[np.ndarray], np.ndarray] | None = None,
+                        max_rounds: int = 30) -> tuple[np.ndarray, np.ndarray, float]:
+    """Sample ``n`` points uniformly on the part of the surface where ``keep(points)`` is True.
+
+    Rejection sampling: uniform samples on the whole surface, those failing ``keep`` dropped,
+    repeated until ``n`` remain. Returns points [n, 3], triangle indices [n] and the estimated
+    fraction of the surface area that is kept.
+    """
+    if keep is None:
+        points, face = sample_surface(mesh, n, rng)
+        return points, face, 1.0
+    kept_p, kept_f, drawn, kept = [], [], 0, 0
+    batch = n
+    for _ in range(max_rounds):
+        points, face = sample_surface(mesh, batch, rng)
+        mask = keep(points)
+        kept_p.append(points[mask])
+        kept_f.append(face[mask])
+        drawn += batch
+        kept += int(mask.sum())
+        if kept >= n:
+            break
+        rate = max(kept / drawn, 1e-4)
+        batch = int(min(np.ceil((n - kept) / rate * 1.1) + 16, 4_000_000))
+    if kept == 0:
+        raise ValueError(f"{mesh.name}: no part of the surface survives culling/cropping "
+                         f"({drawn} samples drawn, none kept)")
+    if kept < n:
+        log.warning("%s: only %d of %d samples kept after %d rounds", mesh.name, kept, n, max_rounds)
+    points = np.concatenate(kept_p)[:n]
+    face = np.concatenate(kept_f)[:n]
+    return points, face, kept / drawn
+
+
+def nearest_sample_distances(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from each src point [N, 3] to its nearest dst point [M, 3] (cKDTree), and its index."""
+    dist, idx = cKDTree(dst).query(src, k=1, workers=-1)
+    return dist, idx
+
+
+def surface_distances(src: np.ndarray, scene: o3d.t.geometry.RaycastingScene) -> tuple[np.ndarray, np.ndarray]:
+    """Exact distance from each src point [N, 3] to a triangle surface, and the closest triangle."""
+    ans = scene.compute_closest_points(query_points=o3d.core.Tensor(src.astype(np.float32)))
+    closest = ans["points"].numpy().astype(np.float64)  # [N, 3]
+    face = ans["primitive_ids"].numpy().astype(np.int64)  # [N]
+    return np.linalg.norm(src - closest, axis=1), face
+
+
+def accuracy(dist_pred_to_gt: np.ndarray) -> float:
+    """Accuracy = mean over predicted samples p of d(p, GT)   (MonoSDF / GO-Surf)."""
+    return float(np.mean(dist_pred_to_gt))
+
+
+def completeness(dist_gt_to_pred: np.ndarray) -> float:
+    """Completeness = mean over GT samples g of d(g, Pred)   (MonoSDF / GO-Surf)."""
+    return float(np.mean(dist_gt_to_pred))
+
+
+def chamfer_l1(acc: float, comp: float) -> float:
+    """Chamfer-L1 = (Accuracy + Completeness) / 2. (Open3D's ChamferDistance is their sum.)"""
+    return 0.5 * (acc + comp)
+
+
+def precision_recall_fscore(dist_pred_to_gt: np.ndarray, dist_gt_to_pred: np.ndarray,
+                            threshold: float) -> tuple[float, float, float]:
+    """Precision = mean[d(p, GT) < tau], Recall = mean[d(g, Pred) < tau], F = 2PR / (P + R).
+
+    Fractions in [0, 1]; F = 0 when P + R = 0 (strict '<' as MonoSDF and Open3D).
+    """
+    p = float(np.mean(dist_pred_to_gt < threshold))
+    r = float(np.mean(dist_gt_to_pred < threshold))
+    f = 2.0 * p * r / (p + r) if p + r > 0 else 0.0
+    return p, r, f
+
+
+def normal_consistency(n_pred: np.ndarray, n_gt_at_pred: np.ndarray, n_gt: np.ndarray,
+                       n_pred_at_gt: np.ndarray) -> float:
+    """NC = ( mean_p |n_p . n_GT(nn(p))| + mean_g |n_g . n_Pred(nn(g))| ) / 2   (orientation-free)."""
+    nc_acc = np.abs(np.sum(n_pred * n_gt_at_pred, axis=1)).mean()
+    nc_comp = np.abs(np.sum(n_gt * n_pred_at_gt, axis=1)).mean()
+    return float(0.5 * (nc_acc + nc_comp))
+
+
+@dataclass
+class MeshMetrics:
+    """Result of a mesh evaluation: metres for distances, fractions in [0, 1] for the rest."""
+
+    accuracy: float
+    completeness: float
+    chamfer_l1: float
+    precision: float
+    recall: float
+    f_score: float
+    normal_consistency: float
+    protocol: dict[str, Any] = field(default_factory=dict)
+    dist_pred_to_gt: np.ndarray | None = field(default=None, repr=False)  # [N] per predicted sample
+    dist_gt_to_pred: np.ndarray | None = field(default=None, repr=False)  # [M] per GT sample
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form: the seven metric keys plus the ``protocol`` object."""
+        out: dict[str, Any] = {k: float(getattr(self, k)) for k in METRIC_KEYS}
+        out["protocol"] = dict(self.protocol)
+        return out
+
+
+def _culling_name(cams: CameraSet | None, cfg: MeshMetricsConfig) -> str:
+    if cams is None:
+        return "none"
+    return "frusta" if cfg.occlusion == "none" else f"frusta+occlusion({cfg.occlusion})"
+
+
+def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = None,
+                    cameras: Sequence[Any] | CameraSet | None = None) -> MeshMetrics:
+    """Compare a predicted mesh with the ground truth (see the module docstring for the protocol).
+
+    cameras: objects with ``K, R, t, width, height`` (``geocues.scene.Camera``) or a ``CameraSet``;
+    used for culling when ``cfg.cull_to_frusta``. Without cameras nothing is culled.
+    """
+    cfg = cfg or MeshMetricsConfig()
+    cfg.validate()
+    cams = None
+    if cameras is not None and cfg.cull_to_frusta:
+        cams = cameras if isinstance(cameras, CameraSet) else CameraSet.from_cameras(cameras, cfg.max_cameras)
+    elif cfg.occlusion != "none":
+        raise ValueError(f"occlusion={cfg.occlusion!r} needs cameras (pass --scene) and cull_to_frusta")
+    log.info("mesh metrics: %s vs %s, mode=%s, n_samples=%d, culling=%s",
+             pred.name, gt.name, cfg.mode, cfg.n_samples, _culling_name(cams, cfg))
+
+    need_gt_scene = cfg.mode == "surface" or (cams is not None and cfg.occlusion != "none")
+    gt_scene = raycasting_scene(gt.vertices, gt.faces) if need_gt_scene else None
+    need_pred_scene = cfg.mode == "surface" or (cams is not None and cfg.occlusion == "self")
+    pred_scene = raycasting_scene(pred.vertices, pred.faces) if need_pred_scene else None
+
+    def visibility(own_scene):
+        if cams is None:
+            return None
+        occluder = {"none": None, "gt": gt_scene, "self": own_scene}[cfg.occlusion]
+        return lambda p: visible_mask(p, cams, occluder, cfg.occlusion_tolerance)
+
+    lower, upper = gt.bounds
+    pred_vis = visibility(pred_scene)
+
+    def pred_keep(p: np.ndarray) -> np.ndarray:
+        mask = bounds_mask(p, lower, upper, cfg.crop_margin) if cfg.crop_to_gt_bounds else np.ones(len(p), bool)
+        if pred_vis is not None:
+            mask[mask] = pred_vis(p[mask])
+        return mask
+
+    use_pred_keep = cfg.crop_to_gt_bounds or pred_vis is not None
+    gt_keep = visibility(gt_scene) if cfg.cull_gt else None
+
+    rng_pred, rng_gt = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(2))
+    p_pts, p_face, p_frac = sample_kept_surface(pred, cfg.n_samples, rng_pred, pred_keep if use_pred_keep else None)
+    g_pts, g_face, g_frac = sample_kept_surface(gt, cfg.n_samples, rng_gt, gt_keep)
+    n_pred, n_gt = pred.face_normals[p_face], gt.face_normals[g_face]  # [N, 3], [M, 3]
+
+    if cfg.mode == "point":
+        d_pg, idx_pg = nearest_sample_distances(p_pts, g_pts)
+        d_gp, idx_gp = nearest_sample_distances(g_pts, p_pts)
+        n_gt_at_pred, n_pred_at_gt = n_gt[idx_pg], n_pred[idx_gp]
+    else:
+        d_pg, face_pg = surface_distances(p_pts, gt_scene)
+        d_gp, face_gp = surface_distances(g_pts, pred_scene)
+        n_gt_at_pred, n_pred_at_gt = gt.face_normals[face_pg], pred.face_normals[face_gp]
+
+    acc, comp = accuracy(d_pg), completeness(d_gp)
+    prec, rec, fs = precision_recall_fscore(d_pg, d_gp, cfg.threshold)
+    protocol = {
+        "name": "MonoSDF/GO-Surf",
+        "distance": "point-to-point (nearest sample)" if cfg.mode == "point" else "point-to-surface (exact)",
+        "mode": cfg.mode,
+        "n_samples": cfg.n_samples,
+        "n_pred_samples": int(len(p_pts)),
+        "n_gt_samples": int(len(g_pts)),
+        "threshold": cfg.threshold,
+        "culling": _culling_name(cams, cfg),
+        "n_cameras": 0 if cams is None else len(cams),
+        "cull_gt": bool(cams is not None and cfg.cull_gt),
+        "occlusion_tolerance": cfg.occlusion_tolerance if cams is not None and cfg.occlusion != "none" else None,
+        "crop_to_gt_bounds": cfg.crop_to_gt_bounds,
+        "crop_margin": cfg.crop_margin if cfg.crop_to_gt_bounds else None,
+        "pred_kept_area_fraction": round(p_frac, 6),
+        "gt_kept_area_fraction": round(g_frac, 6),
+        "seed": cfg.seed,
+        "units": "metres; precision, recall, f_score, normal_consistency are fractions in [0, 1]",
+    }
+    return MeshMetrics(
+        accuracy=acc, completeness=comp, chamfer_l1=chamfer_l1(acc, comp), precision=prec,
+        recall=rec, f_score=fs,
+        normal_consistency=normal_consistency(n_pred, n_gt_at_pred, n_gt, n_pred_at_gt),
+        protocol=protocol, dist_pred_to_gt=d_pg, dist_gt_to_pred=d_gp,
+    )
+
+
+def evaluate_mesh_files(pred_path: str | Path, gt_path: str | Path, cfg: MeshMetricsConfig | None = None,
+                        cameras: Sequence[Any] | CameraSet | None = None) -> MeshMetrics:
+    """Load both meshes (errors name the bad path) and run ``evaluate_meshes``."""
+    pred, gt = load_mesh(pred_path), load_mesh(gt_path)
+    result = evaluate_meshes(pred, gt, cfg, cameras)
+    result.protocol["pred_mesh"] = str(pred_path)
+    result.protocol["gt_mesh"] = str(gt_path)
+    return result
+
+
+def format_table(metrics: MeshMetrics) -> str:
+    """A plain-text table of the metrics and the protocol used (for the CLI)."""
+    rows = [
+        ("accuracy", f"{metrics.accuracy:.4f} m"),
+        ("completeness", f"{metrics.completeness:.4f} m"),
+        ("chamfer_l1", f"{metrics.chamfer_l1:.4f} m"),
+        ("precision", f"{metrics.precision:.4f}"),
+        ("recall", f"{metrics.recall:.4f}"),
+        ("f_score", f"{metrics.f_score:.4f}"),
+        ("normal_consistency", f"{metrics.normal_consistency:.4f}"),
+    ]
+    p = metrics.protocol
+    note = (f"distance: {p.get('distance')}; threshold {p.get('threshold')} m; "
+            f"{p.get('n_pred_samples')} pred / {p.get('n_gt_samples')} GT samples; "
+            f"culling: {p.get('culling')} ({p.get('n_cameras')} cameras); "
+            f"crop to GT bounds: {p.get('crop_to_gt_bounds')}")
+    width = max(len(k) for k, _ in rows)
+    lines = [f"{'metric':<{width}}  value", f"{'-' * width}  {'-' * 10}"]
+    lines += [f"{k:<{width}}  {v}" for k, v in rows]
+    return "\n".join(lines) + "\n" + note
+
+
+__all__ = ["MeshMetricsConfig", "MeshMetrics", "TriMesh", "load_mesh", "evaluate_meshes",
+           "evaluate_mesh_files", "format_table", "sample_surface", "METRIC_KEYS"]

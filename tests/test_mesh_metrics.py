@@ -1,0 +1,289 @@
+"""Mesh metrics on cases with hand-computed answers, against Open3D, and with culling."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy import integrate
+
+from evaluation.culling import CameraSet, in_frustum, raycasting_scene, unoccluded, visible_mask
+from evaluation.mesh_metrics import (METRIC_KEYS, MeshMetricsConfig, TriMesh, evaluate_mesh_files,
+                                     evaluate_meshes, load_mesh, sample_surface)
+
+
+def box(shift=(0.0, 0.0, 0.0)) -> TriMesh:
+    """Unit cube [0, 1]^3 (12 triangles), translated."""
+    m = o3d.geometry.TriangleMesh.create_box()
+    return TriMesh(np.asarray(m.vertices) + np.asarray(shift), np.asarray(m.triangles), name="box")
+
+
+def rect(x0, x1, y0, y1, z) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned rectangle at height z (2 triangles, normal +z)."""
+    v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def merge(*parts) -> TriMesh:
+    verts, faces, off = [], [], 0
+    for v, f in parts:
+        verts.append(v)
+        faces.append(f + off)
+        off += len(v)
+    return TriMesh(np.concatenate(verts), np.concatenate(faces), name="merged")
+
+
+@dataclass
+class Cam:  # duck-typed like geocues.scene.Camera
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+    name: str = "cam"
+
+
+def camera_at_origin() -> Cam:
+    """Looks along +z; sees x/z, y/z in [-0.25, 0.25): at z = 2 the square [-0.5, 0.5)^2."""
+    K = np.array([[200.0, 0, 50.0], [0, 200.0, 50.0], [0, 0, 1]])
+    return Cam(K=K, R=np.eye(3), t=np.zeros(3), width=100, height=100)
+
+
+def within_binomial(value: float, p: float, n: int, sigmas: float = 4.0) -> bool:
+    """A sampled fraction agrees with its expectation p within `sigmas` standard errors."""
+    return abs(value - p) <= sigmas * np.sqrt(p * (1 - p) / n)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class TestKnownCases:
+    def test_identical_surface_mode_is_zero(self):
+        r = evaluate_meshes(box(), box(), MeshMetricsConfig(n_samples=20_000, mode="surface"))
+        assert r.chamfer_l1 < 1e-6 and r.accuracy < 1e-6 and r.completeness < 1e-6
+        assert r.f_score == 1.0 and r.precision == 1.0 and r.recall == 1.0
+        assert r.normal_consistency == pytest.approx(1.0, abs=1e-6)
+        assert r.protocol["mode"] == "surface" and "surface" in r.protocol["distance"]
+
+    def test_identical_point_mode_is_sampling_spacing(self):
+        n = 20_000
+        r = evaluate_meshes(box(), box(), MeshMetricsConfig(n_samples=n, mode="point"))
+        # nearest-neighbour distance of a uniform 2D sampling with density rho: E = 1 / (2 sqrt(rho))
+        expected = 0.5 / np.sqrt(n / 6.0)  # cube area 6 m^2
+        assert r.chamfer_l1 == pytest.approx(expected, rel=0.05)
+        assert r.f_score == 1.0
+        assert r.normal_consistency > 0.98  # only neighbours across cube edges disagree
+        assert r.protocol["mode"] == "point" and r.protocol["n_samples"] == n
+
+    def test_parallel_planes_surface_mode_exact(self):
+        pred = merge(rect(-1, 1, -1, 1, 0.03))
+        gt = merge(rect(-1, 1, -1, 1, 0.0))
+        r = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=20_000, mode="surface"))
+        np.testing.assert_allclose(r.dist_pred_to_gt, 0.03, atol=1e-6)  # every distance is 3 cm
+        np.testing.assert_allclose(r.dist_gt_to_pred, 0.03, atol=1e-6)
+        assert r.chamfer_l1 == pytest.approx(0.03, abs=1e-6)
+        assert r.f_score == 1.0 and r.normal_consistency == pytest.approx(1.0)
+        r2 = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=20_000, mode="surface", threshold=0.02))
+        assert r2.precision == 0.0 and r2.recall == 0.0 and r2.f_score == 0.0
+
+    def test_parallel_planes_point_mode_has_predicted_bias(self):
+        n, h = 20_000, 0.03
+        pred = merge(rect(-1, 1, -1, 1, h))
+        gt = merge(rect(-1, 1, -1, 1, 0.0))
+        r = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=n, mode="point"))
+        # in-plane offset R to the nearest sample: P(R > r) = exp(-rho pi r^2), rho = n / 4 m^2
+        rho = n / 4.0
+        pdf = lambda x: 2 * rho * np.pi * x * np.exp(-rho * np.pi * x**2)
+        expected, _ = integrate.quad(lambda x: np.sqrt(h**2 + x**2) * pdf(x), 0, 0.2, points=[0.01])
+        assert expected > h + 5e-4  # the bias is real at this density
+        assert r.accuracy == pytest.approx(expected, rel=3e-3)
+        assert r.completeness == pytest.approx(expected, rel=3e-3)
+
+    def test_shifted_box_matches_analytic_value(self):
+        d = 0.03
+        cfg = MeshMetricsConfig(n_samples=200_000, mode="surface", threshold=0.02)
+        r = evaluate_meshes(box((d, 0, 0)), box(), cfg)
+        # per face of the shifted cube (6 m^2): the face inside the GT cube is at distance
+        # min(d, distance to the square's border): E = (1 - (1 - 2d)^3) / 6; the outside face at d;
+        # the 4 side faces are at 0 except a strip of width d at mean d/2.
+        acc = ((1 - (1 - 2 * d) ** 3) / 6 + d + 4 * d * d / 2) / 6  # = 0.010006
+        assert r.accuracy == pytest.approx(acc, rel=0.01)
+        assert r.completeness == pytest.approx(acc, rel=0.01)  # symmetric case
+        # below 2 cm: inside face where the border is < 2 cm away, sides except 1 cm of the strip
+        prec = ((1 - (1 - 0.04) ** 2) + 0 + 4 * (1 - d / 3)) / 6  # = 0.673067
+        assert r.precision == pytest.approx(prec, rel=0.01)
+        assert r.f_score == pytest.approx(prec, rel=0.01)
+        rp = evaluate_meshes(box((d, 0, 0)), box(), MeshMetricsConfig(n_samples=200_000, mode="point"))
+        assert rp.chamfer_l1 > r.chamfer_l1 + 1e-3  # point-to-point adds a sampling bias
+
+    @pytest.mark.parametrize("radius", [0.015, 0.025])
+    def test_surface_mode_agrees_with_open3d(self, radius):
+        shift = (0.03, 0.02, 0.01)
+        pred, gt = box(shift), box()
+        n = 100_000
+        o3d.utility.random.seed(0)
+        t_pred = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh.create_box().translate(shift))
+        t_gt = o3d.t.geometry.TriangleMesh.from_legacy(o3d.geometry.TriangleMesh.create_box())
+        params = o3d.t.geometry.MetricParameters(fscore_radius=[radius], n_sampled_points=n)
+        metric = o3d.t.geometry.Metric
+        chamfer_sum, fscore_pct = t_pred.compute_metrics(
+            t_gt, [metric.ChamferDistance, metric.FScore], params).numpy()
+        r = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=n, mode="surface", threshold=radius))
+        # Open3D reports Chamfer as the SUM of both means and the F-score in percent
+        assert 2 * r.chamfer_l1 == pytest.approx(float(chamfer_sum), rel=0.01)
+        assert 100 * r.f_score == pytest.approx(float(fscore_pct), rel=0.01)
+
+    def test_seed_determinism(self):
+        cfg = MeshMetricsConfig(n_samples=5_000, mode="point", seed=3)
+        a = evaluate_meshes(box((0.02, 0, 0)), box(), cfg)
+        b = evaluate_meshes(box((0.02, 0, 0)), box(), cfg)
+        c = evaluate_meshes(box((0.02, 0, 0)), box(), MeshMetricsConfig(n_samples=5_000, mode="point", seed=4))
+        assert a.to_dict() == b.to_dict()
+        assert a.chamfer_l1 != c.chamfer_l1
+
+    def test_crop_to_gt_bounds(self):
+        gt = merge(rect(-1, 1, -1, 1, 0.0))
+        far = rect(5, 6, 5, 6, 0.0)  # 1 m^2 far outside the GT bounds
+        pred = merge(rect(-1, 1, -1, 1, 0.0), far)
+        cropped = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=10_000, mode="surface"))
+        assert cropped.accuracy < 1e-6
+        assert within_binomial(cropped.protocol["pred_kept_area_fraction"], 4 / 5, 10_000)
+        full = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=10_000, mode="surface",
+                                                           crop_to_gt_bounds=False))
+        assert within_binomial(full.precision, 4 / 5, 10_000)
+
+
+class TestSampling:
+    def test_uniform_by_area(self):
+        mesh = merge(rect(0, 1, 0, 1, 0.0), rect(0, 3, 0, 1, 1.0))  # areas 1 and 3
+        pts, face = sample_surface(mesh, 40_000, np.random.default_rng(0))
+        on_upper = pts[:, 2] > 0.5
+        np.testing.assert_allclose(pts[:, 2], np.where(on_upper, 1.0, 0.0), atol=1e-12)  # on the surface
+        assert within_binomial(np.mean(on_upper), 0.75, 40_000)
+        upper = pts[on_upper]
+        assert within_binomial(np.mean(upper[:, 0] < 1.5), 0.5, len(upper))  # uniform inside
+        assert np.all(np.isin(face[~on_upper], [0, 1])) and np.all(np.isin(face[on_upper], [2, 3]))
+
+
+class TestCulling:
+    def test_frustum_pixel_convention(self):
+        cams = CameraSet.from_cameras([camera_at_origin()])
+        pts = np.array([
+            [0.0, 0.0, 2.0],     # centre: inside
+            [0.0, 0.0, -2.0],    # behind the camera
+            [0.6, 0.0, 2.0],     # u = 110 > W
+            [-0.5, -0.5, 2.0],   # u = v = 0: the image's top-left corner, inside
+            [0.5, 0.0, 2.0],     # u = 100 = W: outside (pixels cover [0, W))
+        ])
+        np.testing.assert_array_equal(in_frustum(pts, cams, 0), [True, False, False, True, False])
+
+    def test_occlusion_ray(self):
+        wall = raycasting_scene(*rect(-5, 5, -5, 5, 2.0))
+        pts = np.array([[0, 0, 1.0], [0, 0, 3.0], [0, 0, 2.01], [0.1, 0.1, 2.0]])
+        np.testing.assert_array_equal(unoccluded(pts, np.zeros(3), wall, tolerance=0.02),
+                                      [True, False, True, True])
+        cams = CameraSet.from_cameras([camera_at_origin()])
+        np.testing.assert_array_equal(visible_mask(pts, cams, wall, 0.02), [True, False, True, True])
+        np.testing.assert_array_equal(visible_mask(pts, cams, None), [True, True, True, True])
+
+    def test_camera_input_checked(self):
+        with pytest.raises(ValueError, match="lacks attributes"):
+            CameraSet.from_cameras([object()])
+        with pytest.raises(ValueError, match="no cameras"):
+            CameraSet.from_cameras([])
+
+    def test_geometry_outside_frusta_is_dropped(self):
+        n = 20_000
+        gt = merge(rect(-1, 1, -1, 1, 2.0))
+        blob = rect(0.6, 0.9, -0.2, 0.2, 1.96)  # 4 cm in front of the wall, outside the view
+        pred = merge(rect(-1, 1, -1, 1, 2.0), blob)
+        cfg = MeshMetricsConfig(n_samples=n, mode="surface")
+        raw = evaluate_meshes(pred, gt, cfg)
+        blob_share = 0.12 / 4.12
+        assert set(np.round(raw.dist_pred_to_gt, 5)) == {0.0, 0.04}
+        assert within_binomial(np.mean(raw.dist_pred_to_gt > 0.02), blob_share, n)
+        culled = evaluate_meshes(pred, gt, cfg, cameras=[camera_at_origin()])
+        assert culled.accuracy < 1e-6 and culled.completeness < 1e-6 and culled.f_score == 1.0
+        assert culled.protocol["culling"] == "frusta" and culled.protocol["n_cameras"] == 1
+        assert within_binomial(culled.protocol["pred_kept_area_fraction"], 1 / 4.12, n)
+        assert within_binomial(culled.protocol["gt_kept_area_fraction"], 1 / 4, n)
+
+    def test_gt_culling_limits_completeness(self):
+        n = 20_000
+        gt = merge(rect(-1, 1, -1, 1, 2.0))
+        pred = merge(rect(-0.5, 0.5, -0.5, 0.5, 2.0))  # exactly the part the camera sees
+        cfg = MeshMetricsConfig(n_samples=n, mode="surface")
+        culled = evaluate_meshes(pred, gt, cfg, cameras=[camera_at_origin()])
+        assert culled.completeness < 1e-6 and culled.recall == 1.0
+        raw = evaluate_meshes(pred, gt, cfg)
+        # GT within 5 cm of the 1 m square: the 1.1 m square, 1.21 of 4 m^2
+        assert within_binomial(raw.recall, 1.21 / 4, n)
+        no_gt_cull = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=n, mode="surface", cull_gt=False),
+                                     cameras=[camera_at_origin()])
+        assert within_binomial(no_gt_cull.recall, 1.21 / 4, n)
+
+    def test_occlusion_modes(self):
+        n = 20_000
+        gt = merge(rect(-1, 1, -1, 1, 2.0))
+        hidden = rect(-0.2, 0.2, -0.2, 0.2, 2.04)  # 4 cm behind the wall, inside the view
+        pred = merge(rect(-1, 1, -1, 1, 2.0), hidden)
+        cams = [camera_at_origin()]
+        share = 0.16 / 1.16  # of the visible predicted area
+
+        def run(**kw):
+            return evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=n, mode="surface", **kw), cams)
+
+        none = run()
+        assert within_binomial(np.mean(none.dist_pred_to_gt > 0.02), share, n)
+        for occ in ("gt", "self"):
+            r = run(occlusion=occ, occlusion_tolerance=0.02)
+            assert r.accuracy < 1e-6, occ
+            assert r.protocol["culling"] == f"frusta+occlusion({occ})"
+        lenient = run(occlusion="gt", occlusion_tolerance=0.05)  # 4 cm behind is within 5 cm
+        assert within_binomial(np.mean(lenient.dist_pred_to_gt > 0.02), share, n)
+        with pytest.raises(ValueError, match="needs cameras"):
+            evaluate_meshes(pred, gt, MeshMetricsConfig(occlusion="gt"))
+
+
+class TestInput:
+    def test_missing_file_names_path(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match="no_such.ply"):
+            load_mesh(tmp_path / "no_such.ply")
+
+    def test_point_cloud_is_not_a_mesh(self, tmp_path):
+        pcd = o3d.geometry.PointCloud(points=o3d.utility.Vector3dVector(np.random.rand(10, 3)))
+        path = tmp_path / "cloud.ply"
+        o3d.io.write_point_cloud(filename=str(path), pointcloud=pcd)
+        with pytest.raises(ValueError, match="cloud.ply.*no triangles"):
+            load_mesh(path)
+
+    def test_empty_file(self, tmp_path):
+        path = tmp_path / "empty.ply"
+        path.write_bytes(b"")
+        with pytest.raises(ValueError, match="empty.ply"):
+            load_mesh(path)
+
+    def test_degenerate_mesh(self):
+        with pytest.raises(ValueError, match="zero surface area"):
+            TriMesh(np.zeros((3, 3)), np.array([[0, 1, 2]]))
+        with pytest.raises(ValueError, match="face indices"):
+            TriMesh(np.eye(3), np.array([[0, 1, 3]]))
+
+    def test_bad_config(self):
+        with pytest.raises(ValueError, match="n_samples"):
+            evaluate_meshes(box(), box(), MeshMetricsConfig(n_samples=0))
+        with pytest.raises(ValueError, match="threshold"):
+            evaluate_meshes(box(), box(), MeshMetricsConfig(threshold=-1.0))
+
+    def test_files_round_trip(self, tmp_path):
+        for name, mesh in (("pred.ply", box((0.01, 0, 0))), ("gt.ply", box())):
+            m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                          o3d.utility.Vector3iVector(mesh.faces))
+            o3d.io.write_triangle_mesh(filename=str(tmp_path / name), mesh=m)
+        r = evaluate_mesh_files(tmp_path / "pred.ply", tmp_path / "gt.ply",
+                                MeshMetricsConfig(n_samples=5_000, mode="surface"))
+        out = r.to_dict()
+        assert set(METRIC_KEYS) <= set(out) and out["protocol"]["pred_mesh"].endswith("pred.ply")
+        assert 0 < out["chamfer_l1"] < 0.01 and 0 <= out["f_score"] <= 1
