@@ -3,13 +3,39 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from cli._dispatch import dispatch
+from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, format_table, save_json
+
+
+def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="PRED_MESH")],
+         gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
+         scene: Annotated[Path | None, tyro.conf.arg(metavar="SCENE")] = None,
+         json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
+         cfg: Annotated[MeshMetricsConfig, tyro.conf.arg(name="")] = MeshMetricsConfig()) -> int:
+    """Mesh metrics (accuracy, completeness, Chamfer-L1, F-score, normal consistency) of a mesh.
+
+    Args:
+        pred_mesh: the predicted mesh (PLY/OBJ/OFF).
+        gt: the ground-truth mesh (default: SCENE/gt/mesh.ply when --scene is given).
+        scene: a scene folder; its cameras (train and test) cull both meshes to what they saw.
+        json: write the metrics and the protocol used to this JSON file.
+    """
+    result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
+    print(format_table(result))
+    if json is not None:
+        print(f"wrote {save_json(result, json)}")
+    return 0
+
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
 # The default command (metrics of a mesh) is registered under "mesh" and runs without its name.
-COMMANDS: dict = {}
-DEFAULT = None
+COMMANDS: dict = {"mesh": mesh}
+DEFAULT = "mesh"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,6 +23,7 @@ against). The output's ``protocol`` object records which was used.
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -348,6 +349,40 @@ def evaluate_mesh_files(pred_path: str | Path, gt_path: str | Path, cfg: MeshMet
     return result
 
 
+def scene_cameras_and_gt(scene_dir: str | Path) -> tuple[list[Any], Path | None]:
+    """All cameras (train and test) of a scene folder and its ``gt/mesh.ply`` if present."""
+    from geocues.scene import Scene  # lazy: geocues is only needed with a scene
+
+    scene = Scene.load(scene_dir, check_priors=False)
+    return list(scene.cameras), scene.gt_mesh_path
+
+
+def evaluate_with_scene(pred_path: str | Path, gt_path: str | Path | None = None,
+                        scene_dir: str | Path | None = None,
+                        cfg: MeshMetricsConfig | None = None) -> MeshMetrics:
+    """The ``evaluate`` command's work: GT from ``gt_path`` or the scene's ``gt/mesh.ply``; with a
+    scene, its cameras cull both surfaces (``cfg.cull_to_frusta``)."""
+    cameras, scene_gt = scene_cameras_and_gt(scene_dir) if scene_dir is not None else (None, None)
+    gt_path = gt_path if gt_path is not None else scene_gt
+    if gt_path is None:
+        raise ValueError("no GT mesh: pass --gt GT_MESH"
+                         + (f" (the scene {scene_dir} has no gt/mesh.ply)" if scene_dir else ""))
+    result = evaluate_mesh_files(pred_path, gt_path, cfg, cameras)
+    if scene_dir is not None:
+        result.protocol["scene"] = str(scene_dir)
+    return result
+
+
+def save_json(metrics: MeshMetrics, path: str | Path) -> Path:
+    """Write ``metrics.to_dict()`` as JSON atomically (temp file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(metrics.to_dict(), indent=2) + "\n")
+    tmp.replace(path)
+    return path
+
+
 def format_table(metrics: MeshMetrics) -> str:
     """A plain-text table of the metrics and the protocol used (for the CLI)."""
     rows = [
@@ -371,4 +406,4 @@ def format_table(metrics: MeshMetrics) -> str:
 
 
 __all__ = ["MeshMetricsConfig", "MeshMetrics", "TriMesh", "load_mesh", "evaluate_meshes",
-           "evaluate_mesh_files", "format_table", "sample_surface", "METRIC_KEYS"]
+           "evaluate_mesh_files", "evaluate_with_scene", "save_json", "format_table", "METRIC_KEYS"]

@@ -1,0 +1,115 @@
+"""The default `evaluate PRED_MESH --gt GT_MESH` command: JSON output, scene culling, clean errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from cli.evaluate_cli import main
+from evaluation.mesh_metrics import METRIC_KEYS
+
+
+def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces))
+    assert o3d.io.write_triangle_mesh(filename=str(path), mesh=mesh)
+    return path
+
+
+def rects(*specs) -> tuple[np.ndarray, np.ndarray]:
+    """Union of axis-aligned rectangles (x0, x1, y0, y1, z), 2 triangles each."""
+    verts, faces = [], []
+    for k, (x0, x1, y0, y1, z) in enumerate(specs):
+        verts.append([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+        faces.append(np.array([[0, 1, 2], [0, 2, 3]]) + 4 * k)
+    return np.asarray(verts, dtype=np.float64).reshape(-1, 3), np.concatenate(faces)
+
+
+def box_files(tmp_path: Path, shift: float) -> tuple[Path, Path]:
+    box = o3d.geometry.TriangleMesh.create_box()
+    v, f = np.asarray(box.vertices), np.asarray(box.triangles)
+    return (write_mesh(tmp_path / "pred.ply", v + [shift, 0, 0], f), write_mesh(tmp_path / "gt.ply", v, f))
+
+
+def make_scene(root: Path) -> Path:
+    """One 100x100 camera at the origin looking along +z (sees x/z, y/z in [-0.25, 0.25)),
+    a COLMAP text model, its image, and gt/mesh.ply: a 2 x 2 m wall at z = 2."""
+    model = root / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("1 PINHOLE 100 100 200 200 50 50\n")
+    (model / "images.txt").write_text("1 1 0 0 0 0 0 0 1 00000.png\n\n")
+    (model / "points3D.txt").write_text("")
+    (root / "images").mkdir()
+    cv2.imwrite(str(root / "images" / "00000.png"), np.full((100, 100, 3), 128, np.uint8))
+    write_mesh(root / "gt" / "mesh.ply", *rects((-1, 1, -1, 1, 2.0)))
+    return root
+
+
+def test_writes_json_and_table(tmp_path, capsys):
+    pred, gt = box_files(tmp_path, 0.01)
+    out = tmp_path / "res" / "metrics.json"
+    rc = main([str(pred), "--gt", str(gt), "--json", str(out), "--n-samples", "5000", "--mode", "surface"])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert set(METRIC_KEYS) <= set(data) and isinstance(data["protocol"], dict)
+    assert data["protocol"]["mode"] == "surface" and data["protocol"]["n_samples"] == 5000
+    assert data["protocol"]["culling"] == "none" and data["protocol"]["threshold"] == 0.05
+    # 1 cm shift: 1/6 of the surface at ~1 cm, the rest at ~0 -> C-L1 about 3.3 mm
+    assert 0.002 < data["chamfer_l1"] < 0.005
+    assert data["f_score"] == 1.0 and 0.9 < data["normal_consistency"] <= 1.0
+    printed = capsys.readouterr().out
+    assert "chamfer_l1" in printed and "point-to-surface" in printed and str(out) in printed
+
+
+def test_point_mode_is_default(tmp_path):
+    pred, gt = box_files(tmp_path, 0.0)
+    out = tmp_path / "m.json"
+    assert main([str(pred), "--gt", str(gt), "--json", str(out), "--n-samples", "20000"]) == 0
+    data = json.loads(out.read_text())
+    assert data["protocol"]["mode"] == "point" and data["f_score"] == 1.0
+
+
+def test_missing_file_fails_cleanly(tmp_path, capsys):
+    _, gt = box_files(tmp_path, 0.0)
+    out = tmp_path / "m.json"
+    rc = main([str(tmp_path / "absent.ply"), "--gt", str(gt), "--json", str(out)])
+    assert rc == 1 and not out.exists()
+    err = capsys.readouterr().err
+    assert "absent.ply" in err and "Traceback" not in err
+
+
+def test_empty_mesh_fails_cleanly(tmp_path, capsys):
+    pred, _ = box_files(tmp_path, 0.0)
+    empty = tmp_path / "empty.ply"
+    empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nelement face 0\n"
+                     "property list uchar int vertex_indices\nend_header\n")
+    assert main([str(pred), "--gt", str(empty)]) == 1
+    assert "empty.ply" in capsys.readouterr().err
+
+
+def test_scene_culls_to_its_cameras(tmp_path):
+    scene = make_scene(tmp_path / "scene")
+    # the wall plus a patch 4 cm in front of it, outside the camera's view
+    pred = write_mesh(tmp_path / "pred.ply", *rects((-1, 1, -1, 1, 2.0), (0.6, 0.9, -0.2, 0.2, 1.96)))
+    plain, culled = tmp_path / "plain.json", tmp_path / "culled.json"
+    args = ["--n-samples", "20000", "--mode", "surface"]
+    assert main([str(pred), "--gt", str(scene / "gt" / "mesh.ply"), "--json", str(plain), *args]) == 0
+    assert main([str(pred), "--scene", str(scene), "--json", str(culled), *args]) == 0  # GT from the scene
+    plain, culled = json.loads(plain.read_text()), json.loads(culled.read_text())
+    assert plain["accuracy"] > 5e-4  # the patch: ~3% of the surface at 4 cm
+    assert culled["accuracy"] < 1e-6 and culled["completeness"] < 1e-6
+    assert culled["protocol"]["culling"] == "frusta" and culled["protocol"]["n_cameras"] == 1
+    assert culled["protocol"]["gt_mesh"].endswith("mesh.ply")
+
+
+def test_no_gt_anywhere(tmp_path, capsys):
+    scene = make_scene(tmp_path / "scene")
+    (scene / "gt" / "mesh.ply").unlink()
+    pred, _ = box_files(tmp_path, 0.0)
+    assert main([str(pred), "--scene", str(scene)]) == 1
+    assert "--gt" in capsys.readouterr().err
