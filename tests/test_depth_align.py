@@ -1,0 +1,127 @@
+"""Depth alignment: robust scale-and-shift fit of depth priors to the cue points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior, fit_scale_shift
+from geocues.scene import Scene
+
+from cues_synth import fake_line_cues, make_room_scene, render
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """Synthetic room, 4 views, exact depth per view."""
+    scene = Scene.load(make_room_scene(tmp_path_factory.mktemp("align") / "room", n_views=4,
+                                       priors="none", n_sfm=300, n_outliers=0))
+    depths = [render(c.K, c.R, c.t, c.width, c.height)[1] for c in scene.cameras]
+    return scene, depths
+
+
+def _surface_points(scene, depths, i, n=300, seed=0):
+    """World points on the surface seen by camera i (from its exact depth)."""
+    cam = scene.cameras[i]
+    rng = np.random.default_rng(seed)
+    r, c = np.nonzero(depths[i] > 0)
+    k = rng.choice(len(r), n, replace=False)
+    Xc = cam.pixel_rays()[r[k], c[k]] * depths[i][r[k], c[k], None]
+    return (Xc - cam.t) @ cam.R
+
+
+class TestFitScaleShift:
+    def test_exact(self):
+        rng = np.random.default_rng(0)
+        z = rng.uniform(1, 5, 200)
+        s, b, used = fit_scale_shift(0.5 * z + 0.3, z, DepthAlignConfig(), rng)
+        assert s == pytest.approx(2.0, rel=1e-6) and b == pytest.approx(-0.6, abs=1e-6) and used.all()
+
+    def test_outliers_and_occluded_anchors(self):
+        rng = np.random.default_rng(1)
+        z = rng.uniform(1, 5, 400)
+        d = (z - 0.2) / 1.7 + rng.normal(0, 0.002, 400)
+        z_obs = z.copy()
+        z_obs[:80] += rng.uniform(0.5, 2.0, 80)  # 20 %: anchors hidden behind the surface
+        z_obs[80:120] *= rng.uniform(0.3, 0.8, 40)  # 10 %: gross outliers in front
+        s, b, used = fit_scale_shift(d, z_obs, DepthAlignConfig(), rng)
+        assert s == pytest.approx(1.7, rel=0.01) and b == pytest.approx(0.2, abs=0.02)
+        assert not used[:80].any(), "occluded anchors must be left out of the fit"
+
+    def test_scale_only(self):
+        rng = np.random.default_rng(2)
+        z = rng.uniform(1, 5, 100)
+        s, b, _ = fit_scale_shift(z / 3.0, z, DepthAlignConfig(fit_shift=False), rng)
+        assert s == pytest.approx(3.0, rel=1e-6) and b == 0.0
+
+    def test_bad_input(self):
+        rng = np.random.default_rng(0)
+        with pytest.raises(ValueError, match="equal shape"):
+            fit_scale_shift(np.ones(3), np.ones(4), DepthAlignConfig(), rng)
+        with pytest.raises(ValueError, match="at least 2"):
+            fit_scale_shift(np.ones(1), np.ones(1), DepthAlignConfig(), rng)
+
+
+class TestAlignDepthPrior:
+    def test_recovers_affine_prior(self, room):
+        scene, depths = room
+        cam = scene.cameras[1]
+        prior = np.where(depths[1] > 0, 0.4 * depths[1] + 0.5, 0).astype(np.float32)
+        X = _surface_points(scene, depths, 1)
+        al = align_depth_prior(cam, prior, X, DepthAlignConfig())
+        assert al.ok, al.reason
+        assert al.scale == pytest.approx(2.5, rel=2e-3) and al.shift == pytest.approx(-1.25, abs=5e-3)
+        assert al.residual_median_m < 0.005 and al.n_anchors > 200
+        np.testing.assert_allclose(al.apply(prior)[depths[1] > 0], depths[1][depths[1] > 0], atol=0.01)
+
+    def test_points_behind_walls_are_occluded(self, room):
+        """Anchors seen by another camera but hidden in this one must not bias the fit."""
+        scene, depths = room
+        cam = scene.cameras[0]
+        prior = np.where(depths[0] > 0, 0.5 * depths[0], 0).astype(np.float32)
+        X = np.concatenate([_surface_points(scene, depths, 0, 200), _surface_points(scene, depths, 2, 200)])
+        al = align_depth_prior(cam, prior, X, DepthAlignConfig())
+        assert al.ok and al.scale == pytest.approx(2.0, rel=0.01) and abs(al.shift) < 0.02
+        assert al.residual_median_m < 0.01
+
+    def test_too_few_anchors_is_skipped_with_reason(self, room):
+        scene, depths = room
+        cam = scene.cameras[0]
+        al = align_depth_prior(cam, depths[0], _surface_points(scene, depths, 0, 5), DepthAlignConfig())
+        assert not al.ok and "too few anchors (5 < 20)" in al.reason
+        assert al.to_dict()["scale"] is None
+        with pytest.raises(ValueError, match="no alignment"):
+            al.apply(depths[0])
+
+    def test_anchors_on_depth_edges_are_not_used(self, room):
+        scene, depths = room
+        cam = scene.cameras[3]
+        lines = fake_line_cues(scene.cameras)
+        al = align_depth_prior(cam, depths[3], lines.points, DepthAlignConfig(min_anchors=3))
+        assert al.rejected["depth_edge"] > 0 or al.rejected["outside_image"] > 0
+        if al.ok:
+            assert al.scale == pytest.approx(1.0, rel=0.02)
+
+    def test_shape_mismatch(self, room):
+        scene, _ = room
+        with pytest.raises(ValueError, match=r"expected \(120, 160\)"):
+            align_depth_prior(scene.cameras[0], np.ones((10, 10), np.float32), np.zeros((0, 3)),
+                              DepthAlignConfig())
+
+
+class TestAnchors:
+    def test_build_and_candidates(self, room):
+        scene, _ = room
+        lines = fake_line_cues(scene.cameras, drop=(2,))
+        sfm_xyz = np.random.default_rng(0).random((7, 3))
+        a = Anchors.build(sfm_xyz=sfm_xyz, sfm_views={0: np.array([1, 3])}, line_points=lines.points,
+                          line_of_point=lines.point_line, line_views=lines.views)
+        assert len(a) == 7 + len(lines.points)
+        assert a.group[:7].tolist() == list(range(-1, -8, -1))
+        c0 = a.candidates(0)
+        assert {1, 3} <= set(c0.tolist()) and 0 not in c0
+        assert not np.isin(np.arange(7, len(a)), a.candidates(2)).any(), "camera 2 sees no line"
+        # SfM points without any track: visibility unknown -> candidates in every view
+        b = Anchors.build(sfm_xyz=sfm_xyz, sfm_views={0: np.zeros(0, np.int64)})
+        assert b.candidates(5).tolist() == list(range(7))
+        assert len(Anchors.build()) == 0
