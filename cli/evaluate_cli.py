@@ -9,6 +9,7 @@ from typing import Annotated
 import tyro
 
 from cli._dispatch import dispatch
+from cli.rooms_cli import make_room
 from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, format_table, save_json
 
 
@@ -34,7 +35,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
 # The default command (metrics of a mesh) is registered under "mesh" and runs without its name.
-COMMANDS: dict = {"mesh": mesh}
+COMMANDS: dict = {"mesh": mesh, "make-room": make_room}
 DEFAULT = "mesh"
 
 
