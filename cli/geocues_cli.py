@@ -2,12 +2,74 @@
 
 from __future__ import annotations
 
+import json
 import sys
+from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from cli._dispatch import dispatch
+from geocues.sfm import SfmConfig
+
+
+def sfm(scene: tyro.conf.Positional[Path],
+        out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+        overwrite: bool = False,
+        cfg: tyro.conf.OmitArgPrefixes[SfmConfig] = SfmConfig()) -> int:
+    """3D points for SCENE with pycolmap: known-pose triangulation, or incremental mapping (--mode map).
+
+    Without -o the model SCENE/sparse/0 is replaced in place; with -o OUT, OUT becomes a complete
+    scene folder (images, priors and gt linked). The report is also written to OUT/sfm_report.json.
+
+    Args:
+        scene: scene folder with images/ (and sparse/0 for triangulation).
+        out: output scene folder (default: write SCENE/sparse/0 in place).
+        overwrite: recompute features and matches even if cached.
+        cfg: SfM options.
+    """
+    from geocues.sfm import run
+
+    report = run(scene, out, cfg, overwrite=overwrite)
+    print(json.dumps({k: v for k, v in report.items() if k != "config"}, indent=2))
+    return 0
+
+
+def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: int = 8) -> int:
+    """Print a summary of SCENE: cameras, image sizes, points, priors, train/test split.
+
+    Args:
+        scene: scene folder (or a COLMAP model folder).
+        downscale: divide image sizes and intrinsics by this factor.
+        test_every: hold out every n-th image (index % n == 0) as a test view; 0 = none.
+    """
+    from geocues.scene import Scene
+
+    s = Scene.load(scene, downscale=downscale, test_every=test_every)
+    sizes = sorted({(c.width, c.height) for c in s.cameras})
+    K = s.cameras[0].K
+    pts = s.points
+    n_depth = sum(s.depth_prior_path(i) is not None for i in range(len(s)))
+    n_normal = sum(s.normal_prior_path(i) is not None for i in range(len(s)))
+    print(f"scene      {s.root}")
+    print(f"model      {s.model_dir}")
+    print(f"cameras    {len(s)}  sizes {', '.join(f'{w}x{h}' for w, h in sizes)}  "
+          f"(first: fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f})")
+    if len(pts):
+        print(f"points     {len(pts)}  mean track length {pts.track_length.mean():.2f}  "
+              f"mean reprojection error {pts.error.mean():.3f} px")
+    else:
+        print("points     0  (run `geocues sfm` to triangulate them)")
+    print(f"priors     depth {n_depth}/{len(s)}  normal {n_normal}/{len(s)}")
+    print(f"split      {len(s.train_indices)} train / {len(s.test_indices)} test (every {test_every})")
+    print(f"gt mesh    {s.gt_mesh_path or 'none'}")
+    if s.metadata:
+        print(f"metadata   {', '.join(sorted(s.metadata))}")
+    return 0
+
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {}
+COMMANDS: dict = {"info": info, "sfm": sfm}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,255 @@
+"""`geocues sfm`: 3D points for a scene with pycolmap (hloc-style stage).
+
+Two modes:
+
+* **triangulate** (a posed model, with or without points): SIFT features (CPU), image pairs chosen
+  from the known poses (k nearest camera centres whose viewing directions differ by less than an
+  angle; exhaustive for few images, hloc's ``pairs_from_poses``), SIFT matching, geometric
+  verification (by default against the *known* epipolar geometry; COLMAP's RANSAC as an option),
+  then COLMAP's point triangulator with poses and intrinsics fixed.
+* **map** (images only): the same features, exhaustive or sequential pairs, RANSAC verification and
+  COLMAP's incremental mapper; the largest model is kept. When the scene had a posed model, the new
+  model is aligned to its camera centres (similarity) so it lives in the scene's frame.
+
+The database is cached in ``OUT/cache/sfm/`` with the parameters that made it; a re-run reuses the
+features (and the matches) unless ``overwrite`` or the parameters changed. The model is written
+atomically; the report goes to ``OUT/sfm_report.json``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from geocues import sfm_steps as U
+from geocues.colmap_io import _atomic_dir, find_model_dir
+from geocues.scene import IMAGE_EXTS
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SfmConfig:
+    """Options of `geocues sfm` (defaults tuned on ICL living room 1 and the benchmark rooms)."""
+
+    mode: Literal["auto", "triangulate", "map"] = "auto"
+    """auto: triangulate when the scene has a posed model, else map (incremental SfM)."""
+    max_image_size: int = 0
+    """Longest image side for SIFT extraction (0 = full size); keypoints are rescaled back."""
+    max_num_features: int = 8192
+    """Most SIFT features per image."""
+    peak_threshold: float = 0.004
+    """SIFT peak (contrast) threshold; lower finds more features on weak texture (COLMAP: 0.0067)."""
+    num_neighbors: int = 20
+    """Pairs from poses: each image is matched to its k nearest cameras by centre distance."""
+    pair_stride: int = 1
+    """Pairs from poses: take every n-th of the k*n nearest cameras (wider baselines, same cost)."""
+    max_pair_angle: float = 60.0
+    """Pairs from poses: largest angle (degrees) between the two viewing directions."""
+    exhaustive_below: int = 30
+    """Match all pairs when the scene has at most this many images."""
+    sequential_overlap: int = 15
+    """Map mode on many images: match each image with this many following ones (name order)."""
+    max_ratio: float = 0.8
+    """SIFT matching: Lowe ratio test."""
+    verification: Literal["poses", "ransac"] = "poses"
+    """Triangulate mode: verify matches by the known epipolar geometry, or by COLMAP's RANSAC."""
+    max_epipolar_error: float = 1.5
+    """Known-pose verification: largest Sampson distance (pixels) of an inlier match."""
+    min_num_inliers: int = 15
+    """Smallest number of verified matches for a pair to be used."""
+    min_tri_angle: float = 1.5
+    """Smallest triangulation angle (degrees) to create and keep a point."""
+    max_reproj_error: float = 2.0
+    """Largest reprojection error (pixels) when creating, merging, completing and keeping points."""
+    ignore_two_view_tracks: bool = True
+    """Do not create points from a single pair (they are less reliable)."""
+    min_track_length: int = 3
+    """Drop points seen in fewer images after triangulation (filtering can shorten tracks to 2)."""
+    camera_model: str = "SIMPLE_RADIAL"
+    """Map mode without a model: COLMAP camera model to estimate (distorted ones need undistorting)."""
+    num_threads: int = -1
+    """Threads for extraction and matching (-1 = all cores)."""
+    seed: int = 0
+    """Random seed for pycolmap's RANSAC and mapper."""
+    binary: bool = True
+    """Write the model as .bin (else .txt)."""
+    check_gt: bool = True
+    """When the scene has a GT mesh, report the share of points within 2 cm / 5 cm of it."""
+
+
+def _key(d: dict) -> str:
+    return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _list_images(image_dir: Path) -> list[str]:
+    return sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTS and p.is_file())
+
+
+def _prepare_out(scene_dir: Path, out_dir: Path) -> None:
+    """Make OUT a complete scene folder whose inputs are links to the source scene."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    src = scene_dir.resolve()
+    links = {"images": src / "images", "priors": src / "priors", "gt": src / "gt"}
+    if not (src / "gt" / "mesh.ply").is_file() and (src / "reference_mesh.ply").is_file():
+        links.pop("gt")  # a dataset's reference mesh at the root becomes OUT/gt/mesh.ply
+        (out_dir / "gt").mkdir(exist_ok=True)
+        links["gt/mesh.ply"] = src / "reference_mesh.ply"
+    for rel, target in links.items():
+        if not target.exists():
+            continue
+        link = out_dir / rel
+        if link.is_symlink() or link.is_file():
+            link.unlink()
+        elif link.is_dir():
+            raise FileExistsError(f"{link} is a real folder; refusing to replace it with a link")
+        link.symlink_to(target)
+    if (src / "scene.json").is_file():
+        shutil.copyfile(src / "scene.json", out_dir / "scene.json")
+
+
+def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig(),
+        overwrite: bool = False) -> dict:
+    """Fill a scene's 3D points (triangulate) or reconstruct it from images (map); return the report.
+
+    ``out_dir=None`` writes ``SCENE/sparse/0`` in place; otherwise OUT becomes a complete scene
+    folder (images/priors/gt linked, scene.json copied, OUT/sparse/0 the new model).
+    """
+    import pycolmap
+
+    scene_dir = Path(scene_dir)
+    image_dir = scene_dir / "images"
+    if not image_dir.is_dir():
+        raise FileNotFoundError(f"no images folder at {image_dir}")
+    if cfg.mode not in ("auto", "triangulate", "map"):
+        raise ValueError(f"mode must be auto, triangulate or map, got {cfg.mode!r}")
+    if cfg.verification not in ("poses", "ransac"):
+        raise ValueError(f"verification must be poses or ransac, got {cfg.verification!r}")
+    try:
+        model_dir = find_model_dir(scene_dir)
+    except FileNotFoundError:
+        model_dir = None
+    mode = cfg.mode if cfg.mode != "auto" else ("triangulate" if model_dir is not None else "map")
+    if mode == "triangulate" and model_dir is None:
+        raise FileNotFoundError(f"triangulate mode needs a posed model: no cameras.txt or cameras.bin "
+                                f"in {scene_dir / 'sparse' / '0'} or {scene_dir / 'sparse'}")
+    in_place = out_dir is None or Path(out_dir).resolve() == scene_dir.resolve()
+    root = scene_dir if in_place else Path(out_dir)
+    log.info("sfm %s -> %s (mode %s) config %s", scene_dir, root, mode, asdict(cfg))
+
+    U.quiet_pycolmap()
+    pycolmap.set_random_seed(cfg.seed)
+    ref = None
+    if model_dir is not None:
+        ref = pycolmap.Reconstruction(str(model_dir))
+        if ref.num_reg_images() == 0:
+            raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
+        for im in ref.images.values():
+            if not (image_dir / im.name).is_file():
+                raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: "
+                                        f"{image_dir / im.name}")
+        names = sorted(ref.images[i].name for i in ref.reg_image_ids())
+    else:
+        names = _list_images(image_dir)
+        if len(names) < 2:
+            raise ValueError(f"map mode needs at least 2 images in {image_dir}, found {len(names)}")
+    if not in_place:
+        _prepare_out(scene_dir, root)
+
+    seconds: dict[str, float] = {}
+    cache = root / "cache" / "sfm"
+    cache.mkdir(parents=True, exist_ok=True)
+    db_path, state_path = cache / "database.db", cache / "state.json"
+    cams = ({int(c): str(ref.cameras[c]) for c in ref.cameras} if ref is not None else cfg.camera_model)
+    extract_key = _key({"names": names, "cams": cams, "size": cfg.max_image_size,
+                        "n": cfg.max_num_features, "peak": cfg.peak_threshold})
+    state = json.loads(state_path.read_text()) if state_path.is_file() else {}
+    if overwrite or state.get("extract") != extract_key:
+        if db_path.exists():
+            log.info("sfm: discarding cached database %s (overwrite or parameters changed)", db_path)
+        db_path.unlink(missing_ok=True)
+        state = {}
+
+    # ---- features
+    t0 = time.perf_counter()
+    if not db_path.exists() and ref is not None:
+        U.database_from_model(db_path, ref)
+    U.extract(db_path, image_dir, names, cfg, camera_model=None if ref is not None else cfg.camera_model)
+    state["extract"] = extract_key
+    state_path.write_text(json.dumps(state))
+    seconds["extract"] = time.perf_counter() - t0
+
+    # ---- pairs
+    t0 = time.perf_counter()
+    if mode == "triangulate":
+        pairs = U.pairs_from_poses(ref, names, cfg.num_neighbors, cfg.max_pair_angle,
+                                   cfg.exhaustive_below, cfg.pair_stride)
+    elif len(names) <= cfg.exhaustive_below:
+        pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    else:
+        pairs = [(a, names[j]) for i, a in enumerate(names)
+                 for j in range(i + 1, min(len(names), i + 1 + cfg.sequential_overlap))]
+    seconds["pairs"] = time.perf_counter() - t0
+    verify_by_poses = mode == "triangulate" and cfg.verification == "poses"
+    match_key = _key({"pairs": pairs, "ratio": cfg.max_ratio, "poses": verify_by_poses,
+                      "epi": cfg.max_epipolar_error, "inl": cfg.min_num_inliers, "seed": cfg.seed})
+
+    # ---- matching and verification
+    t0 = time.perf_counter()
+    if state.get("match") != match_key:
+        U.clear_matches(db_path)
+        U.match(db_path, pairs, cfg, cache, verify=not verify_by_poses)
+        seconds["match"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if verify_by_poses:
+            U.verify_with_poses(db_path, ref, cfg)
+        state["match"] = match_key
+        state_path.write_text(json.dumps(state))
+    else:
+        log.info("sfm: reusing %d cached matched pairs", len(pairs))
+        seconds["match"] = 0.0
+    seconds["verify"] = time.perf_counter() - t0
+    n_verified = U.num_verified_pairs(db_path, cfg.min_num_inliers)
+
+    # ---- triangulation or mapping
+    t0 = time.perf_counter()
+    tmp = Path(tempfile.mkdtemp(prefix="sfm.", dir=cache))
+    try:
+        if mode == "triangulate":
+            rec = U.triangulate(ref, db_path, image_dir, tmp, cfg)
+        else:
+            rec = U.incremental_map(db_path, image_dir, tmp, cfg, ref)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    n_short = U.drop_short_tracks(rec, cfg.min_track_length)
+    seconds["triangulate" if mode == "triangulate" else "map"] = time.perf_counter() - t0
+
+    # ---- write
+    target = (model_dir if in_place and model_dir is not None else root / "sparse" / "0")
+    with _atomic_dir(target) as tmp_model:
+        (rec.write_binary if cfg.binary else rec.write_text)(str(tmp_model))
+    report = U.summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
+                         n_verified=n_verified, seconds=seconds)
+    report.update(scene=str(scene_dir.resolve()), model=str(target.resolve()), dropped_short_tracks=n_short,
+                  config=asdict(cfg))
+    gt = root / "gt" / "mesh.ply"
+    if cfg.check_gt and gt.is_file() and report["points"] > 0:
+        report["gt_check"] = U.distance_to_mesh_stats(U.points_xyz(rec), gt)
+    tmp_report = root / ".sfm_report.json.tmp"
+    tmp_report.write_text(json.dumps(report, indent=2))
+    os.replace(tmp_report, root / "sfm_report.json")
+    log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
+             report["points"], report["mean_track_length"], report["mean_reproj_error"],
+             sum(seconds.values()))
+    return report

@@ -1,0 +1,163 @@
+"""COLMAP model I/O: text <-> binary round trips through our writer and pycolmap, quaternions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from geocues.colmap_io import (RawImage, RawPoints, find_model_dir, quat_wxyz_to_rotmat,
+                               quat_xyzw_to_wxyz, read_model, rotmat_to_quat_wxyz, write_model)
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    return quat_wxyz_to_rotmat(q / np.linalg.norm(q))
+
+
+def _images(n: int = 5, seed: int = 0) -> list[RawImage]:
+    rng = np.random.default_rng(seed)
+    K1 = np.array([[500.0, 0, 320.0], [0, 505.0, 240.0], [0, 0, 1]])
+    K2 = np.array([[250.0, 0, 160.5], [0, 250.0, 120.25], [0, 0, 1]])
+    out = []
+    for i in range(n):
+        cam, K, (w, h) = (1, K1, (640, 480)) if i % 2 == 0 else (2, K2, (320, 240))
+        out.append(RawImage(image_id=10 + i, camera_id=cam, name=f"{i:05d}.png", model="PINHOLE",
+                            width=w, height=h, K=K, R=_random_rotation(rng), t=rng.normal(size=3)))
+    return out
+
+
+def _mkdir(p: Path) -> str:
+    p.mkdir(parents=True, exist_ok=True)  # pycolmap writes into an existing folder only
+    return str(p)
+
+
+def _sorted_points(p: RawPoints) -> tuple[np.ndarray, RawPoints]:
+    """Points in id order (pycolmap's point map has no fixed order)."""
+    o = np.argsort(p.ids)
+    return o, RawPoints(p.ids[o], p.xyz[o], p.rgb[o], p.error[o], p.track_length[o],
+                        [p.track_image_ids[i] for i in o])
+
+
+def _assert_same_images(a: list[RawImage], b: list[RawImage]) -> None:
+    assert [x.name for x in a] == [x.name for x in b]
+    for x, y in zip(a, b):
+        assert (x.image_id, x.camera_id, x.model, x.width, x.height) == \
+               (y.image_id, y.camera_id, y.model, y.width, y.height)
+        np.testing.assert_allclose(x.K, y.K, atol=1e-9)
+        np.testing.assert_allclose(x.R, y.R, atol=1e-9)
+        np.testing.assert_allclose(x.t, y.t, atol=1e-9)
+
+
+class TestQuaternions:
+    def test_rotmat_roundtrip(self):
+        rng = np.random.default_rng(1)
+        for _ in range(50):
+            R = _random_rotation(rng)
+            q = rotmat_to_quat_wxyz(R)
+            assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+            np.testing.assert_allclose(quat_wxyz_to_rotmat(q), R, atol=1e-12)
+
+    def test_pycolmap_xyzw_boundary(self):
+        R = _random_rotation(np.random.default_rng(2))
+        xyzw = np.asarray(pycolmap.Rotation3d(R).quat)
+        np.testing.assert_allclose(quat_wxyz_to_rotmat(quat_xyzw_to_wxyz(xyzw)), R, atol=1e-12)
+
+
+class TestRoundTrip:
+    def test_text_to_binary_cameras_poses_names(self, tmp_path: Path):
+        images = _images()
+        write_model(tmp_path / "txt", images)
+        assert (tmp_path / "txt" / "images.txt").is_file()
+        pycolmap.Reconstruction(str(tmp_path / "txt")).write_binary(_mkdir(tmp_path / "bin"))
+        assert not (tmp_path / "bin" / "images.txt").exists()
+        imgs_txt, pts_txt = read_model(tmp_path / "txt")
+        imgs_bin, pts_bin = read_model(tmp_path / "bin")
+        _assert_same_images(imgs_txt, images)
+        _assert_same_images(imgs_bin, images)
+        assert len(pts_txt.ids) == len(pts_bin.ids) == 0
+
+    def test_writer_binary_flag(self, tmp_path: Path):
+        images = _images(3, seed=4)
+        write_model(tmp_path / "m", images, binary=True)
+        names = {p.name for p in (tmp_path / "m").iterdir()}
+        assert {"cameras.bin", "images.bin", "points3D.bin"} <= names and not any(n.endswith(".txt") for n in names)
+        _assert_same_images(read_model(tmp_path / "m")[0], images)
+
+    def test_points_without_tracks(self, tmp_path: Path):
+        rng = np.random.default_rng(5)
+        n = 20
+        pts = RawPoints(ids=np.arange(1, n + 1, dtype=np.int64), xyz=rng.normal(size=(n, 3)),
+                        rgb=rng.integers(0, 256, (n, 3), dtype=np.uint8), error=rng.uniform(0, 2, n),
+                        track_length=np.zeros(n, np.int32), track_image_ids=[np.zeros(0, np.int64)] * n)
+        write_model(tmp_path / "m", _images(2), pts)
+        _, back = _sorted_points(read_model(tmp_path / "m")[1])
+        np.testing.assert_array_equal(back.ids, pts.ids)
+        np.testing.assert_allclose(back.xyz, pts.xyz, rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(back.rgb, pts.rgb)
+        np.testing.assert_allclose(back.error, pts.error, rtol=1e-5)
+
+    def test_points_with_tracks_bin_txt_bin(self, tmp_path: Path):
+        """A model with points and full tracks (pycolmap's synthetic dataset) survives bin <-> txt."""
+        opts = pycolmap.SyntheticDatasetOptions()
+        opts.num_rigs, opts.num_frames_per_rig, opts.num_points3D = 1, 4, 60
+        opts.camera_model_id = pycolmap.CameraModelId.PINHOLE
+        opts.camera_params = [400.0, 410.0, 256.0, 192.0]
+        opts.camera_width, opts.camera_height = 512, 384
+        pycolmap.set_random_seed(3)
+        rec = pycolmap.synthesize_dataset(opts)
+        assert rec.num_points3D() == 60
+        rec.write_binary(_mkdir(tmp_path / "bin"))
+        pycolmap.Reconstruction(str(tmp_path / "bin")).write_text(_mkdir(tmp_path / "txt"))
+        pycolmap.Reconstruction(str(tmp_path / "txt")).write_binary(_mkdir(tmp_path / "bin2"))
+        (i0, p0), (i1, p1), (i2, p2) = ((im, _sorted_points(p)[1]) for im, p in
+                                        (read_model(tmp_path / d) for d in ("bin", "txt", "bin2")))
+        _assert_same_images(i0, i1)
+        _assert_same_images(i0, i2)
+        for p in (p1, p2):
+            np.testing.assert_array_equal(p.ids, p0.ids)
+            np.testing.assert_allclose(p.xyz, p0.xyz, rtol=1e-9, atol=1e-9)
+            np.testing.assert_array_equal(p.track_length, p0.track_length)
+            for a, b in zip(p.track_image_ids, p0.track_image_ids):
+                np.testing.assert_array_equal(np.sort(a), np.sort(b))
+        assert p0.track_length.min() >= 2
+
+
+class TestBadInput:
+    def test_no_cameras_file_names_the_folder(self, tmp_path: Path):
+        (tmp_path / "sparse" / "0").mkdir(parents=True)
+        with pytest.raises(FileNotFoundError, match=str(tmp_path)):
+            find_model_dir(tmp_path)
+
+    def test_missing_scene_folder(self, tmp_path: Path):
+        with pytest.raises(FileNotFoundError, match="does not exist"):
+            find_model_dir(tmp_path / "nope")
+
+    def test_missing_images_file(self, tmp_path: Path):
+        write_model(tmp_path / "m", _images(2))
+        (tmp_path / "m" / "images.txt").unlink()
+        with pytest.raises(FileNotFoundError, match=r"no images\.txt or images\.bin in .*m"):
+            read_model(tmp_path / "m")
+
+    def test_empty_model_refused_by_writer(self, tmp_path: Path):
+        with pytest.raises(ValueError, match=str(tmp_path / "m")):
+            write_model(tmp_path / "m", [])
+        assert not (tmp_path / "m").exists()
+
+    def test_broken_file_is_valueerror_naming_folder(self, tmp_path: Path):
+        write_model(tmp_path / "m", _images(2))
+        (tmp_path / "m" / "cameras.txt").write_text("1 PINHOLE 640 480 not-a-number\n")
+        with pytest.raises(ValueError, match=str(tmp_path / "m")):
+            read_model(tmp_path / "m")
+
+    def test_atomic_write_leaves_old_model_on_failure(self, tmp_path: Path):
+        images = _images(2)
+        write_model(tmp_path / "m", images)
+        bad = _images(2)
+        bad[0].K = None  # the writer fails half-way through
+        with pytest.raises(TypeError):
+            write_model(tmp_path / "m", bad)
+        _assert_same_images(read_model(tmp_path / "m")[0], images)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]  # no temp folder left

@@ -1,0 +1,191 @@
+"""Scene loading: split, downscale, priors (npy / 16-bit PNG), and bad input naming the path."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from geocues.colmap_io import RawImage, quat_wxyz_to_rotmat, write_model
+from geocues.scene import Scene
+
+W, H = 64, 48
+K = np.array([[60.0, 0, 32.0], [0, 62.0, 24.0], [0, 0, 1]])
+
+
+def make_scene(root: Path, n: int = 17, seed: int = 0) -> list[RawImage]:
+    """A tiny scene: n random images W x H and a PINHOLE model with random poses."""
+    rng = np.random.default_rng(seed)
+    (root / "images").mkdir(parents=True)
+    images = []
+    for i in range(n):
+        name = f"{i:05d}.png"
+        cv2.imwrite(str(root / "images" / name), rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+        q = rng.normal(size=4)
+        images.append(RawImage(image_id=i + 1, camera_id=1, name=name, model="PINHOLE", width=W,
+                               height=H, K=K, R=quat_wxyz_to_rotmat(q), t=rng.normal(size=3)))
+    write_model(root / "sparse" / "0", images)
+    return images
+
+
+@pytest.fixture
+def scene_dir(tmp_path: Path) -> Path:
+    make_scene(tmp_path / "s")
+    return tmp_path / "s"
+
+
+class TestLoad:
+    def test_cameras_match_model(self, scene_dir: Path):
+        s = Scene.load(scene_dir)
+        assert len(s) == 17 and [c.name for c in s.cameras] == sorted(c.name for c in s.cameras)
+        c = s.cameras[3]
+        assert (c.width, c.height) == (W, H) and c.image_path == scene_dir / "images" / "00003.png"
+        np.testing.assert_allclose(c.K, K)
+        np.testing.assert_allclose(c.R @ c.R.T, np.eye(3), atol=1e-9)
+        np.testing.assert_allclose(c.R @ c.center + c.t, 0, atol=1e-9)
+        img = s.load_image(3)
+        assert img.shape == (H, W, 3) and img.dtype == np.float32 and 0 <= img.min() and img.max() <= 1
+        raw = cv2.imread(str(c.image_path))[:, :, ::-1]
+        np.testing.assert_allclose(img, raw / 255.0, atol=1e-6)
+        assert len(s.points) == 0 and not s.has_depth_priors and s.gt_mesh_path is None
+
+    def test_model_folder_given_directly(self, scene_dir: Path):
+        s = Scene.load(scene_dir / "sparse" / "0")
+        assert s.root == scene_dir and len(s) == 17
+
+
+class TestSplit:
+    def test_every_8th_by_default(self, scene_dir: Path):
+        s = Scene.load(scene_dir)
+        assert s.test_indices == [0, 8, 16]
+        assert s.train_indices == [i for i in range(17) if i not in (0, 8, 16)]
+
+    def test_configurable(self, scene_dir: Path):
+        assert Scene.load(scene_dir, test_every=5).test_indices == [0, 5, 10, 15]
+        s = Scene.load(scene_dir, test_every=0)
+        assert s.test_indices == [] and s.train_indices == list(range(17))
+
+    @pytest.mark.parametrize("bad", [1, -2])
+    def test_bad_split(self, scene_dir: Path, bad: int):
+        with pytest.raises(ValueError, match="test_every"):
+            Scene.load(scene_dir, test_every=bad)
+
+
+class TestDownscale:
+    def test_intrinsics_scale_exactly(self, scene_dir: Path):
+        full, half = Scene.load(scene_dir), Scene.load(scene_dir, downscale=2.0)
+        c1, c2 = full.cameras[5], half.cameras[5]
+        assert (c2.width, c2.height) == (W // 2, H // 2)
+        np.testing.assert_array_equal(c2.K[:2], full.cameras[5].K[:2] / 2.0)
+        X = np.random.default_rng(1).normal(size=(50, 3)) + c1.center + 5 * c1.R[2]  # in front
+        uv1, z1 = c1.project(X)
+        uv2, z2 = c2.project(X)
+        np.testing.assert_allclose(uv2, uv1 / 2.0, rtol=1e-12, atol=1e-9)  # COLMAP pixel centres
+        np.testing.assert_allclose(z2, z1)
+        assert half.load_image(5).shape == (H // 2, W // 2, 3)
+
+    def test_pixel_rays_hit_pixel_centres(self, scene_dir: Path):
+        c = Scene.load(scene_dir, downscale=4.0).cameras[0]
+        rays = c.pixel_rays()  # [h, w, 3]
+        X = (rays.reshape(-1, 3) * 3.0 - c.t) @ c.R  # camera -> world at z = 3
+        uv, _ = c.project(X)
+        j, i = np.meshgrid(np.arange(c.width) + 0.5, np.arange(c.height) + 0.5)
+        np.testing.assert_allclose(uv, np.stack([j.ravel(), i.ravel()], 1), atol=1e-9)
+
+    def test_bad_downscale(self, scene_dir: Path):
+        with pytest.raises(ValueError, match="downscale"):
+            Scene.load(scene_dir, downscale=0)
+
+
+class TestPriors:
+    def test_npy_depth_and_normal(self, scene_dir: Path):
+        rng = np.random.default_rng(2)
+        d = rng.uniform(0.5, 4, (H, W)).astype(np.float32)
+        n = rng.normal(size=(H, W, 3)).astype(np.float32)
+        (scene_dir / "priors" / "depth").mkdir(parents=True)
+        (scene_dir / "priors" / "normal").mkdir(parents=True)
+        np.save(scene_dir / "priors" / "depth" / "00002.npy", d)
+        np.save(scene_dir / "priors" / "normal" / "00002.npy", n)
+        s = Scene.load(scene_dir)
+        assert s.has_depth_priors and s.has_normal_priors
+        np.testing.assert_array_equal(s.depth_prior(2), d)
+        np.testing.assert_allclose(s.normal_prior(2), n / np.linalg.norm(n, axis=-1, keepdims=True), atol=1e-6)
+        assert s.depth_prior(3) is None and s.normal_prior(3) is None
+        assert Scene.load(scene_dir, downscale=2.0).depth_prior(2).shape == (H // 2, W // 2)
+
+    def test_png16_depth_with_scale(self, scene_dir: Path):
+        mm = np.random.default_rng(3).integers(0, 5000, (H, W)).astype(np.uint16)
+        (scene_dir / "priors" / "depth").mkdir(parents=True)
+        cv2.imwrite(str(scene_dir / "priors" / "depth" / "00004.png"), mm)
+        (scene_dir / "scene.json").write_text(json.dumps({"depth_png_scale": 1000.0}))
+        d = Scene.load(scene_dir).depth_prior(4)
+        assert d.dtype == np.float32
+        np.testing.assert_allclose(d, mm / 1000.0, rtol=1e-6)
+        assert (d == 0).sum() == (mm == 0).sum()  # 0 stays invalid
+
+    def test_png16_normal(self, scene_dir: Path):
+        n = np.zeros((H, W, 3), np.float32)
+        n[..., 2] = -1.0  # facing the camera
+        (scene_dir / "priors" / "normal").mkdir(parents=True)
+        raw = np.round((n + 1) / 2 * 65535).astype(np.uint16)
+        cv2.imwrite(str(scene_dir / "priors" / "normal" / "00001.png"), raw[:, :, ::-1])  # RGB on disk
+        np.testing.assert_allclose(Scene.load(scene_dir).normal_prior(1), n, atol=1e-4)
+
+
+class TestBadInput:
+    def test_no_cameras_file(self, scene_dir: Path):
+        (scene_dir / "sparse" / "0" / "cameras.txt").unlink()
+        with pytest.raises(FileNotFoundError, match=r"no cameras\.txt or cameras\.bin in .*" + str(scene_dir)):
+            Scene.load(scene_dir)
+
+    def test_image_missing_on_disk(self, scene_dir: Path):
+        (scene_dir / "images" / "00007.png").unlink()
+        with pytest.raises(FileNotFoundError, match=str(scene_dir / "images" / "00007.png")):
+            Scene.load(scene_dir)
+
+    def test_image_of_wrong_size(self, scene_dir: Path):
+        cv2.imwrite(str(scene_dir / "images" / "00006.png"), np.zeros((10, 10, 3), np.uint8))
+        with pytest.raises(ValueError, match=str(scene_dir / "images" / "00006.png")):
+            Scene.load(scene_dir)
+
+    def test_prior_of_wrong_size(self, scene_dir: Path):
+        (scene_dir / "priors" / "depth").mkdir(parents=True)
+        bad = scene_dir / "priors" / "depth" / "00003.npy"
+        np.save(bad, np.ones((H + 1, W), np.float32))
+        with pytest.raises(ValueError, match=str(bad) + r".*expected 48x64"):
+            Scene.load(scene_dir)
+
+    def test_normal_prior_without_3_channels(self, scene_dir: Path):
+        (scene_dir / "priors" / "normal").mkdir(parents=True)
+        bad = scene_dir / "priors" / "normal" / "00003.npy"
+        np.save(bad, np.ones((H, W), np.float32))
+        with pytest.raises(ValueError, match=str(bad)):
+            Scene.load(scene_dir)
+
+    def test_empty_model(self, scene_dir: Path):
+        model = scene_dir / "sparse" / "0"
+        (model / "images.txt").write_text("# no images\n")
+        with pytest.raises(ValueError, match=f"{model}.*no registered images"):
+            Scene.load(scene_dir)
+
+    def test_distorted_camera_refused_with_undistort_hint(self, scene_dir: Path):
+        cams = scene_dir / "sparse" / "0" / "cameras.txt"
+        cams.write_text(f"1 SIMPLE_RADIAL {W} {H} 60 32 24 0.05\n")
+        with pytest.raises(ValueError, match="SIMPLE_RADIAL.*geocues undistort"):
+            Scene.load(scene_dir)
+
+    def test_png_depth_without_scale(self, scene_dir: Path):
+        (scene_dir / "priors" / "depth").mkdir(parents=True)
+        png = scene_dir / "priors" / "depth" / "00000.png"
+        cv2.imwrite(str(png), np.full((H, W), 1000, np.uint16))
+        s = Scene.load(scene_dir)
+        with pytest.raises(ValueError, match=str(png) + ".*depth_png_scale"):
+            s.depth_prior(0)
+
+    def test_no_images_folder(self, scene_dir: Path):
+        (scene_dir / "images").rename(scene_dir / "imgs")
+        with pytest.raises(FileNotFoundError, match=str(scene_dir / "images")):
+            Scene.load(scene_dir)

@@ -1,0 +1,234 @@
+"""`geocues sfm`: pairs from poses, known-pose verification, triangulation and mapping on a tiny
+ICL scene (10 frames at 320x240, checked against the reference mesh), caching, output folders."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from cli.geocues_cli import main as geocues_main
+from geocues import sfm_steps
+from geocues.colmap_io import quat_wxyz_to_rotmat, read_model, write_model
+from geocues.scene import Scene
+from geocues.sfm import SfmConfig, run
+
+FRAMES = list(range(0, 50, 5))  # 10 frames along 0.6 m of the ICL trajectory
+
+
+def make_tiny_icl(icl: Path, root: Path, frames: list[int] = FRAMES, scale: int = 2) -> Path:
+    """Copy ICL frames downscaled by ``scale`` with an exactly scaled PINHOLE model, no points."""
+    images, _ = read_model(icl / "sparse" / "0")
+    sel = [images[i] for i in frames]
+    (root / "images").mkdir(parents=True)
+    (root / "gt").mkdir()
+    for im in sel:
+        img = cv2.imread(str(icl / "images" / im.name))
+        im.width, im.height = img.shape[1] // scale, img.shape[0] // scale
+        cv2.imwrite(str(root / "images" / im.name), cv2.resize(img, (im.width, im.height),
+                                                              interpolation=cv2.INTER_AREA))
+        im.K = np.diag([1.0 / scale, 1.0 / scale, 1.0]) @ im.K  # COLMAP pixel centres: exact
+    write_model(root / "sparse" / "0", sel)
+    (root / "gt" / "mesh.ply").symlink_to(icl / "reference_mesh.ply")
+    return root
+
+
+@pytest.fixture(autouse=True)
+def _restore_log_handlers():
+    """The CLI attaches a handler to the (captured) stderr of the test that calls it; drop it after."""
+    names = ("geocues", "splat", "evaluation")
+    before = {n: list(logging.getLogger(n).handlers) for n in names}
+    yield
+    for n in names:
+        logging.getLogger(n).handlers = before[n]
+
+
+@pytest.fixture(scope="module")
+def tiny(icl_dir: Path, tmp_path_factory) -> Path:
+    return make_tiny_icl(icl_dir, tmp_path_factory.mktemp("tiny") / "scene")
+
+
+@pytest.fixture(scope="module")
+def triangulated(tiny: Path, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("tri") / "out"
+    return out, run(tiny, out)
+
+
+# ----------------------------------------------------------------------------- units
+class TestSelectPairs:
+    def test_nearest_and_angle_limit(self):
+        centers = np.stack([np.arange(10) * 0.1, np.zeros(10), np.zeros(10)], 1)  # a line
+        dirs = np.tile([0.0, 0.0, 1.0], (10, 1))
+        dirs[9] = [0.0, 0.0, -1.0]  # the last camera looks the other way
+        pairs = sfm_steps.select_pairs(centers, dirs, k=2, max_angle=60)
+        assert (0, 1) in pairs and (0, 2) in pairs and (0, 3) not in pairs
+        assert all(9 not in p for p in pairs)
+        assert all(i < j for i, j in pairs) and len(set(pairs)) == len(pairs)
+        assert all(j - i <= 2 for i, j in pairs)
+
+    def test_stride_widens_baselines(self):
+        centers = np.stack([np.arange(20) * 0.1, np.zeros(20), np.zeros(20)], 1)
+        dirs = np.tile([0.0, 0.0, 1.0], (20, 1))
+        near = sfm_steps.select_pairs(centers, dirs, k=2, max_angle=60, stride=1)
+        wide = sfm_steps.select_pairs(centers, dirs, k=2, max_angle=60, stride=2)
+        gaps = lambda ps: np.array([j - i for i, j in ps])  # noqa: E731
+        assert gaps(wide).mean() > gaps(near).mean()
+        assert gaps(near).max() <= 2 and gaps(wide).max() <= 3
+        assert (gaps(wide) >= 2).sum() > (gaps(near) >= 2).sum()
+
+    def test_bad_shapes(self):
+        with pytest.raises(ValueError, match=r"\[N, 3\]"):
+            sfm_steps.select_pairs(np.zeros((4, 2)), np.zeros((4, 2)), k=2, max_angle=60)
+
+
+def test_sampson_matches_pycolmap():
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(3, 3))
+    x1, x2 = rng.uniform(0, 640, (100, 2)), rng.uniform(0, 480, (100, 2))
+    want = np.asarray(pycolmap.compute_squared_sampson_error(x1, x2, F))
+    np.testing.assert_allclose(sfm_steps.sampson_sq(F, x1, x2), want, rtol=1e-9)
+
+
+def test_align_to_reference_recovers_similarity():
+    rng = np.random.default_rng(1)
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 100.0, 64, 48) if hasattr(
+        pycolmap.Camera, "create_from_model_name") else pycolmap.Camera(
+        camera_id=1, model="PINHOLE", width=64, height=48, params=[100.0, 100.0, 32.0, 24.0])
+    rec.add_camera_with_trivial_rig(cam)
+    ref = pycolmap.Reconstruction()
+    ref.add_camera_with_trivial_rig(cam)
+    s, R, t = 2.5, quat_wxyz_to_rotmat(rng.normal(size=4)), rng.normal(size=3)  # ref_from_rec
+    for i in range(1, 6):
+        Ri = quat_wxyz_to_rotmat(rng.normal(size=4))
+        ci = np.array([0.1 * i, 0.0, 0.0])  # a straight trajectory: centres alone are ambiguous
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(Ri), -Ri @ ci)
+        pose_ref = pycolmap.Rigid3d(pycolmap.Rotation3d(Ri @ R.T), -(Ri @ R.T) @ (s * R @ ci + t))
+        for r, p in ((rec, pose), (ref, pose_ref)):
+            im = pycolmap.Image(image_id=i, camera_id=1, name=f"{i}.png")
+            r.add_image_with_trivial_frame(im, p)
+    sim, err = sfm_steps.align_to_reference(rec, ref)
+    assert err < 1e-9
+    assert abs(sim.scale - s) < 1e-9
+    np.testing.assert_allclose(np.asarray(sim.rotation.matrix()), R, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sim.translation), t, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- bad input
+class TestBadInput:
+    def test_no_images_folder(self, tmp_path: Path):
+        with pytest.raises(FileNotFoundError, match=str(tmp_path / "images")):
+            run(tmp_path)
+
+    def test_triangulate_without_model(self, tmp_path: Path):
+        (tmp_path / "images").mkdir()
+        with pytest.raises(FileNotFoundError, match=r"needs a posed model.*cameras\.txt"):
+            run(tmp_path, cfg=SfmConfig(mode="triangulate"))
+
+    def test_map_with_too_few_images(self, tmp_path: Path):
+        (tmp_path / "images").mkdir()
+        cv2.imwrite(str(tmp_path / "images" / "a.png"), np.zeros((8, 8, 3), np.uint8))
+        with pytest.raises(ValueError, match="at least 2 images"):
+            run(tmp_path)
+
+    def test_image_of_model_missing(self, tmp_path: Path):
+        (tmp_path / "images").mkdir()
+        from geocues.colmap_io import RawImage
+        write_model(tmp_path / "sparse" / "0", [RawImage(1, 1, "x.png", "PINHOLE", 8, 8, np.eye(3),
+                                                         np.eye(3), np.zeros(3))])
+        with pytest.raises(FileNotFoundError, match=str(tmp_path / "images" / "x.png")):
+            run(tmp_path)
+
+    def test_cli_reports_error_in_one_line(self, tmp_path: Path, capsys):
+        assert geocues_main(["sfm", str(tmp_path / "nope")]) == 1
+        err = capsys.readouterr().err
+        assert "error" in err and str(tmp_path / "nope") in err
+
+
+# ----------------------------------------------------------------------------- tiny ICL
+class TestTriangulate:
+    def test_points_lie_on_the_reference_mesh(self, triangulated):
+        out, rep = triangulated
+        assert rep["mode"] == "triangulate" and rep["registered_images"] == 10
+        assert rep["points"] > 400 and rep["verified_pairs"] >= 30
+        assert rep["mean_track_length"] >= 3.0
+        assert rep["gt_check"]["within_5cm"] > 0.85 and rep["gt_check"]["within_2cm"] > 0.6
+        assert json.loads((out / "sfm_report.json").read_text())["points"] == rep["points"]
+
+    def test_model_is_consistent_and_loads(self, triangulated, tiny: Path):
+        out, rep = triangulated
+        s = Scene.load(out)
+        assert len(s) == 10 and len(s.points) == rep["points"]
+        cfg = SfmConfig()
+        assert s.points.track_length.min() >= 3  # two-view tracks are ignored
+        assert s.points.error.max() <= cfg.max_reproj_error + 1e-6
+        # poses and intrinsics are those of the input model (fixed during triangulation)
+        src, _ = read_model(tiny / "sparse" / "0")
+        for a, b in zip(src, s.cameras):
+            np.testing.assert_allclose(b.R, a.R, atol=1e-9)
+            np.testing.assert_allclose(b.t, a.t, atol=1e-9)
+            np.testing.assert_allclose(b.K, a.K, atol=1e-9)
+        # every point reprojects within the error bound into the images that see it
+        for i, idx in s.points.visible_in.items():
+            uv, z = s.cameras[i].project(s.points.xyz[idx])
+            assert (z > 0).all()
+            assert ((uv >= 0) & (uv <= [s.cameras[i].width, s.cameras[i].height])).all()
+        assert s.points.rgb.max() > 0  # colours were extracted
+
+    def test_out_folder_links_and_source_untouched(self, triangulated, tiny: Path):
+        out, _ = triangulated
+        assert (out / "images").is_symlink() and (out / "images").resolve() == (tiny / "images").resolve()
+        assert (out / "gt").is_symlink() and (out / "gt" / "mesh.ply").is_file()
+        assert (out / "sparse" / "0" / "points3D.bin").is_file()
+        assert len(read_model(tiny / "sparse" / "0")[1].ids) == 0  # the input model kept no points
+        assert (out / "cache" / "sfm" / "database.db").is_file()
+
+    def test_model_with_tracks_survives_bin_txt(self, triangulated, tmp_path: Path):
+        out, _ = triangulated
+        (tmp_path / "txt").mkdir()
+        pycolmap.Reconstruction(str(out / "sparse" / "0")).write_text(str(tmp_path / "txt"))
+        (i0, p0), (i1, p1) = read_model(out / "sparse" / "0"), read_model(tmp_path / "txt")
+        assert [a.name for a in i0] == [b.name for b in i1]
+        o0, o1 = np.argsort(p0.ids), np.argsort(p1.ids)
+        np.testing.assert_array_equal(p0.ids[o0], p1.ids[o1])
+        np.testing.assert_allclose(p0.xyz[o0], p1.xyz[o1], rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(p0.track_length[o0], p1.track_length[o1])
+
+    def test_rerun_reuses_cache_and_in_place_write(self, triangulated, tmp_path: Path):
+        src, rep = triangulated
+        out = tmp_path / "copy"
+        shutil.copytree(src, out, symlinks=True)
+        cfg = replace(SfmConfig(), check_gt=False)
+        again = run(out, None, cfg)  # OUT is a scene itself: write in place, reuse its cache
+        assert abs(again["points"] - rep["points"]) <= 0.02 * rep["points"]  # threaded BA: not bit-exact
+        assert again["seconds"]["match"] == 0.0 and again["seconds"]["extract"] < rep["seconds"]["extract"]
+        assert again["model"] == str((out / "sparse" / "0").resolve())
+        # changing a matching parameter re-matches but keeps the features
+        third = run(out, None, replace(cfg, num_neighbors=3, exhaustive_below=5))
+        assert third["pairs"] < again["pairs"] and third["seconds"]["match"] > 0
+
+
+class TestMap:
+    def test_incremental_mapping_aligned_to_poses(self, tiny: Path, tmp_path: Path):
+        out = tmp_path / "map"
+        rep = run(tiny, out, SfmConfig(mode="map", check_gt=False))
+        assert rep["mode"] == "map" and rep["registered_images"] >= 9 and rep["points"] > 300
+        got = {c.name: c for c in Scene.load(out).cameras}
+        ref = {c.name: c for c in Scene.load(tiny).cameras}
+        dc = [np.linalg.norm(got[n].center - ref[n].center) for n in got]
+        dr = [np.degrees(np.arccos(np.clip((np.trace(got[n].R.T @ ref[n].R) - 1) / 2, -1, 1))) for n in got]
+        assert np.median(dc) < 0.02 and max(dr) < 3.0  # 0.6 m trajectory, 320x240 images
+
+
+def test_cli_info_and_sfm(triangulated, capsys):
+    out, rep = triangulated
+    assert geocues_main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"points     {rep['points']}" in text and "10" in text and "gt mesh" in text
