@@ -2,14 +2,16 @@
 
 It follows the per-pixel rule of :mod:`splat.composite` in two passes:
 
-1. **Selection** (no grad): Gaussians are binned into 4x4-pixel bins by their radius boxes and sorted
-   by depth inside each bin; each pixel then walks its bin's list in chunks of candidates, applying
-   the exact skip / stop rule with its running transmittance, and records the indices of the first
-   ``max_per_pixel`` Gaussians it blends. Pixels (and bins) drop out as soon as they are saturated.
-2. **Blending** (autograd): for each pixel, the selected Gaussians ``[P, K]`` are gathered, their
-   alphas recomputed from the differentiable inputs, and the front-to-back sum evaluated with a
-   cumulative product. Pixels are processed in chunks; when gradients are needed and there is more
-   than one chunk, each chunk is checkpointed so memory stays bounded (e.g. 640x480, 200k Gaussians).
+1. **Selection** (no grad): Gaussians are binned into 4x4-pixel bins by their footprint (the radius
+   box, tightened to where alpha can reach 1/255) and sorted by depth inside each bin; each pixel
+   walks its bin's list in rounds of candidates, applying the exact skip / stop rule with its running
+   transmittance, and records the first ``max_per_pixel`` Gaussians it blends. Saturated pixels and
+   bins drop out early.
+2. **Blending** (:class:`_BlendSelected`, a torch autograd Function): for each pixel the selected
+   Gaussians are gathered and blended front to back with a cumulative product; the backward pass
+   recomputes the alphas and applies the analytic gradient of front-to-back compositing (as 3DGS's
+   backward.cu, with reverse cumulative sums). Pixels are sorted by their number of Gaussians and
+   processed in chunks, so memory stays bounded (e.g. 640x480 with 200k Gaussians).
 
 The cap ``max_per_pixel`` (default 64) is the only departure from the exact rule: a pixel that would
 blend more Gaussians stops after that many (DESIGN.md: 32 was visibly wrong, 64 matched dense
@@ -19,10 +21,10 @@ compositing to 1e-4).
 from __future__ import annotations
 
 import logging
+import math
 
 import torch
 from torch import Tensor
-from torch.utils.checkpoint import checkpoint
 
 from splat.composite import CompositeOut, check_composite_inputs
 
@@ -35,20 +37,20 @@ T_MIN = 1e-4  # a Gaussian that would drop T below this stops the pixel (3DGS)
 
 
 def gaussian_alpha(dx: Tensor, dy: Tensor, conic_a: Tensor, conic_b: Tensor, conic_c: Tensor,
-                   opacity: Tensor) -> tuple[Tensor, Tensor]:
-    """Return (power, alpha) of a 2D Gaussian at offset (dx, dy) = mean - pixel centre.
+                   opacity: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(power, G, opacity * G) of a 2D Gaussian at offset (dx, dy) = mean - pixel centre.
 
-    power = -1/2 (a dx^2 + c dy^2) - b dx dy;  alpha = min(0.99, o exp(power)) (3DGS, eq. 2 of the
-    splatting paper). Shared by the selection and blending passes so that both take the same
-    decisions bit for bit.
+    power = -1/2 (a dx^2 + c dy^2) - b dx dy;  G = exp(power)  (3DGS eq. 2 of the splatting
+    paper; alpha = min(0.99, o G)). Shared by the selection and blending passes so that both take
+    the same decisions bit for bit. exp is evaluated at min(power, 0) (power > 0 is skipped anyway).
     """
     power = -0.5 * (conic_a * dx * dx + conic_c * dy * dy) - conic_b * dx * dy
-    alpha = torch.clamp(opacity * torch.exp(torch.clamp(power, max=0.0)), max=ALPHA_MAX)
-    return power, alpha
+    gauss = torch.exp(torch.clamp(power, max=0.0))
+    return power, gauss, opacity * gauss
 
 
 def _bin_pixels(width: int, height: int, device: torch.device) -> Tensor:
-    """[nbins, BIN*BIN] flat pixel index of each bin's pixels, -1 where the bin leaves the image."""
+    """[nbins, BIN*BIN] flat pixel index of each bin's pixels, H*W where the bin leaves the image."""
     nbx, nby = -(-width // BIN), -(-height // BIN)
     by, bx = torch.meshgrid(torch.arange(nby, device=device), torch.arange(nbx, device=device),
                             indexing="ij")
@@ -56,41 +58,55 @@ def _bin_pixels(width: int, height: int, device: torch.device) -> Tensor:
                             indexing="ij")
     rows = by.reshape(-1, 1) * BIN + ly.reshape(1, -1)  # [nbins, BIN*BIN]
     cols = bx.reshape(-1, 1) * BIN + lx.reshape(1, -1)
-    pix = rows * width + cols
-    return torch.where((rows < height) & (cols < width), pix, torch.full_like(pix, -1))
+    inside = (rows < height) & (cols < width)
+    return torch.where(inside, rows * width + cols, torch.full_like(rows, width * height))
 
 
-def _bin_pairs(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int
-               ) -> tuple[Tensor, Tensor, Tensor]:
+def _footprint_extent(conics: Tensor, opacities: Tensor, radii: Tensor) -> tuple[Tensor, Tensor]:
+    """Half-extents (ex, ey) in pixels outside which no pixel can pass the rule: the radius box,
+    tightened to the ellipse d^T Q d <= 2 ln(255 o) where o exp(power) >= 1/255 (0 if o < 1/255)."""
+    q = conics.double()
+    det = q[:, 0] * q[:, 2] - q[:, 1] * q[:, 1]
+    tau = 2.0 * torch.log(torch.clamp(opacities.double() * 255.0, min=1e-300))
+    r = radii.double()
+    with torch.no_grad():
+        ok = (det > 0) & torch.isfinite(det)
+        safe_det = torch.where(ok, det, torch.ones_like(det))
+        ex = torch.sqrt(torch.clamp(tau * q[:, 2] / safe_det, min=0.0))
+        ey = torch.sqrt(torch.clamp(tau * q[:, 0] / safe_det, min=0.0))
+        ex = torch.where(ok, torch.minimum(ex, r), r)  # non-PD conics: fall back to the radius box
+        ey = torch.where(ok, torch.minimum(ey, r), r)
+        live = (radii > 0) & (tau >= 0)
+    return torch.where(live, ex, -1.0), torch.where(live, ey, -1.0)
+
+
+def _bin_pairs(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, depths: Tensor,
+               width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
     """(Gaussian index per pair sorted by (bin, depth), pair count per bin, first pair per bin)."""
     device = means2d.device
     nbx, nby = -(-width // BIN), -(-height // BIN)
-    ids = torch.nonzero(radii > 0).squeeze(1)
+    ex, ey = _footprint_extent(conics, opacities, radii)
+    ids = torch.nonzero(ex >= 0).squeeze(1)
     ids = ids[torch.argsort(depths[ids], stable=True)]  # depth order, ties by index
-    r = radii[ids].to(means2d.dtype)
-    mx, my = means2d[ids, 0], means2d[ids, 1]
-    # Touched columns j satisfy |j + 0.5 - mx| <= r; widen by one pixel (the exact box test runs
-    # per pixel later) and clamp in float first so that far-away means do not overflow int64.
-    j0 = torch.floor(torch.clamp(mx - r - 1.5, -1.0, width)).long().clamp(min=0)
-    j1 = torch.floor(torch.clamp(mx + r + 0.5, -1.0, width)).long().clamp(max=width - 1)
-    i0 = torch.floor(torch.clamp(my - r - 1.5, -1.0, height)).long().clamp(min=0)
-    i1 = torch.floor(torch.clamp(my + r + 0.5, -1.0, height)).long().clamp(max=height - 1)
-    bx0, bx1, by0, by1 = j0 // BIN, j1 // BIN, i0 // BIN, i1 // BIN
-    ncx = (bx1 - bx0 + 1).clamp(min=0)
-    ncy = (by1 - by0 + 1).clamp(min=0)
-    ncx = torch.where((j1 >= j0) & (i1 >= i0), ncx, torch.zeros_like(ncx))
-    npairs = ncx * ncy  # [n_valid]
+    mx, my = means2d[ids, 0].double(), means2d[ids, 1].double()
+    ex, ey = ex[ids], ey[ids]
+    # Columns j with |j + 0.5 - mx| <= ex, widened by a pixel (the exact test runs per pixel);
+    # clamp in float first so that far-away means cannot overflow int64.
+    j0 = torch.floor(torch.clamp(mx - ex - 1.5, -1.0, width)).long().clamp(min=0)
+    j1 = torch.floor(torch.clamp(mx + ex + 0.5, -1.0, width)).long().clamp(max=width - 1)
+    i0 = torch.floor(torch.clamp(my - ey - 1.5, -1.0, height)).long().clamp(min=0)
+    i1 = torch.floor(torch.clamp(my + ey + 0.5, -1.0, height)).long().clamp(max=height - 1)
+    bx0, by0 = j0 // BIN, i0 // BIN
+    ncx = (j1 // BIN - bx0 + 1).clamp(min=0)
+    ncy = (i1 // BIN - by0 + 1).clamp(min=0)
+    npairs = torch.where((j1 >= j0) & (i1 >= i0), ncx * ncy, torch.zeros_like(ncx))  # [n_live]
     gid = torch.repeat_interleave(torch.arange(ids.numel(), device=device), npairs)
-    first = torch.cumsum(npairs, 0) - npairs
-    local = torch.arange(gid.numel(), device=device) - first[gid]
-    bx = bx0[gid] + local % ncx[gid]
-    by = by0[gid] + torch.div(local, ncx[gid], rounding_mode="floor")
-    bin_id = by * nbx + bx
+    local = torch.arange(gid.numel(), device=device) - (torch.cumsum(npairs, 0) - npairs)[gid]
+    ncx_g = ncx[gid]
+    bin_id = (by0[gid] + torch.div(local, ncx_g, rounding_mode="floor")) * nbx + bx0[gid] + local % ncx_g
     bin_id, perm = torch.sort(bin_id, stable=True)  # stable: keeps depth order inside a bin
-    pair_g = ids[gid[perm]]
     counts = torch.bincount(bin_id, minlength=nbx * nby)
-    starts = torch.cumsum(counts, 0) - counts
-    return pair_g, counts, starts
+    return ids[gid[perm]], counts, torch.cumsum(counts, 0) - counts
 
 
 @torch.no_grad()
@@ -110,95 +126,170 @@ def select_contributors(
 
     Applies the exact skip / stop rule of :mod:`splat.composite` with each pixel's running
     transmittance, stopping after ``max_per_pixel`` blended Gaussians. ``K = max(n_contrib)``.
+    State is kept bin-major ([bins, 16 pixels]) so that each round indexes whole bins.
     """
-    device = means2d.device
-    npix = width * height
-    kmax = int(max_per_pixel)
-    means2d, conics, opacities = means2d.detach(), conics.detach(), opacities.detach()
-    pair_g, counts, starts = _bin_pairs(means2d, radii, depths, width, height)
-    bin_pix = _bin_pixels(width, height, device)  # [nbins, BIN*BIN]
-    trans = torch.ones(npix + 1, dtype=means2d.dtype, device=device)  # slot npix: outside pixels
-    count = torch.zeros(npix + 1, dtype=torch.long, device=device)
-    done = torch.zeros(npix + 1, dtype=torch.bool, device=device)
-    done[npix] = True
-    sel = torch.full((npix + 1, kmax), -1, dtype=torch.long, device=device)
-    bin_pix = torch.where(bin_pix >= 0, bin_pix, torch.full_like(bin_pix, npix))
-    cand = torch.arange(candidates_per_round, device=device)
-    px_all = (torch.arange(npix + 1, device=device) % width).to(means2d.dtype) + 0.5
-    py_all = torch.div(torch.arange(npix + 1, device=device), width, rounding_mode="floor"
-                       ).to(means2d.dtype) + 0.5
-    active = counts > 0
-    group = max(1, max_round_elems // (BIN * BIN * candidates_per_round))
+    device, dtype = means2d.device, means2d.dtype
+    npix, kmax, cpr, bpix = width * height, int(max_per_pixel), int(candidates_per_round), BIN * BIN
+    pair_g, counts, starts = _bin_pairs(means2d, conics, opacities, radii, depths, width, height)
+    npairs = pair_g.numel()
+    pair_g = torch.cat([pair_g, pair_g.new_zeros(1)])  # pad slot for out-of-range positions
+    # per-pair data, channel-first: mx, my, a, b, c, opacity, radius (pad: opacity 0 never passes)
+    per_g = torch.cat([means2d, conics, opacities[:, None], radii[:, None].to(dtype)], 1).T
+    packed = torch.cat([torch.index_select(per_g, 1, pair_g[:npairs]), per_g.new_zeros(7, 1)], 1)
+    bin_pix = _bin_pixels(width, height, device)  # [nbins, 16], npix = outside the image
+    nbins = bin_pix.shape[0]
+    px_bin = (bin_pix % width).to(dtype) + 0.5  # [nbins, 16] pixel centres (junk where outside)
+    py_bin = torch.div(bin_pix, width, rounding_mode="floor").to(dtype) + 0.5
+    trans = torch.ones(nbins, bpix, dtype=dtype, device=device)
+    count = torch.zeros(nbins, bpix, dtype=torch.int32, device=device)
+    done = bin_pix >= npix  # [nbins, 16]
+    sel = torch.full((nbins, bpix, kmax + 1), -1, dtype=torch.long, device=device)  # col kmax: dump
+    sel_flat = sel.view(-1)
+    cand = torch.arange(cpr, device=device)
+    active = (counts > 0) & ~done.all(1)
+    group = max(1, max_round_elems // (bpix * cpr))
     rnd = 0
     while True:
-        first = rnd * candidates_per_round
+        first = rnd * cpr
         bins = torch.nonzero(active & (counts > first)).squeeze(1)
         if bins.numel() == 0:
             break
         for b in torch.split(bins, group):
-            pos = first + cand  # [Cc]
-            ok = pos[None, :] < counts[b, None]  # [nb, Cc]
-            g = pair_g[(starts[b, None] + pos[None, :]).clamp(max=max(pair_g.numel() - 1, 0))]
-            pix = bin_pix[b]  # [nb, 16]
-            dx = means2d[g, 0][:, None, :] - px_all[pix][:, :, None]  # [nb, 16, Cc]
-            dy = means2d[g, 1][:, None, :] - py_all[pix][:, :, None]
-            rad = radii[g].to(means2d.dtype)[:, None, :]
-            power, alpha = gaussian_alpha(dx, dy, conics[g, 0][:, None, :], conics[g, 1][:, None, :],
-                                          conics[g, 2][:, None, :], opacities[g][:, None, :])
-            passes = (ok[:, None, :] & ~done[pix][:, :, None] & (dx.abs() <= rad) & (dy.abs() <= rad)
-                      & (power <= 0) & (alpha >= ALPHA_MIN))
-            pix, passes, alpha = pix.reshape(-1), passes.reshape(pix.numel(), -1), alpha.reshape(pix.numel(), -1)
-            gg = g[:, None, :].expand(-1, BIN * BIN, -1).reshape(pix.numel(), -1)  # [R, Cc]
-            t0 = trans[pix]
-            a = torch.where(passes, alpha, torch.zeros_like(alpha))
-            test_t = torch.cumprod(torch.cat([t0[:, None], 1.0 - a], 1), 1)[:, 1:]  # sequential T
-            rank = count[pix][:, None] + torch.cumsum(passes.long(), 1)  # 1-based blend index
-            blocker = passes & ((test_t < T_MIN) | (rank > kmax))
-            blocked = torch.cumsum(blocker.long(), 1) > 0
-            include = passes & ~blocked
-            a_inc = torch.where(include, alpha, torch.zeros_like(alpha))
-            trans[pix] = torch.cumprod(torch.cat([t0[:, None], 1.0 - a_inc], 1), 1)[:, -1]
-            slot = count[pix][:, None] + torch.cumsum(include.long(), 1) - 1
-            rows, cols = torch.nonzero(include, as_tuple=True)
-            sel[pix[rows], slot[rows, cols]] = gg[rows, cols]
-            n_new = count[pix] + include.sum(1)
-            count[pix] = n_new
-            done[pix] = done[pix] | blocked.any(1) | (n_new >= kmax)
-            done[npix] = True
-            trans[npix], count[npix] = 1.0, 0
-        active = active & ~done[bin_pix].all(1)
+            nb = b.numel()
+            pos = first + cand[None, :]  # [1, Cc]
+            slot_idx = torch.where(pos < counts[b, None], starts[b, None] + pos, npairs).reshape(-1)
+            data = torch.index_select(packed, 1, slot_idx).view(7, nb, 1, cpr)  # [7, nb, 1, Cc]
+            dx = data[0] - px_bin[b][:, :, None]  # [nb, 16, Cc]
+            dy = data[1] - py_bin[b][:, :, None]
+            power, _, raw = gaussian_alpha(dx, dy, data[2], data[3], data[4], data[5])
+            alpha = torch.clamp(raw, max=ALPHA_MAX)
+            passes = (alpha >= ALPHA_MIN) & (power <= 0) & (dx.abs() <= data[6]) & (dy.abs() <= data[6])
+            done_b, count_b, t0 = done[b], count[b], trans[b]  # [nb, 16]
+            passes &= ~done_b[:, :, None]
+            one_minus = torch.where(passes, 1.0 - alpha, 1.0)
+            full_t = torch.cumprod(torch.cat([t0[:, :, None], one_minus], 2), 2)  # [nb, 16, Cc + 1]
+            rank = count_b[:, :, None] + torch.cumsum(passes, 2, dtype=torch.int32)  # 1-based index
+            blocker = passes & ((full_t[:, :, 1:] < T_MIN) | (rank > kmax))
+            has_block = blocker.any(2, keepdim=True)
+            n_free = torch.where(has_block, blocker.to(torch.int8).argmax(2, keepdim=True), cpr)  # [nb,16,1]
+            include = passes & (cand < n_free)
+            trans[b] = full_t.gather(2, n_free).squeeze(2)  # T after the last included Gaussian
+            # write the included Gaussians at their slots; the rest go to the dump column kmax
+            slot = torch.where(include, rank - 1, kmax)
+            base = (b[:, None, None] * bpix + torch.arange(bpix, device=device)[None, :, None]) * (kmax + 1)
+            sel_flat.scatter_(0, (base + slot).reshape(-1),
+                              pair_g[slot_idx].view(nb, 1, cpr).expand(nb, bpix, cpr).reshape(-1))
+            new_count = count_b + include.sum(2, dtype=torch.int32)
+            count[b] = new_count
+            done[b] = done_b | has_block.squeeze(2) | (new_count >= kmax)
+        active &= ~done.all(1)
         rnd += 1
-    n_contrib = count[:npix]
+    # back to image order
+    order = torch.argsort(bin_pix.reshape(-1))[:npix]  # bin-major position of each image pixel
+    n_contrib = count.reshape(-1)[order].long()
     k = int(n_contrib.max()) if npix > 0 else 0
-    return sel[:npix, :k].contiguous(), n_contrib
+    return sel.reshape(-1, kmax + 1)[order, :k], n_contrib
 
 
-def _blend_rows(sel: Tensor, pix_xy: Tensor, means2d: Tensor, conics: Tensor, opacities: Tensor,
-                features: Tensor, median_features: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Blend selected Gaussians for a block of pixels: (sum_k f alpha T [R, C], T_final [R], median).
+def _gather_alpha(packed_t: Tensor, sel: Tensor, pix_xy: Tensor):
+    """Recompute per (pixel, slot) quantities of the selected Gaussians (rows of one chunk).
 
-    sel [R, K] (-1 padded, blend order), pix_xy [R, 2] pixel centres. Differentiable.
+    packed_t [6 + C, N] = (mx, my, a, b, c, opacity, features...) channel-first, sel [R, K]
+    (-1 padded), pix_xy [R, 2]. Returns (idx [R*K], data [6 + C, R, K], dx, dy, G, alpha,
+    unclamped) with alpha = 0 at pads.
     """
+    rows, k = sel.shape
     valid = sel >= 0
-    g = sel.clamp(min=0)
-    dx = means2d[g, 0] - pix_xy[:, 0:1]  # [R, K]
-    dy = means2d[g, 1] - pix_xy[:, 1:2]
-    _, alpha = gaussian_alpha(dx, dy, conics[g, 0], conics[g, 1], conics[g, 2], opacities[g])
-    alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
-    t_incl = torch.cumprod(1.0 - alpha, 1)  # [R, K] T after each Gaussian
-    t_excl = torch.cat([torch.ones_like(t_incl[:, :1]), t_incl[:, :-1]], 1)  # T before it
-    weights = alpha * t_excl  # [R, K]
-    out = torch.einsum("rk,rkc->rc", weights, features[g])  # [R, C]
-    t_final = t_incl[:, -1] if sel.shape[1] > 0 else torch.ones_like(pix_xy[:, 0])
-    median = None
-    if median_features is not None:
-        with torch.no_grad():
-            cross = valid & (t_excl > 0.5) & (t_incl <= 0.5)
-            has = cross.any(1)
-            kmed = torch.argmax(cross.to(torch.int8), 1)
-            gmed = torch.where(has, g.gather(1, kmed[:, None]).squeeze(1), torch.zeros_like(kmed))
-        median = median_features[gmed] * has[:, None].to(median_features.dtype)
-    return out, t_final, median
+    idx = sel.clamp(min=0).reshape(-1)
+    data = torch.index_select(packed_t, 1, idx).view(-1, rows, k)  # [6 + C, R, K]
+    dx = data[0] - pix_xy[:, 0:1]
+    dy = data[1] - pix_xy[:, 1:2]
+    _, gauss, raw = gaussian_alpha(dx, dy, data[2], data[3], data[4], data[5])
+    unclamped = valid & (raw <= ALPHA_MAX)  # where d alpha / d raw = 1 (torch.clamp convention)
+    alpha = torch.where(valid, torch.clamp(raw, max=ALPHA_MAX), torch.zeros_like(raw))
+    return idx, data, dx, dy, gauss, alpha, unclamped
+
+
+def _transmittance(alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """(T before each slot [R, K], T after the last [R]) for front-to-back alphas [R, K]."""
+    t_incl = torch.cumprod(1.0 - alpha, 1)
+    t_excl = torch.cat([torch.ones_like(t_incl[:, :1]), t_incl[:, :-1]], 1)
+    return t_excl, t_incl[:, -1]
+
+
+class _BlendSelected(torch.autograd.Function):
+    """sum_k f_k alpha_k T_k and T_final per pixel over its selected Gaussians (analytic backward).
+
+    Inputs: packed_t [6 + C, N] (means2d, conics, opacities, features; channel-first), sel [P', K]
+    sorted so that chunk rows share similar counts, pix_xy [P', 2], chunks: (start, stop, k) row
+    ranges. Outputs: acc [P', C], t_final [P'], kmed [P'] (slot of the median Gaussian, -1 if none).
+    """
+
+    @staticmethod
+    def forward(ctx, packed_t, sel, pix_xy, chunks):
+        nch = packed_t.shape[0] - 6
+        acc = packed_t.new_zeros(sel.shape[0], nch)
+        t_final = packed_t.new_ones(sel.shape[0])
+        kmed = torch.full((sel.shape[0],), -1, dtype=torch.long, device=sel.device)
+        for start, stop, k in chunks:
+            _, data, _, _, _, alpha, _ = _gather_alpha(packed_t, sel[start:stop, :k], pix_xy[start:stop])
+            t_excl, t_last = _transmittance(alpha)
+            acc[start:stop] = (data[6:] * (alpha * t_excl)[None]).sum(-1).T
+            t_final[start:stop] = t_last
+            cross = (alpha > 0) & (t_excl > 0.5) & (t_excl * (1.0 - alpha) <= 0.5)
+            kmed[start:stop] = torch.where(cross.any(1), cross.to(torch.int8).argmax(1), -1)
+        ctx.save_for_backward(packed_t, sel, pix_xy, t_final)
+        ctx.chunks = chunks
+        ctx.mark_non_differentiable(kmed)
+        return acc, t_final, kmed
+
+    @staticmethod
+    def backward(ctx, g_acc, g_tfinal, _g_kmed):
+        packed_t, sel, pix_xy, t_final = ctx.saved_tensors
+        grad_t = torch.zeros_like(packed_t)
+        if g_acc is None:
+            g_acc = packed_t.new_zeros(sel.shape[0], packed_t.shape[0] - 6)
+        if g_tfinal is None:
+            g_tfinal = torch.zeros_like(t_final)
+        for start, stop, k in ctx.chunks:
+            idx, data, dx, dy, gauss, alpha, unclamped = _gather_alpha(
+                packed_t, sel[start:stop, :k], pix_xy[start:stop])
+            t_excl, _ = _transmittance(alpha)
+            g_out = g_acc[start:stop].T.contiguous()[:, :, None]  # [C, R, 1]
+            weights = alpha * t_excl  # [R, K]
+            f_dot_g = (data[6:] * g_out).sum(0)  # [R, K]
+            contrib = weights * f_dot_g
+            # everything behind slot k (later Gaussians and the final T) carries a factor (1 - alpha_k)
+            behind = contrib.sum(1, keepdim=True) - torch.cumsum(contrib, 1)
+            behind = behind + (t_final[start:stop] * g_tfinal[start:stop])[:, None]
+            d_raw = torch.where(unclamped, t_excl * f_dot_g - behind / (1.0 - alpha), torch.zeros_like(alpha))
+            d_power = d_raw * data[5] * gauss
+            g_pair = torch.empty_like(data)  # [6 + C, R, K]; zero at pads (alpha, d_raw are 0 there)
+            g_pair[0] = -d_power * (data[2] * dx + data[3] * dy)
+            g_pair[1] = -d_power * (data[3] * dx + data[4] * dy)
+            g_pair[2] = -0.5 * d_power * dx * dx
+            g_pair[3] = -d_power * dx * dy
+            g_pair[4] = -0.5 * d_power * dy * dy
+            g_pair[5] = d_raw * gauss
+            g_pair[6:] = weights[None] * g_out
+            grad_t.index_add_(1, idx, g_pair.view(g_pair.shape[0], -1))
+        return grad_t, None, None, None
+
+
+def _row_chunks(counts: Tensor, max_pairs: int, slack: float = 0.75) -> list[tuple[int, int, int]]:
+    """Split rows sorted by descending count into (start, stop, k): k = the first row's count,
+    rows * k <= max_pairs, and a chunk ends where counts drop below slack * k (bounded padding)."""
+    counts_list = counts.tolist()
+    chunks, start, n = [], 0, len(counts_list)
+    while start < n:
+        k = max(int(counts_list[start]), 1)
+        limit = min(n, start + max(1, max_pairs // k))
+        stop = start + 1
+        while stop < limit and counts_list[stop] >= slack * k:
+            stop += 1
+        chunks.append((start, stop, k))
+        start = stop
+    return chunks
 
 
 def composite_torch(
@@ -214,54 +305,42 @@ def composite_torch(
     background: Tensor | None = None,  # [C]
     median_features: Tensor | None = None,  # [N, M]
     max_per_pixel: int = 64,
-    max_chunk_elems: int = 1 << 21,
+    max_chunk_pairs: int = 1 << 20,
 ) -> CompositeOut:
     """Composite with the rule of :mod:`splat.composite` in torch; see the module docstring.
 
-    ``max_chunk_elems`` bounds pixels x K x channels per blending chunk (memory knob).
+    ``max_chunk_pairs`` bounds pixels x Gaussians per blending chunk (the memory knob: a chunk
+    holds about max_chunk_pairs * (C + 12) values).
     """
     check_composite_inputs(means2d, conics, opacities, features, depths, radii, width, height,
                            background, median_features)
     if max_per_pixel < 1:
         raise ValueError(f"max_per_pixel must be >= 1, got {max_per_pixel}")
-    device, dtype = means2d.device, means2d.dtype
+    device, dtype = means2d.device, features.dtype
     npix, nch = width * height, features.shape[1]
     sel, n_contrib = select_contributors(means2d, conics, opacities, depths, radii, width, height,
                                          max_per_pixel)
-    rows = torch.nonzero(n_contrib > 0).squeeze(1)  # pixels with at least one Gaussian
+    # pixels with Gaussians, most-covered first, so that each chunk's K is tight
+    order = torch.argsort(n_contrib, descending=True, stable=True)
+    rows = order[: int((n_contrib > 0).sum())]
+    sel = sel[rows]
     pix_xy = torch.stack([(rows % width).to(dtype) + 0.5,
                           torch.div(rows, width, rounding_mode="floor").to(dtype) + 0.5], 1)
-    sel = sel[rows]
-    k = max(sel.shape[1], 1)
-    nmed = 0 if median_features is None else median_features.shape[1]
-    chunk = max(1, max_chunk_elems // (k * (nch + nmed + 8)))
-    needs_grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad
-        for t in (means2d, conics, opacities, features, median_features))
-    outs, trans, meds = [], [], []
-    for start in range(0, rows.numel(), chunk):
-        args = (sel[start:start + chunk], pix_xy[start:start + chunk], means2d, conics, opacities,
-                features, median_features)
-        if needs_grad and rows.numel() > chunk:
-            o, t, m = checkpoint(_blend_rows, *args, use_reentrant=False)
-        else:
-            o, t, m = _blend_rows(*args)
-        outs.append(o)
-        trans.append(t)
-        meds.append(m)
-    blended = torch.zeros(npix, nch, dtype=features.dtype, device=device)
-    t_full = torch.ones(npix, dtype=dtype, device=device)
-    if rows.numel() > 0:
-        blended = blended.index_put((rows,), torch.cat(outs))
-        t_full = t_full.index_put((rows,), torch.cat(trans))
+    packed_t = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features],
+                         1).T.contiguous()  # [6 + C, N]
+    chunks = _row_chunks(n_contrib[rows], max_chunk_pairs)
+    acc, t_rows, kmed = _BlendSelected.apply(packed_t, sel, pix_xy, chunks)
+    blended = torch.zeros(npix, nch, dtype=dtype, device=device).index_put((rows,), acc)
+    t_full = torch.ones(npix, dtype=dtype, device=device).index_put((rows,), t_rows)
     if background is not None:
         blended = blended + t_full[:, None] * background[None, :]
     median = None
     if median_features is not None:
-        median = torch.zeros(npix, nmed, dtype=median_features.dtype, device=device)
-        if rows.numel() > 0:
-            median = median.index_put((rows,), torch.cat(meds))
-        median = median.reshape(height, width, nmed)
+        has = kmed >= 0
+        gmed = torch.where(has, sel.gather(1, kmed.clamp(min=0)[:, None]).squeeze(1) if sel.shape[1] else kmed, 0)
+        med_rows = median_features[gmed] * has[:, None].to(median_features.dtype)
+        median = torch.zeros(npix, median_features.shape[1], dtype=median_features.dtype, device=device)
+        median = median.index_put((rows,), med_rows).reshape(height, width, -1)
     return CompositeOut(
         features=blended.reshape(height, width, nch),
         alpha=(1.0 - t_full).reshape(height, width),
