@@ -225,3 +225,20 @@ class TestSceneAndLayouts:
         with pytest.raises(ValueError, match="already exists"):
             make_room(rooms["a"], TINY)
         assert not (tmp_path / "x").exists()
+
+
+def test_sfm_points_lie_on_the_gt_mesh(tmp_path):
+    """SfM really runs on the renders (known poses) and its points land on the GT surface."""
+    pytest.importorskip("geocues.sfm")
+    import open3d as o3d
+
+    root = make_room(tmp_path / "room", RoomConfig(width=256, height=192, n_views=30, sfm=True))
+    scene = Scene.load(root)
+    assert len(scene.points) > 100
+    assert not (root / "cache").exists()
+    rc, _, _ = _o3d_scene_and_mesh(root / "gt/mesh.ply")
+    d = rc.compute_distance(query_points=o3d.core.Tensor(scene.points.xyz.astype(np.float32))).numpy()
+    assert np.median(d) < 0.01 and (d < 0.05).mean() > 0.8, (np.median(d), (d < 0.05).mean())
+    report = json.loads((root / "make_room_report.json").read_text())
+    assert report["sfm"]["run"] and str(tmp_path / "room") in json.dumps(report)
+    assert ".room." not in json.dumps(report), "temporary folder name leaked into the report"

@@ -203,6 +203,10 @@ def make_room(out: str | Path, cfg: RoomConfig = RoomConfig(), overwrite: bool =
         report = {"scene": str(out), "seconds": seconds, "sfm": sfm_info,
                   "n_views": cfg.n_views, "size": [cfg.width, cfg.height]}
         (tmp / "make_room_report.json").write_text(json.dumps(report, indent=1, default=str))
+        for name in ("make_room_report.json", "sfm_report.json"):  # paths as they will be
+            f = tmp / name
+            if f.is_file():
+                f.write_text(f.read_text().replace(str(tmp), str(out)))
     log.info("make-room %s: %d views in %.1f s (render %.1f s, sfm %.1f s)", out, cfg.n_views,
              seconds["total"], seconds["render_and_priors"], seconds["sfm"])
     return out
