@@ -242,3 +242,17 @@ def test_sfm_points_lie_on_the_gt_mesh(tmp_path):
     report = json.loads((root / "make_room_report.json").read_text())
     assert report["sfm"]["run"] and str(tmp_path / "room") in json.dumps(report)
     assert ".room." not in json.dumps(report), "temporary folder name leaked into the report"
+
+
+def test_cli_make_room(tmp_path, capsys):
+    from cli.evaluate_cli import main
+
+    out = tmp_path / "cli_room"
+    rc = main(["make-room", str(out), "--layout", "bare", "--seed", "2", "--width", "48",
+               "--height", "36", "--n-views", "3", "--no-sfm"])
+    assert rc == 0 and str(out) in capsys.readouterr().out
+    meta = json.loads((out / "scene.json").read_text())
+    assert (meta["layout"], meta["seed"], meta["camera"]["width"]) == ("bare", 2, 48)
+    assert len(list((out / "images").glob("*.png"))) == 3
+    assert main(["make-room", str(out), "--no-sfm"]) == 1  # exists, no --overwrite: one clear error
+    assert "already exists" in capsys.readouterr().err
