@@ -11,6 +11,7 @@ import tyro
 
 from cli._dispatch import dispatch
 from geocues.sfm import SfmConfig
+from geocues.undistort import UndistortConfig
 
 
 def sfm(scene: tyro.conf.Positional[Path],
@@ -32,6 +33,24 @@ def sfm(scene: tyro.conf.Positional[Path],
 
     report = run(scene, out, cfg, overwrite=overwrite)
     print(json.dumps({k: v for k, v in report.items() if k != "config"}, indent=2))
+    return 0
+
+
+def undistort(scene: tyro.conf.Positional[Path],
+              out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+              overwrite: bool = False,
+              cfg: tyro.conf.OmitArgPrefixes[UndistortConfig] = UndistortConfig()) -> int:
+    """Undistort a scene with a distorted camera model (SIMPLE_RADIAL, OPENCV, ...) into a PINHOLE scene.
+
+    Args:
+        scene: scene folder with images/ and a COLMAP model.
+        out: the new scene folder.
+        overwrite: replace OUT's images and model if they exist.
+        cfg: undistortion options.
+    """
+    from geocues.undistort import run
+
+    print(run(scene, out, cfg, overwrite=overwrite))
     return 0
 
 
@@ -69,7 +88,7 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
 
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"info": info, "sfm": sfm}
+COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort}
 
 
 def main(argv: list[str] | None = None) -> int:

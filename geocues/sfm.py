@@ -202,23 +202,28 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
                  for j in range(i + 1, min(len(names), i + 1 + cfg.sequential_overlap))]
     seconds["pairs"] = time.perf_counter() - t0
     verify_by_poses = mode == "triangulate" and cfg.verification == "poses"
-    match_key = _key({"pairs": pairs, "ratio": cfg.max_ratio, "poses": verify_by_poses,
-                      "epi": cfg.max_epipolar_error, "inl": cfg.min_num_inliers, "seed": cfg.seed})
+    # matches (and COLMAP's RANSAC verification) are cached apart from the cheap known-pose check
+    match_key = _key({"pairs": pairs, "ratio": cfg.max_ratio, "poses": verify_by_poses, "seed": cfg.seed,
+                      "inl": None if verify_by_poses else cfg.min_num_inliers})
+    verify_key = _key({"epi": cfg.max_epipolar_error, "inl": cfg.min_num_inliers}) if verify_by_poses else ""
 
     # ---- matching and verification
     t0 = time.perf_counter()
+    seconds["match"] = 0.0
     if state.get("match") != match_key:
         U.clear_matches(db_path)
+        state.pop("verify", None)
         U.match(db_path, pairs, cfg, cache, verify=not verify_by_poses)
         seconds["match"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if verify_by_poses:
-            U.verify_with_poses(db_path, ref, cfg)
         state["match"] = match_key
         state_path.write_text(json.dumps(state))
     else:
-        log.info("sfm: reusing %d cached matched pairs", len(pairs))
-        seconds["match"] = 0.0
+        log.info("sfm: reusing the matches of %d cached pairs", len(pairs))
+    t0 = time.perf_counter()
+    if verify_by_poses and state.get("verify") != verify_key:
+        U.verify_with_poses(db_path, ref, cfg)
+        state["verify"] = verify_key
+        state_path.write_text(json.dumps(state))
     seconds["verify"] = time.perf_counter() - t0
     n_verified = U.num_verified_pairs(db_path, cfg.min_num_inliers)
 

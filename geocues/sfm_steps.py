@@ -207,6 +207,7 @@ def verify_with_poses(db_path: Path, ref: "pycolmap.Reconstruction", cfg: "SfmCo
 
     db = pycolmap.Database.open(str(db_path))
     try:
+        db.clear_two_view_geometries()
         pair_ids, matches = db.read_all_matches()
         kps: dict[int, np.ndarray] = {}
         kept = 0

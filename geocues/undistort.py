@@ -1,0 +1,85 @@
+"""`geocues undistort`: turn a scene with a distorted COLMAP camera model (SIMPLE_RADIAL, OPENCV, ...)
+into a PINHOLE scene with pycolmap's image undistorter (COLMAP ``image_undistorter``).
+
+OUT gets undistorted ``images/``, the model in ``sparse/0`` (cameras now PINHOLE, points kept),
+``scene.json`` copied and ``gt/`` linked. Priors are per-pixel maps of the distorted images and are
+not carried over (they would need the same warp): a warning says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from geocues.colmap_io import PINHOLE_MODELS, _atomic_dir, find_model_dir
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class UndistortConfig:
+    """Options of `geocues undistort`."""
+
+    blank_pixels: float = 0.0
+    """Share of blank (black) pixels allowed in the undistorted image: 0 crops to valid pixels only."""
+    max_image_size: int = -1
+    """Longest side of the undistorted images (-1 = keep the size)."""
+    binary: bool = True
+    """Write the model as .bin (else .txt)."""
+
+
+def run(scene_dir: Path, out_dir: Path, cfg: UndistortConfig = UndistortConfig(),
+        overwrite: bool = False) -> Path:
+    """Undistort SCENE into OUT (a new scene folder); returns OUT. Refuses to write into SCENE."""
+    import pycolmap
+
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
+    model_dir = find_model_dir(scene_dir)
+    image_dir = scene_dir / "images"
+    if not image_dir.is_dir():
+        raise FileNotFoundError(f"no images folder at {image_dir}")
+    if out_dir.resolve() == scene_dir.resolve():
+        raise ValueError(f"undistort writes a new scene: OUT must differ from SCENE ({scene_dir})")
+    if (out_dir / "sparse").exists() and not overwrite:
+        raise FileExistsError(f"{out_dir / 'sparse'} exists; pass overwrite=True (--overwrite) to replace it")
+    rec = pycolmap.Reconstruction(str(model_dir))
+    if rec.num_reg_images() == 0:
+        raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
+    for im in rec.images.values():
+        if not (image_dir / im.name).is_file():
+            raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: {image_dir / im.name}")
+    models = sorted({c.model.name for c in rec.cameras.values()})
+    if all(m in PINHOLE_MODELS for m in models):
+        log.info("undistort: %s already uses %s cameras; images are copied unchanged", scene_dir, models)
+    if (scene_dir / "priors").is_dir():
+        log.warning("undistort: priors in %s are not carried over (they would need the same warp)",
+                    scene_dir / "priors")
+
+    opts = pycolmap.UndistortCameraOptions()
+    opts.blank_pixels = cfg.blank_pixels
+    opts.max_image_size = cfg.max_image_size
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".undistort.", dir=out_dir))
+    try:
+        log.info("undistort: %d images of %s (%s) -> %s", rec.num_reg_images(), scene_dir, models, out_dir)
+        pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), output_type="COLMAP",
+                                  copy_policy=pycolmap.FileCopyType.copy, undistort_options=opts)
+        new = pycolmap.Reconstruction(str(tmp / "sparse"))
+        with _atomic_dir(out_dir / "images") as img_tmp:
+            img_tmp.rmdir()
+            shutil.move(str(tmp / "images"), str(img_tmp))
+        with _atomic_dir(out_dir / "sparse" / "0") as model_tmp:
+            (new.write_binary if cfg.binary else new.write_text)(str(model_tmp))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    if (scene_dir / "scene.json").is_file():
+        shutil.copyfile(scene_dir / "scene.json", out_dir / "scene.json")
+    gt = scene_dir / "gt"
+    if gt.is_dir() and not (out_dir / "gt").exists():
+        (out_dir / "gt").symlink_to(gt.resolve())
+    log.info("undistort: wrote %s (cameras now %s)", out_dir,
+             sorted({c.model.name for c in new.cameras.values()}))
+    return out_dir
