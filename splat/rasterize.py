@@ -1,0 +1,108 @@
+"""render(): project Gaussians, composite RGB + RaDe-GS depth + normal, return per-pixel maps.
+
+Channels blended per Gaussian (one composite call, any backend):
+    [r, g, b,  A, p_x, p_y,  n_x, n_y, n_z]   with   A = z - p . mean2d
+so that the blended depth at a pixel centre q is  D(q) = sum_i w_i (A_i + p_i . q)
+= A_blend + p_blend . q  exactly (RaDe-GS: each Gaussian's depth is a plane in pixel space).
+The median depth uses the (A, p) of the Gaussian where transmittance crosses 0.5.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import Tensor
+
+from splat.camera import Camera
+from splat.composite import composite
+from splat.projection import ProjectionConfig, project_gaussians
+
+log = logging.getLogger(__name__)
+
+ALPHA_EPS = 1e-6  # below this accumulated alpha, depth and normal are reported as 0 (invalid)
+
+
+def pixel_centres(width: int, height: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """[H, W, 2] (x, y) centres of the pixels: (j + 0.5, i + 0.5) (COLMAP convention)."""
+    ys = torch.arange(height, device=device, dtype=dtype) + 0.5
+    xs = torch.arange(width, device=device, dtype=dtype) + 0.5
+    return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)
+
+
+def plane_depth(offset: Tensor, slope: Tensor, centres: Tensor) -> Tensor:
+    """Per-pixel depth of blended planes: D(q) = A + p . q  (IndoorGS §3.2, RaDe-GS).
+
+    offset [H, W] = blended A = z - p . mean2d, slope [H, W, 2] blended p, centres [H, W, 2].
+    """
+    return offset + (slope * centres).sum(-1)
+
+
+def render(
+    params: dict[str, Tensor],
+    camera: Camera,
+    *,
+    sh_degree: int | None = None,
+    backend: str = "auto",
+    background: Tensor | None = None,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    antialiased: bool = False,
+    max_per_pixel: int = 64,
+) -> dict[str, Tensor]:
+    """Render one view of the Gaussians ``params`` (keys means, quats, scales, opacities, sh0, shN).
+
+    Returns a dict (H, W = camera.height, camera.width):
+      rgb [H, W, 3]           colour, background [3] (default black) blended behind
+      depth [H, W]            expected z-depth in metres, NORMALISED by alpha (sum w d / sum w);
+                              0 where alpha < 1e-6
+      median_depth [H, W]     z-depth of the Gaussian where transmittance crosses 0.5; 0 if none
+      normal [H, W, 3]        unit camera-frame normal facing the camera (blended, then normalised);
+                              0 where undefined
+      alpha [H, W]            accumulated opacity, 1 - T, in [0, 1]
+      means2d [N, 2]          projected means (retain_grad() set when they require grad)
+      radii [N] int32, visible [N] bool, n_contrib [H, W] int32
+    """
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a splat.camera.Camera, got {type(camera).__name__}")
+    cfg = ProjectionConfig(near=near, far=far, eps2d=eps2d, antialiased=antialiased)
+    proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()  # for densification (accumulated screen-space gradients)
+    dtype, device = means2d.dtype, means2d.device
+    offset = proj.depths - (proj.depth_slopes * means2d).sum(-1)  # [N] A = z - p . mean2d
+    plane = torch.cat([offset[:, None], proj.depth_slopes], -1)  # [N, 3]
+    features = torch.cat([proj.colors, plane, proj.normals], -1)  # [N, 9]
+    bg = torch.zeros(9, dtype=dtype, device=device)
+    if background is not None:
+        if tuple(background.shape) != (3,):
+            raise ValueError(f"background must have shape (3,), got {tuple(background.shape)}")
+        bg = torch.cat([background.to(device=device, dtype=dtype), bg[3:]])
+    out = composite(means2d, proj.conics, proj.opacities, features, proj.depths, proj.radii,
+                    camera.width, camera.height, background=bg, median_features=plane,
+                    backend=backend, max_per_pixel=max_per_pixel)
+    centres = pixel_centres(camera.width, camera.height, device, dtype)
+    alpha = out.alpha
+    covered = alpha > ALPHA_EPS
+    depth_acc = plane_depth(out.features[..., 3], out.features[..., 4:6], centres)
+    depth = torch.where(covered, depth_acc / torch.where(covered, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
+    median_depth = plane_depth(out.median[..., 0], out.median[..., 1:3], centres)
+    normal_acc = out.features[..., 6:9]
+    norm2 = (normal_acc * normal_acc).sum(-1, keepdim=True)
+    has_normal = norm2 > 1e-12
+    normal = torch.where(has_normal, normal_acc * torch.rsqrt(torch.clamp(norm2, min=1e-12)),
+                         torch.zeros_like(normal_acc))
+    return {
+        "rgb": out.features[..., :3],
+        "depth": depth,
+        "median_depth": median_depth,
+        "normal": normal,
+        "alpha": alpha,
+        "means2d": means2d,
+        "radii": proj.radii,
+        "visible": proj.radii > 0,
+        "n_contrib": out.n_contrib,
+    }
