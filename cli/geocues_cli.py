@@ -10,6 +10,7 @@ from typing import Annotated
 import tyro
 
 from cli._dispatch import dispatch
+from geocues.extract import ExtractConfig
 from geocues.sfm import SfmConfig
 from geocues.undistort import UndistortConfig
 
@@ -87,8 +88,28 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     return 0
 
 
+def extract(scene: tyro.conf.Positional[Path],
+            out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+            overwrite: bool = False,
+            cfg: Annotated[ExtractConfig, tyro.conf.arg(name="")] = ExtractConfig()) -> int:
+    """Extract line, SfM and plane-like cues of SCENE into OUT (cues.ply, lines3d.npz, report.json).
+
+    Args:
+        scene: scene folder (images/, sparse/0, optional priors/).
+        out: output folder CUES/ (its cache/ is reused by later runs).
+        overwrite: replace cues already in OUT (the per-image cache is still reused).
+        cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off.
+    """
+    from geocues.extract import run
+
+    out_dir = run(scene, out, cfg, overwrite=overwrite)
+    report = json.loads((out_dir / "report.json").read_text())
+    print(json.dumps({k: report[k] for k in ("counts", "seconds", "notes")}, indent=2))
+    return 0
+
+
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort}
+COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort, "extract": extract}
 
 
 def main(argv: list[str] | None = None) -> int:

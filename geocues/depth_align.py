@@ -37,6 +37,8 @@ class DepthAlignConfig:
     """Two-point RANSAC iterations for the initial fit."""
     inlier_rel: float = 0.03
     """RANSAC inlier threshold and occlusion tolerance, as a fraction of the anchor's depth."""
+    min_depth_spread: float = 0.1
+    """With fit_shift, skip images whose anchor depths span less than this (p90 - p10) / median."""
     huber_rel: float = 0.01
     """Huber threshold of the IRLS refinement, as a fraction of the median anchor depth."""
     edge_rel: float = 0.05
@@ -254,6 +256,10 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     res.rejected, res.n_anchors = rej, len(d)
     if len(d) < max(cfg.min_anchors, 2):
         res.reason = f"too few anchors ({len(d)} < {cfg.min_anchors})"
+        return res
+    spread = float((np.percentile(z, 90) - np.percentile(z, 10)) / np.median(z))
+    if cfg.fit_shift and spread < cfg.min_depth_spread:  # scale and shift are not separable
+        res.reason = f"anchor depths too narrow to fit a shift (spread {spread:.3f} < {cfg.min_depth_spread})"
         return res
     s, b, used = fit_scale_shift(d, z, cfg, rng)
     if not (np.isfinite(s) and np.isfinite(b) and s > cfg.min_scale):

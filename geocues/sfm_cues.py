@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class SfmConfig:
+class SfmCueConfig:
     """Statistical outlier removal of the SfM points."""
 
     sor_neighbors: int = 20
@@ -84,7 +84,7 @@ def statistical_outlier_mask(xyz: np.ndarray, nb_neighbors: int, std_ratio: floa
     return keep, thr
 
 
-def extract_sfm_cues(points: Points3D, cfg: SfmConfig) -> SfmCues:
+def extract_sfm_cues(points: Points3D, cfg: SfmCueConfig) -> SfmCues:
     """Filter the scene's SfM points into SFM cues. An empty model gives an empty result (and a
     reason in ``removed``), never an error."""
     n = len(points)

@@ -46,16 +46,13 @@ class TextureConfig:
     slic_ruler: float = 10.0
     """SLIC: compactness."""
     merge_step: float = 3.0
-    """Merge neighbouring segments whose mean colour step across their shared border is below
-    this (0-255 levels): graph segmentation cuts smooth shading gradients into strips (0 = off)."""
+    """Merge neighbouring segments whose mean colour step across their border is below this (0-255; 0 = off)."""
     sift_contrast_threshold: float = 0.04
     """SIFT detector contrast threshold (OpenCV default 0.04)."""
     weak_density: float = 1.0
-    """Weak texture: fewer SIFT keypoints than this per 1000 pixels (at work width), measured in
-    the segment and in a window around each pixel."""
+    """Weak texture: fewer SIFT keypoints than this per 1000 pixels, in a window around each pixel."""
     density_window: int = 48
-    """Side in pixels (at 640 px width) of the window of the per-pixel keypoint density, which
-    splits segments that hold both textured and untextured parts (0 = segment density only)."""
+    """Window side (pixels at 640 px width) of the per-pixel keypoint density (0 = per segment only)."""
     max_segment_density: float = 2.0
     """Segments denser than this (keypoints per 1000 px) hold no weak region at all."""
     erode_px: int = 4

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from geocues.scene import Points3D, Scene
-from geocues.sfm_cues import SfmConfig, extract_sfm_cues, statistical_outlier_mask
+from geocues.sfm_cues import SfmCueConfig, extract_sfm_cues, statistical_outlier_mask
 from geocues.types import CueType
 
 from cues_synth import distance_to_surface, make_room_scene
@@ -61,7 +61,7 @@ class TestStatisticalOutlierMask:
 class TestExtractSfmCues:
     def test_counts_and_confidence(self):
         xyz, is_inlier = _plane_with_outliers()
-        cues = extract_sfm_cues(_points(xyz, error=1.0), SfmConfig())
+        cues = extract_sfm_cues(_points(xyz, error=1.0), SfmCueConfig())
         assert cues.n_input == len(xyz)
         assert cues.removed["sor_outlier"] == len(xyz) - len(cues.kept) == cues.n_removed
         assert np.all(cues.cloud.cue_type == CueType.SFM)
@@ -73,14 +73,14 @@ class TestExtractSfmCues:
         pts = _points(xyz)
         pts.error[:100] = 5.0
         pts.track_length[100:150] = 2
-        cues = extract_sfm_cues(pts, SfmConfig(max_reproj_error=2.0, min_track_length=3))
+        cues = extract_sfm_cues(pts, SfmCueConfig(max_reproj_error=2.0, min_track_length=3))
         assert cues.removed["reproj_error"] == 100 and cues.removed["track_length"] == 50
         assert not np.isin(np.arange(150), cues.kept).any()
 
     def test_empty_model(self):
         empty = Points3D(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
                          np.zeros(0), np.zeros(0, np.int32))
-        cues = extract_sfm_cues(empty, SfmConfig())
+        cues = extract_sfm_cues(empty, SfmCueConfig())
         assert len(cues.cloud) == 0 and cues.n_input == 0 and "empty_model" in cues.removed
 
     def test_sor_raises_the_share_near_the_surface(self, tmp_path):
@@ -89,7 +89,7 @@ class TestExtractSfmCues:
         scene = Scene.load(make_room_scene(tmp_path / "room", n_views=2, priors="none",
                                            n_sfm=400, n_outliers=40))
         before = np.mean(distance_to_surface(scene.points.xyz) < 0.05)
-        cues = extract_sfm_cues(scene.points, SfmConfig())
+        cues = extract_sfm_cues(scene.points, SfmCueConfig())
         after = np.mean(distance_to_surface(cues.cloud.xyz) < 0.05)
         assert after > before
         assert after > 0.97

@@ -1,0 +1,324 @@
+"""`geocues extract`: the cue stage chain of paper §4.1, scene folder in, ``CUES/`` out.
+
+Stages (each can be switched off for the paper's ablations, each is timed):
+
+1. ``sfm``    SfM points after statistical outlier removal            (geocues.sfm_cues)
+2. ``lines``  3D line segments and their point samples                 (geocues.lines)
+3. ``planes`` per image: weak-texture regions (geocues.texture), depth-prior alignment
+              (geocues.depth_align, when the image has a prior and priors are on), plane-like
+              points with or without the prior (geocues.planes); then a voxel merge.
+
+Outputs: ``CUES/cues.ply`` (typed points), ``CUES/lines3d.npz``, ``CUES/report.json`` (counts per
+type, rejections with reasons, seconds per stage and per image, alignment residuals, notes on hard
+cases) and ``CUES/cache/`` (per-image texture results and the line stage's cache, reused by later
+runs). Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from geocues.cue_io import CueCloud, atomic_path, write_cues_ply, write_lines_npz
+from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
+from geocues.lines import LineConfig, LineCues
+from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, voxel_downsample
+from geocues.scene import Scene
+from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
+from geocues.texture import TextureConfig, config_key, load_or_compute
+from geocues.types import CueType
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ExtractConfig:
+    """Cue extraction (paper §4.1): SfM, line and plane-like cues; every stage can be switched off."""
+
+    sfm: bool = True
+    """Run the SfM-cue stage (statistical outlier removal of the model's 3D points)."""
+    lines: bool = True
+    """Run the line-cue stage (2D segments -> 3D lines -> point samples)."""
+    planes: bool = True
+    """Run the plane-like-cue stage (weak-texture regions -> planes)."""
+    priors: bool = True
+    """Use depth priors where the scene has them (False: a prior-free run for every image)."""
+    prior_free_fallback: bool = True
+    """Images without a usable prior (missing, or alignment skipped) get prior-free plane cues."""
+    downscale: float = 1.0
+    """Divide image size and intrinsics by this factor before extracting."""
+    seed: int = 0
+    """Seed of every random choice (RANSAC, subsampling)."""
+    sor: SfmCueConfig = field(default_factory=SfmCueConfig)
+    """SfM cues."""
+    line: LineConfig = field(default_factory=LineConfig)
+    """Line cues."""
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    """Weak-texture regions."""
+    align: DepthAlignConfig = field(default_factory=DepthAlignConfig)
+    """Depth-prior alignment."""
+    plane: PlaneConfig = field(default_factory=PlaneConfig)
+    """Plane-like cues."""
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def _line_confidence(lines: LineCues) -> np.ndarray:
+    """Line-sample confidence: min(1, supporting views / 6) of the sample's line."""
+    if len(lines.points) == 0:
+        return np.zeros(0, np.float32)
+    return np.minimum(1.0, lines.n_views[lines.point_line] / 6.0).astype(np.float32)
+
+
+def _per_image_seconds(rows: list[dict], timings: dict[str, float], n_img: int) -> dict:
+    """Mean / max seconds per image of the per-image stages (lines: whole stage / images)."""
+    out: dict[str, dict] = {}
+    for key in ("texture_s", "align_s", "planes_s"):
+        v = [r[key] for r in rows if key in r]
+        if v:
+            out[key[:-2]] = {"mean": float(np.mean(v)), "max": float(np.max(v))}
+    if rows:
+        tot = [r.get("texture_s", 0) + r.get("align_s", 0) + r.get("planes_s", 0) for r in rows]
+        out["planes_chain"] = {"mean": float(np.mean(tot)), "max": float(np.max(tot))}
+    if "lines" in timings and n_img:
+        out["lines"] = {"mean": timings["lines"] / n_img}
+    return out
+
+
+def _run_lines(scene: Scene, cfg: ExtractConfig, cache_dir: Path) -> LineCues:
+    from geocues.lines import extract_line_cues  # lazy: the heaviest stage
+
+    return extract_line_cues(scene, cfg.line, cache_dir)
+
+
+def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = None,
+        overwrite: bool = False) -> Path:
+    """Extract the cues of the scene at ``scene_dir`` into ``out_dir``; returns ``out_dir``.
+
+    If ``out_dir/report.json`` already holds a run with the same configuration, nothing is redone
+    unless ``overwrite``; a run with a different configuration there raises ValueError unless
+    ``overwrite``. The per-image cache in ``out_dir/cache`` is keyed by parameters and reused.
+    """
+    cfg = cfg or ExtractConfig()
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
+    if not scene_dir.exists():
+        raise FileNotFoundError(f"scene folder does not exist: {scene_dir}")
+    if cfg.downscale <= 0:
+        raise ValueError(f"downscale must be > 0, got {cfg.downscale}")
+    cfg.line.validate()
+    key = config_key(cfg, scene_dir.resolve())
+    report_path = out_dir / "report.json"
+    if report_path.is_file() and not overwrite:
+        old = json.loads(report_path.read_text())
+        if old.get("config_key") == key and (out_dir / "cues.ply").is_file():
+            log.info("extract: %s already holds this run (config %s); skipping", out_dir, key)
+            return out_dir
+        raise ValueError(f"{out_dir} holds cues of another configuration or scene "
+                         f"(config {old.get('config_key')} vs {key}); pass overwrite=True to replace them")
+    log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
+             json.dumps(asdict(cfg), indent=1, default=_json_default))
+    t_all = time.perf_counter()
+    cache = out_dir / "cache"
+    scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
+    n_img = len(scene.cameras)
+    timings: dict[str, float] = {}
+    rejections: dict[str, dict] = {}
+    notes: list[str] = []
+
+    # ---- 1. SfM cues
+    sfm: SfmCues | None = None
+    if cfg.sfm:
+        t0 = time.perf_counter()
+        sfm = extract_sfm_cues(scene.points, cfg.sor)
+        timings["sfm"] = time.perf_counter() - t0
+        rejections["sfm"] = sfm.removed
+        if sfm.n_input == 0:
+            notes.append("the SfM model has no 3D points: no SFM cues (run `geocues sfm` first)")
+        else:
+            notes.append(f"SOR removed {sfm.n_removed} of {sfm.n_input} SfM points")
+
+    # ---- 2. line cues
+    lines: LineCues | None = None
+    if cfg.lines:
+        t0 = time.perf_counter()
+        lines = _run_lines(scene, cfg, cache / "lines")
+        timings["lines"] = time.perf_counter() - t0
+        rejections["lines"] = dict(lines.rejected)
+        seen = np.zeros(n_img, bool)
+        for v in lines.views:
+            seen[np.asarray(v, np.int64)] = True
+        if len(lines) == 0:
+            notes.append("no 3D line was reconstructed: no LINE cues")
+        if (~seen).any():
+            notes.append(f"{int((~seen).sum())} of {n_img} images support no 3D line")
+
+    # ---- 3. plane-like cues (texture -> alignment -> planes, per image)
+    anchors = Anchors.build(
+        sfm_xyz=sfm.cloud.xyz if sfm else None,
+        sfm_views=({c: np.flatnonzero(np.isin(sfm.kept, v)) for c, v in scene.points.visible_in.items()}
+                   if sfm and len(sfm.kept) else None),
+        line_points=lines.points if lines else None,
+        line_of_point=lines.point_line if lines else None,
+        line_views=lines.views if lines else None)
+    per_image: list[dict] = []
+    plane_cloud = CueCloud.empty()
+    plane_stats: dict = {}
+    if cfg.planes:
+        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, anchors, cache, timings, notes)
+        rejections.update(pr)
+
+    # ---- merge and write
+    t0 = time.perf_counter()
+    clouds = []
+    if sfm is not None:
+        clouds.append(sfm.cloud)
+    if lines is not None and len(lines.points):
+        clouds.append(CueCloud.make(lines.points, lines.point_colors, CueType.LINE,
+                                    normal=lines.normals, confidence=_line_confidence(lines)))
+    clouds.append(plane_cloud)
+    cues = CueCloud.concat(clouds)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_cues_ply(out_dir / "cues.ply", cues)
+    lc = lines if lines is not None else LineCues.empty()
+    write_lines_npz(out_dir / "lines3d.npz", lc.segments, lc.n_views, lc.views, lc.colors,
+                    lc.points, lc.point_colors, lc.point_line)
+    timings["write"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_all
+    report = {
+        "scene": str(scene_dir), "n_images": n_img, "config_key": key, "config": asdict(cfg),
+        "counts": cues.counts(), "n_points": len(cues), "n_lines": len(lc),
+        "stages": {"sfm": cfg.sfm, "lines": cfg.lines, "planes": cfg.planes, "priors": cfg.priors},
+        "rejections": rejections, "seconds": timings,
+        "line_timings": dict(lc.timings),
+        "planes": plane_stats, "per_image_seconds": _per_image_seconds(per_image, timings, n_img),
+        "per_image": per_image, "notes": notes,
+    }
+    if sfm is not None:
+        report["sfm"] = {"n_input": sfm.n_input, "n_kept": len(sfm.kept), "n_removed": sfm.n_removed,
+                         "sor_threshold_m": sfm.sor_threshold if np.isfinite(sfm.sor_threshold) else None}
+    with atomic_path(report_path) as tmp:
+        tmp.write_text(json.dumps(report, indent=1, default=_json_default))
+    for line in notes:
+        log.info("extract: %s", line)
+    log.info("extract: %s -> %s in %.1f s", cues.counts(), out_dir, timings["total"])
+    return out_dir
+
+
+def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, cache: Path,
+                 timings: dict[str, float], notes: list[str]
+                 ) -> tuple[CueCloud, list[dict], dict[str, dict], dict]:
+    """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
+    rows, rejections by stage, summary statistics)."""
+    n_img = len(scene.cameras)
+    rej_tex: dict[str, int] = {}
+    rej_align: dict[str, int] = {}
+    rej_plane: dict[str, int] = {}
+    rows: list[dict] = []
+    xyz, rgb, nrm, view = [], [], [], []
+    for k in ("texture", "depth_align", "planes"):
+        timings.setdefault(k, 0.0)
+    cache_hits = 0
+    n_prior = n_aligned = 0
+    strict = anchors.cue_type == int(CueType.SFM)  # SfM anchors count only inside a region
+    for cam in tqdm(scene.cameras, desc="planes", unit="img", disable=None):
+        i = cam.index
+        row: dict = {"index": i, "name": cam.name}
+        t0 = time.perf_counter()
+        image = scene.load_image(i)  # [H, W, 3] float32
+        wt, hit = load_or_compute(cam.image_path, lambda: image, cfg.texture, cache / "texture",
+                                  (cam.width, cam.height))
+        cache_hits += hit
+        t1 = time.perf_counter()
+        row.update(texture_s=t1 - t0, texture_cached=hit, n_segments=wt.n_segments,
+                   n_keypoints=wt.n_keypoints, n_weak_regions=wt.n_regions,
+                   weak_fraction=round(wt.weak_fraction, 4))
+        timings["texture"] += t1 - t0
+        cand = anchors.candidates(i)
+        depth = scene.depth_prior(i) if cfg.priors else None
+        aligned = None
+        if depth is not None:
+            n_prior += 1
+            al = align_depth_prior(cam, depth, anchors.xyz[cand], cfg.align, seed=cfg.seed)
+            row["alignment"] = al.to_dict()
+            if al.ok:
+                n_aligned += 1
+                aligned = al.apply(depth)
+            else:
+                rej_align[al.reason.split(" (")[0]] = rej_align.get(al.reason.split(" (")[0], 0) + 1
+        t2 = time.perf_counter()
+        timings["depth_align"] += t2 - t1
+        row["align_s"] = t2 - t1
+        if wt.n_regions == 0:
+            rej_tex["no_weak_region"] = rej_tex.get("no_weak_region", 0) + 1
+            pp = None
+            row["plane_mode"] = "none"
+        elif aligned is not None:
+            pp = plane_cues_with_prior(cam, image, wt.regions, aligned, anchors.xyz[cand], cfg.plane,
+                                       seed=cfg.seed + i, inside_only=strict[cand])
+            row["plane_mode"] = "prior"
+        elif cfg.prior_free_fallback or not cfg.priors or not scene.has_depth_priors:
+            pp = plane_cues_prior_free(cam, image, wt.regions, anchors.xyz[cand], anchors.group[cand],
+                                       cfg.plane, seed=cfg.seed + i, inside_only=strict[cand])
+            row["plane_mode"] = "prior_free"
+        else:
+            pp = None
+            row["plane_mode"] = "skipped_no_prior"
+            rej_plane["image_without_usable_prior"] = rej_plane.get("image_without_usable_prior", 0) + 1
+        if pp is not None:
+            for r, c in pp.rejected.items():
+                rej_plane[r] = rej_plane.get(r, 0) + c
+            row.update(plane_points=len(pp.xyz), regions_accepted=pp.n_accepted)
+            xyz.append(pp.xyz)
+            rgb.append(pp.rgb)
+            nrm.append(pp.normal)
+            view.append(np.full(len(pp.xyz), i))
+        t3 = time.perf_counter()
+        timings["planes"] += t3 - t2
+        row["planes_s"] = t3 - t2
+        rows.append(row)
+    t0 = time.perf_counter()
+    if xyz:
+        vx, vc, vn, nv = voxel_downsample(np.concatenate(xyz), np.concatenate(rgb), np.concatenate(nrm),
+                                          np.concatenate(view), cfg.plane.voxel_size)
+    else:
+        vx, vc, vn, nv = voxel_downsample(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                                          np.zeros(0), cfg.plane.voxel_size)
+    few = nv < cfg.plane.min_views
+    if few.any():
+        rej_plane["voxel_fewer_views"] = int(few.sum())
+    cloud = CueCloud.make(vx[~few], vc[~few], CueType.PLANE, normal=vn[~few],
+                          confidence=np.minimum(1.0, nv[~few] / 3.0))
+    timings["planes_merge"] = time.perf_counter() - t0
+    timings["planes"] += timings["planes_merge"]
+    if not scene.has_depth_priors:
+        notes.append("the scene has no depth priors: plane-like cues are prior-free for every image")
+    elif not cfg.priors:
+        notes.append("depth priors ignored (priors off): plane-like cues are prior-free")
+    else:
+        if n_prior < n_img:
+            notes.append(f"depth priors for {n_prior} of {n_img} images; the others get "
+                         + ("prior-free plane cues" if cfg.prior_free_fallback else "no plane cues"))
+        if n_aligned < n_prior:
+            notes.append(f"depth alignment skipped for {n_prior - n_aligned} of {n_prior} images: "
+                         + ", ".join(f"{k} x{v}" for k, v in rej_align.items()))
+    notes.append(f"texture cache: {cache_hits} of {n_img} images reused")
+    stats = {"texture_cache_hits": cache_hits, "images_with_prior": n_prior, "images_aligned": n_aligned,
+             "plane_modes": {m: sum(r["plane_mode"] == m for r in rows)
+                             for m in ("prior", "prior_free", "none", "skipped_no_prior")}}
+    return cloud, rows, {"texture": rej_tex, "depth_align": rej_align, "planes": rej_plane}, stats

@@ -1,0 +1,166 @@
+"""`geocues extract`: the stage chain, its files, cache, switches and hard cases.
+
+The line stage is replaced by the exact room edges (``fake_line_cues``) so these tests measure the
+chain, not line quality (the line stage has its own tests).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+import geocues.extract as ex
+from geocues.cue_io import read_cues_ply, read_lines_npz
+from geocues.types import CueType
+
+from cues_synth import distance_to_surface, fake_line_cues, make_room_scene
+
+
+@pytest.fixture(autouse=True)
+def fake_lines(monkeypatch):
+    """Exact room edges as line cues; camera indices in ``drop`` see no line."""
+    state = {"drop": ()}
+    monkeypatch.setattr(ex, "_run_lines", lambda scene, cfg, cache: fake_line_cues(scene.cameras,
+                                                                                   drop=state["drop"]))
+    return state
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("extract")
+    return {p: make_room_scene(root / p, n_views=4, priors=p) for p in ("all", "none", "some")}
+
+
+def _report(out):
+    return json.loads((out / "report.json").read_text())
+
+
+def _no_nan(out):
+    cues = read_cues_ply(out / "cues.ply")
+    assert np.all(np.isfinite(cues.xyz)) and np.all(np.isfinite(cues.normal))
+    assert np.all(np.isfinite(cues.confidence))
+    assert "NaN" not in (out / "report.json").read_text()
+    return cues
+
+
+class TestRun:
+    def test_outputs_and_accuracy(self, scenes, tmp_path):
+        out = ex.run(scenes["all"], tmp_path / "cues")
+        for f in ("cues.ply", "lines3d.npz", "report.json"):
+            assert (out / f).is_file()
+        cues = _no_nan(out)
+        rep = _report(out)
+        assert rep["counts"] == cues.counts() and all(v > 0 for v in rep["counts"].values())
+        for stage in ("sfm", "lines", "texture", "depth_align", "planes", "total"):
+            assert rep["seconds"][stage] >= 0
+        aligned = [r for r in rep["per_image"] if r["alignment"]["ok"]]
+        assert len(aligned) >= 3  # view 1 sees one fronto-parallel edge: too narrow a depth range
+        for r in rep["per_image"]:
+            assert r["plane_mode"] == ("prior" if r["alignment"]["ok"] else "prior_free")
+            assert r["alignment"]["ok"] or "too narrow" in r["alignment"]["reason"]
+        assert all(r["alignment"]["residual_median_m"] < 0.01 for r in aligned)
+        assert rep["rejections"]["sfm"]["sor_outlier"] > 0
+        plane = cues.of_type(CueType.PLANE)
+        assert np.mean(distance_to_surface(plane.xyz) < 0.03) > 0.95
+        assert np.all(np.abs(np.linalg.norm(plane.normal, axis=1) - 1) < 1e-4)
+        lines = read_lines_npz(out / "lines3d.npz")
+        assert len(lines["segments"]) == rep["n_lines"] > 0
+        assert np.sum(cues.cue_type == CueType.LINE) == len(lines["points"])
+
+    def test_second_run_is_skipped_and_cache_reused(self, scenes, tmp_path):
+        out = tmp_path / "cues"
+        ex.run(scenes["all"], out)
+        first = _report(out)
+        assert first["planes"]["texture_cache_hits"] == 0
+        stamp = (out / "cues.ply").stat().st_mtime_ns
+        ex.run(scenes["all"], out)  # same config: nothing redone
+        assert (out / "cues.ply").stat().st_mtime_ns == stamp
+        cfg = ex.ExtractConfig()
+        cfg.plane.voxel_size = 0.03
+        with pytest.raises(ValueError, match="overwrite"):
+            ex.run(scenes["all"], out, cfg)
+        ex.run(scenes["all"], out, cfg, overwrite=True)
+        second = _report(out)
+        assert second["planes"]["texture_cache_hits"] == 4
+        assert second["counts"]["PLANE"] < first["counts"]["PLANE"]  # coarser voxels
+
+    @pytest.mark.parametrize("off", ["sfm", "lines", "planes"])
+    def test_each_stage_switches_off(self, scenes, tmp_path, off):
+        cfg = ex.ExtractConfig(**{off: False})
+        rep = _report(ex.run(scenes["all"], tmp_path / off, cfg))
+        name = {"sfm": "SFM", "lines": "LINE", "planes": "PLANE"}[off]
+        assert rep["counts"][name] == 0 and off not in rep["seconds"]
+        assert sum(rep["counts"].values()) > 0
+
+    def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
+        out = ex.run(scenes["all"], tmp_path / "free", ex.ExtractConfig(priors=False))
+        rep = _report(out)
+        assert rep["planes"]["plane_modes"]["prior_free"] == 4
+        assert any("priors ignored" in n for n in rep["notes"])
+        plane = _no_nan(out).of_type(CueType.PLANE)
+        assert len(plane) > 100 and np.mean(distance_to_surface(plane.xyz) < 0.03) > 0.9
+
+    def test_bad_paths(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match="missing"):
+            ex.run(tmp_path / "missing", tmp_path / "out")
+
+
+class TestHardCases:
+    def test_empty_sfm_model(self, tmp_path):
+        scene = make_room_scene(tmp_path / "room", n_views=3, priors="all", n_sfm=0)
+        out = ex.run(scene, tmp_path / "cues")
+        cues, rep = _no_nan(out), _report(out)
+        assert rep["counts"]["SFM"] == 0 and rep["counts"]["PLANE"] > 0
+        assert any("no 3D points" in n for n in rep["notes"])
+
+    def test_no_priors_at_all(self, scenes, tmp_path):
+        out = ex.run(scenes["none"], tmp_path / "cues")
+        rep = _report(out)
+        _no_nan(out)
+        assert rep["planes"]["images_with_prior"] == 0
+        assert any("no depth priors" in n for n in rep["notes"])
+        assert rep["counts"]["PLANE"] > 0
+
+    def test_priors_for_some_images(self, scenes, tmp_path):
+        out = ex.run(scenes["some"], tmp_path / "cues")
+        rep = _report(out)
+        _no_nan(out)
+        modes = {r["index"]: r["plane_mode"] for r in rep["per_image"]}
+        assert modes == {0: "prior", 1: "prior_free", 2: "prior", 3: "prior_free"}
+        assert any("depth priors for 2 of 4 images" in n for n in rep["notes"])
+
+    def test_images_with_no_lines(self, scenes, tmp_path, fake_lines):
+        fake_lines["drop"] = (1, 3)
+        out = ex.run(scenes["all"], tmp_path / "cues")
+        rep = _report(out)
+        _no_nan(out)
+        assert any("2 of 4 images support no 3D line" in n for n in rep["notes"])
+
+    def test_no_lines_no_sfm_no_priors(self, scenes, tmp_path):
+        """Nothing to anchor planes: every region is rejected with a reason, no crash."""
+        out = ex.run(scenes["none"], tmp_path / "cues", ex.ExtractConfig(sfm=False, lines=False))
+        rep = _report(out)
+        assert rep["counts"] == {"SFM": 0, "LINE": 0, "PLANE": 0}
+        assert rep["rejections"]["planes"].get("too_few_anchors", 0) > 0
+
+
+class TestCli:
+    def test_extract_command(self, scenes, tmp_path, capsys):
+        from cli.geocues_cli import main
+
+        t0 = time.perf_counter()
+        rc = main(["extract", str(scenes["all"]), "-o", str(tmp_path / "cues"), "--no-sfm",
+                   "--plane.voxel-size", "0.04"])
+        assert rc == 0 and time.perf_counter() - t0 < 60
+        rep = _report(tmp_path / "cues")
+        assert rep["counts"]["SFM"] == 0 and rep["config"]["plane"]["voxel_size"] == 0.04
+        assert '"counts"' in capsys.readouterr().out
+
+    def test_bad_scene_is_one_line(self, tmp_path, capsys):
+        from cli.geocues_cli import main
+
+        assert main(["extract", str(tmp_path / "nope"), "-o", str(tmp_path / "o")]) == 1
+        assert "nope" in capsys.readouterr().err
