@@ -28,7 +28,8 @@ from tqdm import tqdm
 from geocues.cue_io import CueCloud, atomic_path, write_cues_ply, write_lines_npz
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
-from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, voxel_downsample
+from geocues.planes import (PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, split_regions_by_lines,
+                            voxel_downsample)
 from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
 from geocues.texture import TextureConfig, config_key, load_or_compute
@@ -108,12 +109,13 @@ def _run_lines(scene: Scene, cfg: ExtractConfig, cache_dir: Path) -> LineCues:
 
 
 def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = None,
-        overwrite: bool = False) -> Path:
+        overwrite: bool = False, cache_dir: str | Path | None = None) -> Path:
     """Extract the cues of the scene at ``scene_dir`` into ``out_dir``; returns ``out_dir``.
 
     If ``out_dir/report.json`` already holds a run with the same configuration, nothing is redone
     unless ``overwrite``; a run with a different configuration there raises ValueError unless
-    ``overwrite``. The per-image cache in ``out_dir/cache`` is keyed by parameters and reused.
+    ``overwrite``. The per-image cache (``cache_dir``, default ``out_dir/cache``) is keyed by
+    parameters and reused; runs of one scene may share it.
     """
     cfg = cfg or ExtractConfig()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
@@ -134,7 +136,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()
-    cache = out_dir / "cache"
+    cache = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
     n_img = len(scene.cameras)
     timings: dict[str, float] = {}
@@ -180,7 +182,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
     if cfg.planes:
-        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, anchors, cache, timings, notes)
+        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, anchors, lines, cache,
+                                                               timings, notes)
         rejections.update(pr)
 
     # ---- merge and write
@@ -220,7 +223,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     return out_dir
 
 
-def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, cache: Path,
+def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str]
                  ) -> tuple[CueCloud, list[dict], dict[str, dict], dict]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
@@ -235,7 +238,12 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, cache: Path
         timings.setdefault(k, 0.0)
     cache_hits = 0
     n_prior = n_aligned = 0
+    has_priors = scene.has_depth_priors
     strict = anchors.cue_type == int(CueType.SFM)  # SfM anchors count only inside a region
+    lines_of: dict[int, list[int]] = {}  # camera -> lines it supports (they cut its regions)
+    for li, v in enumerate(lines.views if lines is not None else []):
+        for c in np.asarray(v, np.int64).tolist():
+            lines_of.setdefault(c, []).append(li)
     for cam in tqdm(scene.cameras, desc="planes", unit="img", disable=None):
         i = cam.index
         row: dict = {"index": i, "name": cam.name}
@@ -264,16 +272,23 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, cache: Path
         t2 = time.perf_counter()
         timings["depth_align"] += t2 - t1
         row["align_s"] = t2 - t1
-        if wt.n_regions == 0:
+        regions = wt.regions
+        if lines is not None and cfg.plane.cut_px > 0 and lines_of.get(i):
+            regions = split_regions_by_lines(cam, regions, lines.segments[lines_of[i]],
+                                             cfg.plane.cut_px * cam.width / 640.0,
+                                             int(cfg.texture.min_region_frac * cam.width * cam.height))
+        n_regions = int(regions.max(initial=-1)) + 1
+        row["n_regions_after_cut"] = n_regions
+        if n_regions == 0:
             rej_tex["no_weak_region"] = rej_tex.get("no_weak_region", 0) + 1
             pp = None
             row["plane_mode"] = "none"
         elif aligned is not None:
-            pp = plane_cues_with_prior(cam, image, wt.regions, aligned, anchors.xyz[cand], cfg.plane,
+            pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[cand], cfg.plane,
                                        seed=cfg.seed + i, inside_only=strict[cand])
             row["plane_mode"] = "prior"
-        elif cfg.prior_free_fallback or not cfg.priors or not scene.has_depth_priors:
-            pp = plane_cues_prior_free(cam, image, wt.regions, anchors.xyz[cand], anchors.group[cand],
+        elif cfg.prior_free_fallback or not cfg.priors or not has_priors:
+            pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[cand], anchors.group[cand],
                                        cfg.plane, seed=cfg.seed + i, inside_only=strict[cand])
             row["plane_mode"] = "prior_free"
         else:
@@ -306,7 +321,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, cache: Path
                           confidence=np.minimum(1.0, nv[~few] / 3.0))
     timings["planes_merge"] = time.perf_counter() - t0
     timings["planes"] += timings["planes_merge"]
-    if not scene.has_depth_priors:
+    if not has_priors:
         notes.append("the scene has no depth priors: plane-like cues are prior-free for every image")
     elif not cfg.priors:
         notes.append("depth priors ignored (priors off): plane-like cues are prior-free")

@@ -35,6 +35,8 @@ class PlaneConfig:
     """Voxel edge (metres) of the final downsampling."""
     min_region_points: int = 100
     """Regions with fewer sampled pixels than this are skipped."""
+    cut_px: float = 3.0
+    """Cut weak regions along the projected 3D lines seen in the image, this wide (px at 640; 0 = off)."""
     border_px: int = 12
     """Anchors projecting into the region dilated by this many pixels (at 640 px) are 'nearby'."""
     max_depth: float = 20.0
@@ -64,13 +66,17 @@ class PlaneConfig:
     free_min_groups: int = 2
     """Prior-free: the inlier anchors must come from at least this many lines / SfM points."""
     free_min_off_line: int = 3
-    """Prior-free: inlier anchors needed off the best-supported line (or SfM point)."""
+    """Prior-free: with fewer than two lines among the inliers, SfM points needed among them."""
     free_ransac_dist: float = 0.02
     """Prior-free: RANSAC inlier distance (metres) of the plane fitted to the anchors."""
-    free_min_inlier_ratio: float = 0.6
-    """Prior-free: the plane must hold at least this fraction of the region's anchors."""
+    free_min_inlier_ratio: float = 0.3
+    """Prior-free: the plane must hold at least this (group-weighted) share of the region's anchors."""
     free_min_spread: float = 0.1
     """Prior-free: least 2nd principal std (metres) of the inlier anchors (one line fixes no plane)."""
+    free_local_k: int = 8
+    """Prior-free: keep a pixel if most of its k nearest anchors in the image are plane inliers (0 = off)."""
+    free_local_ratio: float = 0.6
+    """Prior-free: share of those k anchors that must be inliers."""
     free_max_extrapolation: float = 1.0
     """Prior-free: drop points farther than this (metres) from every inlier anchor."""
     min_views: int = 1
@@ -120,6 +126,52 @@ def fit_plane_ransac(points: np.ndarray, dist: float, seed: int = 0, iters: int 
     return model[:3] / norm, float(model[3] / norm), mask
 
 
+def _group_weights(groups: np.ndarray) -> np.ndarray:
+    """w_i = 1 / |group(i)|: every line (all its samples together) weighs as much as one SfM point."""
+    _, inv, cnt = np.unique(groups, return_inverse=True, return_counts=True)
+    return 1.0 / cnt[inv.ravel()]
+
+
+def fit_plane_groups(points: np.ndarray, groups: np.ndarray, dist: float, rng: np.random.Generator,
+                     iters: int = 300) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """Group-weighted RANSAC plane through cue points (prior-free plane cues, paper §4.1).
+
+        π* = argmax_π Σ_i w_i [|n·p_i + d| < τ],   w_i = 1 / |group(i)|
+
+    so a line sampled every centimetre counts once, like one SfM point, and a plane is not chosen
+    just because it contains one long line. Minimal samples are drawn with probability ∝ w; the
+    winner is refined by weighted least squares on its inliers. points: [P, 3], groups: [P].
+    Returns (n [3], d, inlier mask [P], inlier weight / total weight)."""
+    P = len(points)
+    if P < 3:
+        return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(P, bool), 0.0
+    w = _group_weights(groups)
+    idx = rng.choice(P, size=(iters, 3), p=w / w.sum())
+    a, b, c = points[idx[:, 0]], points[idx[:, 1]], points[idx[:, 2]]
+    n = np.cross(b - a, c - a)  # [iters, 3]
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    if not ok.any():
+        return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(P, bool), 0.0
+    n = n[ok] / norm[ok, None]
+    d = -np.sum(n * a[ok], axis=1)
+    score = (np.abs(points @ n.T + d) < dist).T.astype(np.float64) @ w  # [iters]
+    best = int(np.argmax(score))
+    n_b, d_b = n[best], float(d[best])
+    for _ in range(2):  # weighted least-squares refinement on the inliers
+        inl = np.abs(points @ n_b + d_b) < dist
+        if inl.sum() < 3:
+            break
+        wi = w[inl]
+        mu = wi @ points[inl] / wi.sum()
+        cov = (points[inl] - mu).T @ ((points[inl] - mu) * wi[:, None])
+        n_new = np.linalg.eigh(cov)[1][:, 0]
+        n_b = n_new if n_new @ n_b >= 0 else -n_new
+        d_b = -float(n_b @ mu)
+    inl = np.abs(points @ n_b + d_b) < dist
+    return n_b, d_b, inl, float(w[inl].sum() / w.sum())
+
+
 def ray_plane_depth(rays: np.ndarray, n_cam: np.ndarray, d_cam: float) -> np.ndarray:
     """Intersect camera rays with a plane (prior-free plane cues, paper §4.1).
 
@@ -138,6 +190,45 @@ def _plane_to_camera(n: np.ndarray, d: float, cam: Camera) -> tuple[np.ndarray, 
     """World plane n·X + d = 0 -> camera plane n_c·x + d_c = 0 (x = R X + t)."""
     n_c = cam.R @ n
     return n_c, float(d - n_c @ cam.t)
+
+
+def split_regions_by_lines(cam: Camera, regions: np.ndarray, segments: np.ndarray, width_px: float,
+                           min_pixels: int) -> np.ndarray:
+    """Cut weak regions along the projections of 3D line segments [M, 2, 3] seen by ``cam``:
+    lines lie on creases and occluding edges, where one weak region may cover two surfaces (a
+    white wall and the floor behind a soft shading edge). Pieces smaller than ``min_pixels`` are
+    dropped. Returns new region ids [H, W] (-1 = none)."""
+    import cv2
+
+    if regions.max(initial=-1) < 0 or len(segments) == 0:
+        return regions
+    Xc = np.asarray(segments, np.float64).reshape(-1, 3) @ cam.R.T + cam.t
+    a, b = Xc[0::2], Xc[1::2]  # [M, 3] endpoints in the camera frame
+    near = 1e-2
+    keep = (a[:, 2] > near) | (b[:, 2] > near)
+    a, b = a[keep], b[keep]
+    for p, q in ((a, b), (b, a)):  # clip each segment to the near plane
+        behind = p[:, 2] <= near
+        t = (near - p[behind, 2]) / (q[behind, 2] - p[behind, 2])
+        p[behind] = p[behind] + t[:, None] * (q[behind] - p[behind])
+    K = cam.K
+    uv_a = a[:, :2] / a[:, 2:3] * np.diag(K)[:2] + K[:2, 2] - 0.5  # COLMAP -> OpenCV pixel centres
+    uv_b = b[:, :2] / b[:, 2:3] * np.diag(K)[:2] + K[:2, 2] - 0.5
+    cut = np.zeros(regions.shape, np.uint8)
+    th = max(1, int(round(width_px)))
+    lim = 4 * max(regions.shape)  # keep cv2's integer coordinates sane
+    for (x0, y0), (x1, y1) in zip(np.clip(uv_a, -lim, lim), np.clip(uv_b, -lim, lim)):
+        cv2.line(cut, (int(round(x0)), int(round(y0))), (int(round(x1)), int(round(y1))), 1, th)
+    out = np.full(regions.shape, -1, np.int32)
+    n_out = 0
+    for k in range(int(regions.max()) + 1):
+        mask = ((regions == k) & (cut == 0)).astype(np.uint8)
+        n_cc, cc, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
+        for c in range(1, n_cc):
+            if stats[c, cv2.CC_STAT_AREA] >= min_pixels:
+                out[cc == c] = n_out
+                n_out += 1
+    return out
 
 
 def _region_pixels(regions: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -286,7 +377,7 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           anchors_xyz: np.ndarray, anchors_group: np.ndarray, cfg: PlaneConfig,
                           seed: int = 0, inside_only: np.ndarray | None = None) -> PlanePoints:
     """Plane-like points of one image without a depth prior: each region's plane comes from the
-    anchors ``anchors_xyz`` [P, 3] (``anchors_group`` [P]: which line / SfM point each belongs to)
+    anchors ``anchors_xyz`` [P, 3] (``anchors_group`` [P]: line index >= 0, or < 0 for an SfM point)
     that border or project into it (``inside_only`` [P]: only into it); the region's pixel rays are
     intersected with that plane."""
     from scipy.spatial import cKDTree
@@ -309,6 +400,7 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
     Rt = cam.R.T
     out_xyz, out_rgb, out_n = [], [], []
     accepted = 0
+    rng = np.random.default_rng(seed)
     for k in range(n_regions):
         sel = np.flatnonzero(rid == k)
         a_ids = near[k]
@@ -319,23 +411,22 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
             _bump(rej, "too_few_anchors")
             continue
         a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3] camera frame
-        n_c, d_c, inl = fit_plane_ransac(a_c, cfg.free_ransac_dist, seed=seed + 31 * k)
-        if inl.sum() < cfg.free_min_inlier_ratio * len(a_ids) or inl.sum() < cfg.free_min_anchors:
+        grp = anchors_group[a_ids]
+        n_c, d_c, inl, frac = fit_plane_groups(a_c, grp, cfg.free_ransac_dist, rng)
+        if frac < cfg.free_min_inlier_ratio or inl.sum() < cfg.free_min_anchors:
             _bump(rej, "anchors_not_coplanar")
             continue
-        groups, counts = np.unique(anchors_group[a_ids[inl]], return_counts=True)
-        if len(groups) < cfg.free_min_groups or counts.sum() - counts.max() < cfg.free_min_off_line:
+        groups = np.unique(grp[inl])  # >= 0: line index, < 0: SfM point
+        n_lines, n_points = int(np.sum(groups >= 0)), int(np.sum(groups < 0))
+        if len(groups) < cfg.free_min_groups or (n_lines <= 1 and n_points < cfg.free_min_off_line):
             _bump(rej, "single_line")  # one line (plus a stray point) does not fix a plane
             continue
-        P = a_c[inl] - a_c[inl].mean(axis=0)
-        sv = np.linalg.svd(P, compute_uv=False) / np.sqrt(len(P))
-        if sv[1] < cfg.free_min_spread:
+        w = _group_weights(grp[inl])
+        mu = w @ a_c[inl] / w.sum()
+        cov = (a_c[inl] - mu).T @ ((a_c[inl] - mu) * w[:, None]) / w.sum()
+        if np.sqrt(max(np.linalg.eigvalsh(cov)[1], 0.0)) < cfg.free_min_spread:
             _bump(rej, "degenerate_anchors")
             continue
-        # refine the plane on the inliers by least squares (smallest singular vector)
-        _, _, vt = np.linalg.svd(P, full_matrices=False)
-        n_c = vt[2]
-        d_c = -float(n_c @ a_c[inl].mean(axis=0))
         r = rays[sel]
         zk = ray_plane_depth(r, n_c, d_c)
         cosang = np.abs(r @ n_c) / np.linalg.norm(r, axis=1)
@@ -345,12 +436,17 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
             continue
         Xc = r[ok] * zk[ok, None]
         dist, _ = cKDTree(a_c[inl]).query(Xc, k=1)
-        far = dist > cfg.free_max_extrapolation
-        if far.all():
-            _bump(rej, "too_far_from_anchors")
+        good = dist <= cfg.free_max_extrapolation
+        if cfg.free_local_k > 0:  # local consensus: the anchors nearest in the image lie on the plane
+            uv_a = a_c[:, :2] / a_c[:, 2:3]  # normalised image coordinates of the anchors
+            k_n = min(cfg.free_local_k, len(a_c))
+            _, nn = cKDTree(uv_a).query(r[ok][:, :2], k=k_n)
+            good &= inl[nn.reshape(len(Xc), k_n)].mean(axis=1) >= cfg.free_local_ratio
+        if not good.any():
+            _bump(rej, "no_local_support")
             continue
-        keep = sel[ok][~far]
-        Xc = Xc[~far]
+        keep = sel[ok][good]
+        Xc = Xc[good]
         n_face = n_c if np.median(rays[keep] @ n_c) < 0 else -n_c
         out_xyz.append((Xc - cam.t) @ Rt.T)
         out_rgb.append(image[rows[keep], cols[keep]])
