@@ -65,13 +65,14 @@ class SfmConfig:
     """SIFT matching: Lowe ratio test."""
     verification: Literal["poses", "ransac"] = "poses"
     """Triangulate mode: verify matches by the known epipolar geometry, or by COLMAP's RANSAC."""
-    max_epipolar_error: float = 1.5
+    max_epipolar_error: float = 1.0
     """Known-pose verification: largest Sampson distance (pixels) of an inlier match."""
     min_num_inliers: int = 15
     """Smallest number of verified matches for a pair to be used."""
-    min_tri_angle: float = 1.5
-    """Smallest triangulation angle (degrees) to create and keep a point."""
-    max_reproj_error: float = 2.0
+    min_tri_angle: float = 4.0
+    """Smallest triangulation angle (degrees) to create and keep a point (COLMAP: 1.5; larger keeps
+    fewer, more accurate points: see sfm_report.json's gt_check on a scene with a GT mesh)."""
+    max_reproj_error: float = 1.0
     """Largest reprojection error (pixels) when creating, merging, completing and keeping points."""
     ignore_two_view_tracks: bool = True
     """Do not create points from a single pair (they are less reliable)."""

@@ -73,6 +73,8 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
     reader = pycolmap.ImageReaderOptions()
     if camera_model is not None:
         reader.camera_model = camera_model
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(level, 2)  # skip the per-call "maximum number of threads" warning
     with tqdm(total=len(todo), desc="sfm: SIFT", unit="img") as bar:
         for k in range(0, len(todo), EXTRACT_CHUNK):
             chunk = todo[k:k + EXTRACT_CHUNK]
@@ -83,6 +85,7 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
             if camera_model is not None and reader.existing_camera_id < 0:
                 reader.existing_camera_id = _shared_camera_id(db_path, chunk, image_dir)
             bar.update(len(chunk))
+    pycolmap.logging.minloglevel = level
 
 
 def _has_keypoints(db: "pycolmap.Database", name: str) -> bool:
@@ -283,12 +286,13 @@ def triangulate(ref: "pycolmap.Reconstruction", db_path: Path, image_dir: Path, 
 
 def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig",
                     ref: "pycolmap.Reconstruction | None") -> "pycolmap.Reconstruction":
-    """COLMAP's incremental mapper; the model with the most registered images is kept and, when a
-    posed reference model exists, aligned to its camera centres by a similarity."""
+    """COLMAP's incremental mapper with its own triangulation defaults (registration needs the
+    weak points too); the model with the most registered images is kept, its points filtered by
+    ``cfg``'s angle and error limits and, when a posed reference model exists, it is aligned to it."""
     import pycolmap
 
-    opts = _pipeline_options(cfg)
-    opts.mapper.filter_max_reproj_error = max(cfg.max_reproj_error, 4.0)  # poses are unknown here
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads, opts.random_seed, opts.min_num_matches = cfg.num_threads, cfg.seed, cfg.min_num_inliers
     if ref is not None:  # intrinsics are known: keep them in registration and bundle adjustment
         opts.ba_refine_focal_length = opts.ba_refine_extra_params = False
         opts.ba_refine_principal_point = False
@@ -300,6 +304,9 @@ def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig"
                          f"(too few matches: try more features or a lower peak_threshold)")
     rec = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
     log.info("sfm: kept the largest of %d models (%d images registered)", len(models), rec.num_reg_images())
+    n = filter_points(rec, cfg.min_tri_angle, cfg.max_reproj_error)
+    log.info("sfm: %d mapped points above %.2f px or below %.1f degrees removed", n, cfg.max_reproj_error,
+             cfg.min_tri_angle)
     if ref is not None:
         sim, err = align_to_reference(rec, ref)
         rec.transform(sim)
@@ -334,6 +341,25 @@ def align_to_reference(rec: "pycolmap.Reconstruction", ref: "pycolmap.Reconstruc
     t = c.mean(0) - scale * a.mean(0)
     err = float(np.median(np.linalg.norm(scale * a + t - c, axis=1)))
     return pycolmap.Sim3d(scale, pycolmap.Rotation3d(R), t), err
+
+
+def filter_points(rec: "pycolmap.Reconstruction", min_angle: float, max_error: float) -> int:
+    """Delete points whose mean reprojection error exceeds ``max_error`` px or whose largest angle
+    between two observing rays is below ``min_angle`` degrees; return how many."""
+    centers = {i: rec.images[i].projection_center() for i in rec.reg_image_ids()}
+    cos_max = np.cos(np.radians(min_angle))
+    bad = []
+    for pid, p in rec.points3D.items():
+        if p.error > max_error:
+            bad.append(pid)
+            continue
+        rays = np.stack([centers[e.image_id] for e in p.track.elements]) - p.xyz  # [T, 3]
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        if (rays @ rays.T).min() > cos_max:
+            bad.append(pid)
+    for pid in bad:
+        rec.delete_point3D(pid)
+    return len(bad)
 
 
 def drop_short_tracks(rec: "pycolmap.Reconstruction", min_length: int) -> int:
@@ -380,6 +406,6 @@ def distance_to_mesh_stats(xyz: np.ndarray, mesh_path: Path) -> dict:
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(mesh=o3d.t.geometry.TriangleMesh.from_legacy(mesh_legacy=mesh))
     d = scene.compute_distance(query_points=o3d.core.Tensor(np.asarray(xyz, np.float32))).numpy()
-    return {"mesh": str(mesh_path), "within_2cm": float(np.mean(d <= 0.02)),
+    return {"mesh": str(Path(mesh_path).resolve()), "within_2cm": float(np.mean(d <= 0.02)),
             "within_5cm": float(np.mean(d <= 0.05)), "median_m": float(np.median(d)),
             "p90_m": float(np.percentile(d, 90))}
