@@ -227,8 +227,34 @@ class TestMap:
         assert np.median(dc) < 0.02 and max(dr) < 3.0  # 0.6 m trajectory, 320x240 images
 
 
-def test_cli_info_and_sfm(triangulated, capsys):
+def test_cli_info_and_sfm(triangulated, capsys, tmp_path: Path):
     out, rep = triangulated
     assert geocues_main(["info", str(out)]) == 0
     text = capsys.readouterr().out
-    assert f"points     {rep['points']}" in text and "10" in text and "gt mesh" in text
+    assert f"points     {rep['points']}" in text and "cameras    10" in text and "gt mesh" in text
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, symlinks=True)  # cached features and matches: fast
+    assert geocues_main(["sfm", str(copy), "--no-check-gt", "--min-tri-angle", "8"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert "config" not in printed  # the CLI prints the figures, the JSON file keeps the config
+    assert 0 < printed["points"] < rep["points"]  # a larger minimum angle keeps fewer points
+    assert printed["mode"] == "triangulate" and "gt_check" not in printed
+
+
+def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
+    """No model at all: incremental mapping estimates a SIMPLE_RADIAL camera (focal near ICL's 262.5 at
+    320x240); the scene is refused until `geocues undistort` makes it PINHOLE (points kept)."""
+    from geocues.undistort import run as undistort
+
+    scene = make_tiny_icl(icl_dir, tmp_path / "s")
+    shutil.rmtree(scene / "sparse")
+    rep = run(scene, tmp_path / "out", SfmConfig(check_gt=False))
+    assert rep["mode"] == "map" and rep["registered_images"] >= 9 and rep["points"] > 300
+    rec = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
+    (cam,) = rec.cameras.values()
+    assert cam.model.name == "SIMPLE_RADIAL" and abs(cam.params[0] / 262.5 - 1) < 0.05
+    with pytest.raises(ValueError, match="undistort"):
+        Scene.load(tmp_path / "out")
+    undistort(tmp_path / "out", tmp_path / "und")
+    s = Scene.load(tmp_path / "und")
+    assert len(s) == rep["registered_images"] and len(s.points) == rep["points"]
