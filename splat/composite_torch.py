@@ -121,18 +121,20 @@ def select_contributors(
     max_per_pixel: int = 64,
     candidates_per_round: int = 32,
     max_round_elems: int = 1 << 22,
-) -> tuple[Tensor, Tensor]:
-    """Return (sel [H*W, K] Gaussian indices in blend order, -1 padded; n_contrib [H*W] int64).
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Return (sel [R, K] int32, n_contrib [R] int32, pixel [R] int64) for R rows in bin-major order.
 
-    Applies the exact skip / stop rule of :mod:`splat.composite` with each pixel's running
-    transmittance, stopping after ``max_per_pixel`` blended Gaussians. ``K = max(n_contrib)``.
-    State is kept bin-major ([bins, 16 pixels]) so that each round indexes whole bins.
+    Row r is pixel ``pixel[r]`` (flat index i * W + j; H * W for bin cells outside the image, which
+    have no Gaussians); ``sel[r]`` lists the Gaussians it blends in order, -1 padded, and
+    ``K = max(n_contrib)``. Applies the exact skip / stop rule of :mod:`splat.composite` with each
+    pixel's running transmittance, stopping after ``max_per_pixel`` blended Gaussians. State is kept
+    bin-major so that each round indexes whole bins.
     """
     device, dtype = means2d.device, means2d.dtype
     npix, kmax, cpr, bpix = width * height, int(max_per_pixel), int(candidates_per_round), BIN * BIN
     pair_g, counts, starts = _bin_pairs(means2d, conics, opacities, radii, depths, width, height)
     npairs = pair_g.numel()
-    pair_g = torch.cat([pair_g, pair_g.new_zeros(1)])  # pad slot for out-of-range positions
+    pair_g = torch.cat([pair_g, pair_g.new_zeros(1)]).to(torch.int32)  # pad slot: out-of-range
     # per-pair data, channel-first: mx, my, a, b, c, opacity, radius (pad: opacity 0 never passes)
     per_g = torch.cat([means2d, conics, opacities[:, None], radii[:, None].to(dtype)], 1).T
     packed = torch.cat([torch.index_select(per_g, 1, pair_g[:npairs]), per_g.new_zeros(7, 1)], 1)
@@ -143,8 +145,7 @@ def select_contributors(
     trans = torch.ones(nbins, bpix, dtype=dtype, device=device)
     count = torch.zeros(nbins, bpix, dtype=torch.int32, device=device)
     done = bin_pix >= npix  # [nbins, 16]
-    sel = torch.full((nbins, bpix, kmax + 1), -1, dtype=torch.long, device=device)  # col kmax: dump
-    sel_flat = sel.view(-1)
+    sel = torch.full((nbins * bpix, kmax), -1, dtype=torch.int32, device=device)  # bin-major rows
     cand = torch.arange(cpr, device=device)
     active = (counts > 0) & ~done.all(1)
     group = max(1, max_round_elems // (bpix * cpr))
@@ -161,12 +162,25 @@ def select_contributors(
             data = torch.index_select(packed, 1, slot_idx).view(7, nb, 1, cpr)  # [7, nb, 1, Cc]
             dx = data[0] - px_bin[b][:, :, None]  # [nb, 16, Cc]
             dy = data[1] - py_bin[b][:, :, None]
-            power, _, raw = gaussian_alpha(dx, dy, data[2], data[3], data[4], data[5])
-            alpha = torch.clamp(raw, max=ALPHA_MAX)
-            passes = (alpha >= ALPHA_MIN) & (power <= 0) & (dx.abs() <= data[6]) & (dy.abs() <= data[6])
+            # gaussian_alpha's arithmetic, in place and in the same order (same bits)
+            power = data[2] * dx
+            power *= dx
+            tmp = data[4] * dy
+            tmp *= dy
+            power += tmp
+            power *= -0.5
+            torch.mul(data[3], dx, out=tmp)
+            tmp *= dy
+            power -= tmp
+            torch.maximum(dx.abs_(), dy.abs_(), out=tmp)
+            passes = tmp <= data[6]  # inside the radius box
+            passes &= power <= 0
+            raw = power.clamp_(max=0.0).exp_()
+            raw *= data[5]
+            passes &= raw >= ALPHA_MIN  # min(0.99, raw) >= 1/255  <=>  raw >= 1/255
             done_b, count_b, t0 = done[b], count[b], trans[b]  # [nb, 16]
             passes &= ~done_b[:, :, None]
-            one_minus = torch.where(passes, 1.0 - alpha, 1.0)
+            one_minus = raw.clamp_(max=ALPHA_MAX).neg_().add_(1.0).masked_fill_(~passes, 1.0)
             full_t = torch.cumprod(torch.cat([t0[:, :, None], one_minus], 2), 2)  # [nb, 16, Cc + 1]
             rank = count_b[:, :, None] + torch.cumsum(passes, 2, dtype=torch.int32)  # 1-based index
             blocker = passes & ((full_t[:, :, 1:] < T_MIN) | (rank > kmax))
@@ -174,21 +188,18 @@ def select_contributors(
             n_free = torch.where(has_block, blocker.to(torch.int8).argmax(2, keepdim=True), cpr)  # [nb,16,1]
             include = passes & (cand < n_free)
             trans[b] = full_t.gather(2, n_free).squeeze(2)  # T after the last included Gaussian
-            # write the included Gaussians at their slots; the rest go to the dump column kmax
-            slot = torch.where(include, rank - 1, kmax)
-            base = (b[:, None, None] * bpix + torch.arange(bpix, device=device)[None, :, None]) * (kmax + 1)
-            sel_flat.scatter_(0, (base + slot).reshape(-1),
-                              pair_g[slot_idx].view(nb, 1, cpr).expand(nb, bpix, cpr).reshape(-1))
+            # write the included Gaussians at their slots (rank - 1) of their pixels' rows
+            ib, il, ic = torch.nonzero(include, as_tuple=True)
+            row = b[ib] * bpix + il
+            sel.view(-1)[row * kmax + (rank[ib, il, ic] - 1)] = pair_g[slot_idx.view(nb, cpr)[ib, ic]]
             new_count = count_b + include.sum(2, dtype=torch.int32)
             count[b] = new_count
             done[b] = done_b | has_block.squeeze(2) | (new_count >= kmax)
         active &= ~done.all(1)
         rnd += 1
-    # back to image order
-    order = torch.argsort(bin_pix.reshape(-1))[:npix]  # bin-major position of each image pixel
-    n_contrib = count.reshape(-1)[order].long()
-    k = int(n_contrib.max()) if npix > 0 else 0
-    return sel.reshape(-1, kmax + 1)[order, :k], n_contrib
+    n_contrib = count.reshape(-1)
+    k = int(n_contrib.max()) if n_contrib.numel() > 0 else 0
+    return sel[:, :k], n_contrib, bin_pix.reshape(-1)
 
 
 def _gather_alpha(packed_t: Tensor, sel: Tensor, pix_xy: Tensor):
@@ -230,7 +241,7 @@ class _BlendSelected(torch.autograd.Function):
         nch = packed_t.shape[0] - 6
         acc = packed_t.new_zeros(sel.shape[0], nch)
         t_final = packed_t.new_ones(sel.shape[0])
-        kmed = torch.full((sel.shape[0],), -1, dtype=torch.long, device=sel.device)
+        kmed = torch.full((sel.shape[0],), -1, dtype=torch.long, device=sel.device)  # int64 for gather
         for start, stop, k in chunks:
             _, data, _, _, _, alpha, _ = _gather_alpha(packed_t, sel[start:stop, :k], pix_xy[start:stop])
             t_excl, t_last = _transmittance(alpha)
@@ -318,17 +329,18 @@ def composite_torch(
         raise ValueError(f"max_per_pixel must be >= 1, got {max_per_pixel}")
     device, dtype = means2d.device, features.dtype
     npix, nch = width * height, features.shape[1]
-    sel, n_contrib = select_contributors(means2d, conics, opacities, depths, radii, width, height,
-                                         max_per_pixel)
+    sel, counts, pixel = select_contributors(means2d, conics, opacities, depths, radii, width,
+                                             height, max_per_pixel)
     # pixels with Gaussians, most-covered first, so that each chunk's K is tight
-    order = torch.argsort(n_contrib, descending=True, stable=True)
-    rows = order[: int((n_contrib > 0).sum())]
-    sel = sel[rows]
+    order = torch.argsort(counts, descending=True, stable=True)[: int((counts > 0).sum())]
+    sel, counts = sel[order].long(), counts[order]
+    rows = pixel[order]  # flat pixel index of each row
+    n_contrib = torch.zeros(npix, dtype=torch.int32, device=device).index_put((rows,), counts)
     pix_xy = torch.stack([(rows % width).to(dtype) + 0.5,
                           torch.div(rows, width, rounding_mode="floor").to(dtype) + 0.5], 1)
     packed_t = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features],
                          1).T.contiguous()  # [6 + C, N]
-    chunks = _row_chunks(n_contrib[rows], max_chunk_pairs)
+    chunks = _row_chunks(counts, max_chunk_pairs)
     acc, t_rows, kmed = _BlendSelected.apply(packed_t, sel, pix_xy, chunks)
     blended = torch.zeros(npix, nch, dtype=dtype, device=device).index_put((rows,), acc)
     t_full = torch.ones(npix, dtype=dtype, device=device).index_put((rows,), t_rows)
@@ -345,5 +357,5 @@ def composite_torch(
         features=blended.reshape(height, width, nch),
         alpha=(1.0 - t_full).reshape(height, width),
         median=median,
-        n_contrib=n_contrib.to(torch.int32).reshape(height, width),
+        n_contrib=n_contrib.reshape(height, width),
     )

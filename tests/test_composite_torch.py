@@ -163,10 +163,14 @@ def test_selection_rounds_do_not_change_result():
     (means, conics, opac, *_), depths, radii = random_scene(300, width, height, seed=11,
                                                            opacity_max=0.1, cluster=True)
     args = (means.detach(), conics.detach(), opac.detach(), depths, radii, width, height, 64)
-    sel_a, n_a = select_contributors(*args, candidates_per_round=4)
-    sel_b, n_b = select_contributors(*args, candidates_per_round=512)
+    sel_a, n_a, pix_a = select_contributors(*args, candidates_per_round=4)
+    sel_b, n_b, pix_b = select_contributors(*args, candidates_per_round=512)
     assert int(n_a.max()) == 64  # cap reached: many rounds were needed
-    assert torch.equal(sel_a, sel_b) and torch.equal(n_a, n_b)
+    assert torch.equal(sel_a, sel_b) and torch.equal(n_a, n_b) and torch.equal(pix_a, pix_b)
+    # every image pixel appears exactly once; cells outside the image are empty
+    inside = pix_a < width * height
+    assert torch.equal(torch.sort(pix_a[inside]).values, torch.arange(width * height))
+    assert int(n_a[~inside].sum()) == 0
 
 
 def test_float32_close_to_float64_and_background_only():
