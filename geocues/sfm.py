@@ -27,14 +27,16 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-from tqdm import tqdm
 
 from geocues import sfm_steps as U
 from geocues.colmap_io import _atomic_dir, find_model_dir
 from geocues.scene import IMAGE_EXTS
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pycolmap
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +120,47 @@ def _prepare_out(scene_dir: Path, out_dir: Path) -> None:
         link.symlink_to(target)
     if (src / "scene.json").is_file():
         shutil.copyfile(src / "scene.json", out_dir / "scene.json")
+
+
+def points_xyz(rec: "pycolmap.Reconstruction") -> np.ndarray:
+    """[N, 3] point positions of a reconstruction."""
+    if rec.num_points3D() == 0:
+        return np.zeros((0, 3))
+    return np.stack([p.xyz for p in rec.points3D.values()])
+
+
+def summarize(rec: "pycolmap.Reconstruction", *, mode: str, n_images: int, n_pairs: int,
+              n_verified: int, seconds: dict[str, float]) -> dict:
+    """The report's figures: points, mean track length, mean reprojection error, pairs, seconds."""
+    return {
+        "mode": mode,
+        "images": n_images,
+        "registered_images": int(rec.num_reg_images()),
+        "points": int(rec.num_points3D()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "mean_reproj_error": float(rec.compute_mean_reprojection_error()),
+        "observations": int(rec.compute_num_observations()),
+        "pairs": n_pairs,
+        "verified_pairs": n_verified,
+        "seconds": {k: round(v, 2) for k, v in seconds.items()},
+        "seconds_total": round(sum(seconds.values()), 2),
+    }
+
+
+def distance_to_mesh_stats(xyz: np.ndarray, mesh_path: Path) -> dict:
+    """Unsigned distances of points xyz [N, 3] to a mesh (Open3D RaycastingScene): shares within
+    2 cm / 5 cm, median and 90th percentile in metres."""
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(filename=str(mesh_path))
+    if len(mesh.triangles) == 0:
+        raise ValueError(f"mesh {mesh_path} has no triangles")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh=o3d.t.geometry.TriangleMesh.from_legacy(mesh_legacy=mesh))
+    d = scene.compute_distance(query_points=o3d.core.Tensor(np.asarray(xyz, np.float32))).numpy()
+    return {"mesh": str(Path(mesh_path).resolve()), "within_2cm": float(np.mean(d <= 0.02)),
+            "within_5cm": float(np.mean(d <= 0.05)), "median_m": float(np.median(d)),
+            "p90_m": float(np.percentile(d, 90))}
 
 
 def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig(),
@@ -245,13 +288,13 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
     target = (model_dir if in_place and model_dir is not None else root / "sparse" / "0")
     with _atomic_dir(target) as tmp_model:
         (rec.write_binary if cfg.binary else rec.write_text)(str(tmp_model))
-    report = U.summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
+    report = summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
                          n_verified=n_verified, seconds=seconds)
     report.update(scene=str(scene_dir.resolve()), model=str(target.resolve()), dropped_short_tracks=n_short,
                   config=asdict(cfg))
     gt = root / "gt" / "mesh.ply"
     if cfg.check_gt and gt.is_file() and report["points"] > 0:
-        report["gt_check"] = U.distance_to_mesh_stats(U.points_xyz(rec), gt)
+        report["gt_check"] = distance_to_mesh_stats(points_xyz(rec), gt)
     tmp_report = root / ".sfm_report.json.tmp"
     tmp_report.write_text(json.dumps(report, indent=2))
     os.replace(tmp_report, root / "sfm_report.json")
