@@ -190,6 +190,8 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
                                 f"in {scene_dir / 'sparse' / '0'} or {scene_dir / 'sparse'}")
     in_place = out_dir is None or Path(out_dir).resolve() == scene_dir.resolve()
     root = scene_dir if in_place else Path(out_dir)
+    if in_place and not os.access(scene_dir, os.W_OK):
+        raise ValueError(f"{scene_dir} is not writable: pass an output folder (-o OUT) to write a new scene")
     log.info("sfm %s -> %s (mode %s) config %s", scene_dir, root, mode, asdict(cfg))
 
     U.quiet_pycolmap()
