@@ -141,7 +141,7 @@ def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
     err = np.empty(n)
     tlen = np.empty(n, np.int32)
     tracks: list[np.ndarray] = []
-    for k, (pid, pt) in enumerate(rec.points3D.items()):
+    for k, (pid, pt) in enumerate(sorted(rec.points3D.items())):  # deterministic order
         ids[k], xyz[k], rgb[k], err[k] = pid, pt.xyz, pt.color, pt.error
         elems = pt.track.elements
         tlen[k] = len(elems)
