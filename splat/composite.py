@@ -34,7 +34,7 @@ where it clamps; the skip/stop decisions and the median choice are piecewise con
 and ``radii`` get no gradient.
 
 A backend may cap the number of blended Gaussians per pixel (the torch backend's ``max_per_pixel``,
-default 64): after the cap the pixel stops as if ``test_T`` had dropped below 1e-4.
+default 256): after the cap the pixel stops as if ``test_T`` had dropped below 1e-4.
 
 A backend module (``splat.composite_cpu``) exposes ``composite(means2d, conics, opacities, features,
 depths, radii, width, height, *, background=None, median_features=None) -> CompositeOut`` taking
@@ -154,7 +154,7 @@ def composite(
     background: Tensor | None = None,  # [C] or None (zeros)
     median_features: Tensor | None = None,  # [N, M] or None
     backend: str = "torch",
-    max_per_pixel: int = 64,
+    max_per_pixel: int = 256,
 ) -> CompositeOut:
     """Blend Gaussians front to back per pixel (rule in the module docstring) with a backend.
 

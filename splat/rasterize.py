@@ -49,7 +49,7 @@ def render(
     far: float = 1e10,
     eps2d: float = 0.3,
     antialiased: bool = False,
-    max_per_pixel: int = 64,
+    max_per_pixel: int = 256,
 ) -> dict[str, Tensor]:
     """Render one view of the Gaussians ``params`` (keys means, quats, scales, opacities, sh0, shN).
 
