@@ -45,6 +45,12 @@ class DepthAlignConfig:
     """An anchor is on a depth edge if the prior's max/min over edge_px around it exceeds 1 + this."""
     edge_px: int = 2
     """Radius in pixels (at 640 px width) of the depth-edge test."""
+    warp_degree: int = 0
+    """Degree of a 2D polynomial correction of the prior's low-frequency warp (0 = off; see docs)."""
+    warp_max: float = 0.1
+    """Clamp that correction to +- this fraction of the depth."""
+    warp_ridge: float = 1e-3
+    """Ridge weight of the correction's coefficients (keeps it flat where anchors are few)."""
     min_scale: float = 1e-3
     """Fits with a scale below this (or not finite) are rejected as degenerate."""
 
@@ -62,16 +68,31 @@ class DepthAlignment:
     n_anchors: int = 0  # anchors used in the fit (after edge / invalid-prior tests)
     n_inliers: int = 0  # anchors within the inlier threshold of the final fit
     n_occluded: int = 0  # anchors behind the aligned surface (occlusion check)
-    residual_median_m: float = float("nan")  # median |z_anchor - (s d + b)| over non-occluded anchors
+    warp_degree: int = 0  # degree of the warp correction used (0 = none)
+    warp_coeffs: list[float] = field(default_factory=list)  # its monomial coefficients
+    width: int = 0
+    height: int = 0
+    residual_affine_median_m: float = float("nan")  # median |residual| before the warp correction
+    residual_median_m: float = float("nan")  # median |z_anchor - aligned depth|, non-occluded anchors
     residual_p90_m: float = float("nan")
     residual_rel_median: float = float("nan")  # median |r| / z_anchor
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> anchors not used
 
-    def apply(self, depth: np.ndarray) -> np.ndarray:
-        """Aligned depth s·d + b, keeping 0 (invalid) where the prior is invalid or s·d + b <= 0."""
+    def apply(self, depth: np.ndarray, warp_max: float = 0.1) -> np.ndarray:
+        """Aligned depth (s·d + b)·(1 + w(u, v)), keeping 0 (invalid) where the prior is invalid or
+        the result is <= 0. w is the warp correction (zero without one)."""
         if not self.ok:
             raise ValueError(f"image {self.index}: no alignment ({self.reason})")
         out = self.scale * depth + self.shift
+        if self.warp_degree > 0:
+            if depth.shape != (self.height, self.width):
+                raise ValueError(f"depth has shape {depth.shape}, the alignment was fit on "
+                                 f"({self.height}, {self.width})")
+            j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+            A = _monomials(*_norm_uv(np.stack([j.ravel(), i.ravel()], 1), self.width, self.height),
+                           self.warp_degree)
+            w = np.clip(A @ np.asarray(self.warp_coeffs), -warp_max, warp_max).reshape(depth.shape)
+            out = out * (1.0 + w)
         return np.where((depth > 0) & (out > 0), out, 0.0).astype(np.float32)
 
     def to_dict(self) -> dict:
@@ -151,6 +172,42 @@ class Anchors:
                        np.concatenate(parts_unknown))
 
 
+def _norm_uv(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates -> isotropic coordinates centred on the image, x in [-1, 1]."""
+    half = width / 2.0
+    return (uv[:, 0] - half) / half, (uv[:, 1] - height / 2.0) / half
+
+
+def _monomials(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
+    """[N, T] monomials x^a y^b with 1 <= a + b <= degree (no constant: the affine fit has it)."""
+    cols = [x ** a * y ** (k - a) for k in range(1, degree + 1) for a in range(k, -1, -1)]
+    return np.stack(cols, axis=1) if cols else np.zeros((len(x), 0))
+
+
+def fit_warp(x: np.ndarray, y: np.ndarray, ratio: np.ndarray, degree: int, cfg: "DepthAlignConfig"
+             ) -> np.ndarray:
+    """Smooth warp correction of an aligned prior (our addition for low-frequency prior errors).
+
+        z_i / (s·d_i + b) − 1 ≈ w(x_i, y_i) = Σ_{1 ≤ a+b ≤ D} c_ab x_i^a y_i^b
+
+    fitted by Huber IRLS (δ = huber_rel) with a ridge penalty ``warp_ridge`` · N · ‖c‖². x, y: [N]
+    normalised image coordinates of the anchors, ratio: [N] z / (s d + b). Returns c [T]."""
+    A = _monomials(x, y, degree)
+    e = ratio - 1.0
+    c = np.zeros(A.shape[1])
+    lam = cfg.warp_ridge * len(e)
+    for _ in range(10):
+        r = A @ c - e
+        w = np.minimum(1.0, cfg.huber_rel / np.maximum(np.abs(r), 1e-12))
+        Aw = A * w[:, None]
+        c_new = np.linalg.solve(A.T @ Aw + lam * np.eye(A.shape[1]), Aw.T @ e)
+        if np.max(np.abs(c_new - c)) < 1e-7:
+            c = c_new
+            break
+        c = c_new
+    return c
+
+
 def fit_scale_shift(d: np.ndarray, z: np.ndarray, cfg: DepthAlignConfig,
                     rng: np.random.Generator) -> tuple[float, float, np.ndarray]:
     """Robust depth alignment (paper §4.1, "estimate a per-image depth scale by linear regression").
@@ -193,7 +250,13 @@ def fit_scale_shift(d: np.ndarray, z: np.ndarray, cfg: DepthAlignConfig,
     # ---- occlusion check: an anchor behind the surface seen by the prior is hidden there.
     used = (z - (s * d + b)) < tol
     # ---- Huber IRLS on the visible anchors.
-    delta = cfg.huber_rel * float(np.median(z))
+    s, b = _irls_affine(d, z, used, s, b, shift, cfg.huber_rel * float(np.median(z)))
+    return float(s), float(b), used
+
+
+def _irls_affine(d: np.ndarray, z: np.ndarray, used: np.ndarray, s: float, b: float, shift: bool,
+                 delta: float) -> tuple[float, float]:
+    """Huber IRLS of z ≈ s d + b (b = 0 without ``shift``) over the ``used`` anchors from (s, b)."""
     A = np.stack([d, np.ones_like(d)], axis=1) if shift else d[:, None]
     for _ in range(30):
         r = s * d + b - z
@@ -205,7 +268,7 @@ def fit_scale_shift(d: np.ndarray, z: np.ndarray, cfg: DepthAlignConfig,
         s, b = s_new, b_new
         if done:
             break
-    return float(s), float(b), used
+    return s, b
 
 
 def _edge_mask(depth: np.ndarray, radius: int, rel: float) -> np.ndarray:
@@ -247,13 +310,14 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     on_edge = valid & _edge_mask(depth, radius, cfg.edge_rel)[rows, cols]
     rej["depth_edge"] = int(on_edge.sum())
     keep = valid & ~on_edge
-    d, z = d[keep], z[keep]
+    d, z, uv = d[keep], z[keep], uv[keep]
     rng = np.random.default_rng(seed + cam.index)
     if len(d) > cfg.max_anchors:
         sel = rng.choice(len(d), size=cfg.max_anchors, replace=False)
         rej["subsampled"] = len(d) - cfg.max_anchors
-        d, z = d[sel], z[sel]
+        d, z, uv = d[sel], z[sel], uv[sel]
     res.rejected, res.n_anchors = rej, len(d)
+    res.width, res.height = cam.width, cam.height
     if len(d) < max(cfg.min_anchors, 2):
         res.reason = f"too few anchors ({len(d)} < {cfg.min_anchors})"
         return res
@@ -265,8 +329,28 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     if not (np.isfinite(s) and np.isfinite(b) and s > cfg.min_scale):
         res.reason = f"degenerate fit (scale {s:.4g}, shift {b:.4g})"
         return res
-    r = s * d + b - z
+    base = s * d + b  # [N] affine-aligned prior at the anchors
     tol = cfg.inlier_rel * z
+    res.residual_affine_median_m = float(np.median(np.abs(base - z)[(z - base) < tol]))
+    x, y = _norm_uv(uv, cam.width, cam.height)
+    degree = cfg.warp_degree
+    while degree > 0 and (len(d) < 15 * len(_monomials(x[:1], y[:1], degree).ravel())
+                          or min(np.std(x), np.std(y)) < 0.15 * degree):
+        degree -= 1  # too few anchors, or too clustered in the image, for this degree
+    warp = np.zeros(len(d))
+    coeffs = np.zeros(0)
+    if degree > 0:  # z = (s d + b)(1 + w): alternate the warp fit and the affine refit
+        shift = cfg.fit_shift
+        for _ in range(4):  # each round also redoes the occlusion check with the corrected depth
+            vis = (z - base * (1.0 + warp)) < tol
+            coeffs = fit_warp(x[vis], y[vis], z[vis] / base[vis], degree, cfg)
+            warp = np.clip(_monomials(x, y, degree) @ coeffs, -cfg.warp_max, cfg.warp_max)
+            s, b = _irls_affine(d, z / (1.0 + warp), vis, s, b, shift, cfg.huber_rel * float(np.median(z)))
+            base = s * d + b
+        if not (np.isfinite(s) and s > cfg.min_scale):
+            res.reason = f"degenerate fit with the warp correction (scale {s:.4g})"
+            return res
+    r = base * (1.0 + warp) - z
     occluded = -r > tol  # anchor farther than the aligned surface
     vis = ~occluded
     if vis.sum() < max(cfg.min_anchors, 2):
@@ -274,6 +358,7 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
         return res
     a = np.abs(r[vis])
     res.ok, res.scale, res.shift = True, s, b
+    res.warp_degree, res.warp_coeffs = degree, [float(c) for c in coeffs]
     res.n_occluded = int(occluded.sum())
     res.n_inliers = int(np.sum(np.abs(r) < tol))
     res.residual_median_m = float(np.median(a))

@@ -28,8 +28,8 @@ from tqdm import tqdm
 from geocues.cue_io import CueCloud, atomic_path, write_cues_ply, write_lines_npz
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
-from geocues.planes import (PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, split_regions_by_lines,
-                            voxel_downsample)
+from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample
+from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, split_regions_by_lines
 from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
 from geocues.texture import TextureConfig, config_key, load_or_compute
@@ -100,6 +100,33 @@ def _per_image_seconds(rows: list[dict], timings: dict[str, float], n_img: int) 
     if "lines" in timings and n_img:
         out["lines"] = {"mean": timings["lines"] / n_img}
     return out
+
+
+def _merge_planes(scene: Scene, cfg: PlaneConfig, xyz: list, rgb: list, nrm: list, pid: list,
+                  planes: list, plane_view: list) -> tuple[CueCloud, dict[str, int]]:
+    """All images' plane points -> fused planes (optional) -> voxel grid -> PLANE cloud."""
+    rej: dict[str, int] = {}
+    if not xyz:
+        return CueCloud.empty(), rej
+    X, C, N = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(nrm)
+    P, PL, PV = np.concatenate(pid), np.concatenate(planes), np.concatenate(plane_view)
+    if cfg.fuse_planes and len(PL):
+        centers = np.array([c.center for c in scene.cameras])
+        X, N, cluster_views = consolidate_planes(X, P, PL, PV, centers, cfg.fuse_angle_deg,
+                                                 cfg.fuse_dist, cfg.min_ray_cos)
+        lone = cluster_views < cfg.min_plane_views
+        if lone.any():
+            rej["points_on_planes_seen_in_too_few_images"] = int(lone.sum())
+            X, C, N, P = X[~lone], C[~lone], N[~lone], P[~lone]
+    view = PV[P]
+    if cfg.min_views > 1:  # multi-view consistency of the planes of different images
+        support = multiview_support(X, view, cfg.support_radius, cfg.voxel_size)
+        few = support < cfg.min_views
+        if few.any():
+            rej["points_seen_by_fewer_images"] = int(few.sum())
+            X, C, N, view = X[~few], C[~few], N[~few], view[~few]
+    vx, vc, vn, nv = voxel_downsample(X, C, N, view, cfg.voxel_size)
+    return CueCloud.make(vx, vc, CueType.PLANE, normal=vn, confidence=np.minimum(1.0, nv / 3.0)), rej
 
 
 def _run_lines(scene: Scene, cfg: ExtractConfig, cache_dir: Path) -> LineCues:
@@ -233,7 +260,8 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
     rej_align: dict[str, int] = {}
     rej_plane: dict[str, int] = {}
     rows: list[dict] = []
-    xyz, rgb, nrm, view = [], [], [], []
+    xyz, rgb, nrm, pid, planes, plane_view = [], [], [], [], [], []
+    n_planes = 0
     for k in ("texture", "depth_align", "planes"):
         timings.setdefault(k, 0.0)
     cache_hits = 0
@@ -266,7 +294,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
             row["alignment"] = al.to_dict()
             if al.ok:
                 n_aligned += 1
-                aligned = al.apply(depth)
+                aligned = al.apply(depth, cfg.align.warp_max)
             else:
                 rej_align[al.reason.split(" (")[0]] = rej_align.get(al.reason.split(" (")[0], 0) + 1
         t2 = time.perf_counter()
@@ -285,7 +313,8 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
             row["plane_mode"] = "none"
         elif aligned is not None:
             pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[cand], cfg.plane,
-                                       seed=cfg.seed + i, inside_only=strict[cand])
+                                       seed=cfg.seed + i, inside_only=strict[cand],
+                                       anchors_group=anchors.group[cand])
             row["plane_mode"] = "prior"
         elif cfg.prior_free_fallback or not cfg.priors or not has_priors:
             pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[cand], anchors.group[cand],
@@ -302,23 +331,17 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
             xyz.append(pp.xyz)
             rgb.append(pp.rgb)
             nrm.append(pp.normal)
-            view.append(np.full(len(pp.xyz), i))
+            pid.append(pp.plane_id + n_planes)
+            planes.append(pp.planes)
+            plane_view.append(np.full(len(pp.planes), i))
+            n_planes += len(pp.planes)
         t3 = time.perf_counter()
         timings["planes"] += t3 - t2
         row["planes_s"] = t3 - t2
         rows.append(row)
     t0 = time.perf_counter()
-    if xyz:
-        vx, vc, vn, nv = voxel_downsample(np.concatenate(xyz), np.concatenate(rgb), np.concatenate(nrm),
-                                          np.concatenate(view), cfg.plane.voxel_size)
-    else:
-        vx, vc, vn, nv = voxel_downsample(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
-                                          np.zeros(0), cfg.plane.voxel_size)
-    few = nv < cfg.plane.min_views
-    if few.any():
-        rej_plane["voxel_fewer_views"] = int(few.sum())
-    cloud = CueCloud.make(vx[~few], vc[~few], CueType.PLANE, normal=vn[~few],
-                          confidence=np.minimum(1.0, nv[~few] / 3.0))
+    cloud, merge_rej = _merge_planes(scene, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
+    rej_plane.update(merge_rej)
     timings["planes_merge"] = time.perf_counter() - t0
     timings["planes"] += timings["planes_merge"]
     if not has_priors:

@@ -4,7 +4,8 @@ Two modes per image:
 
 * **with a depth prior** (:func:`plane_cues_with_prior`): back-project the region's pixels with the
   aligned prior, find its planes by sequential RANSAC (Open3D ``segment_plane``), keep a plane only
-  if the line / SfM cues near the region agree with it, and keep its pixels within ``keep_dist``;
+  if the line / SfM cues near the region agree with it (after snapping it onto them), and cut its
+  pixels' rays with it;
 * **prior-free** (:func:`plane_cues_prior_free`): fit one plane to the line / SfM cues that project
   into the region or onto its border and intersect the region's pixel rays with it
   (:func:`ray_plane_depth`).
@@ -20,6 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights, ray_plane_depth,
+                               weighted_median)
 from geocues.scene import Camera
 
 log = logging.getLogger(__name__)
@@ -35,6 +38,12 @@ class PlaneConfig:
     """Voxel edge (metres) of the final downsampling."""
     min_region_points: int = 100
     """Regions with fewer sampled pixels than this are skipped."""
+    anchor_sigma: float = 0.01
+    """Assumed error (metres) of one anchor group (a line or an SfM point) when fitting a plane."""
+    max_plane_std: float = 0.015
+    """Keep pixels where the anchored plane's offset is known to this std (metres)."""
+    hull_margin_px: float = 16.0
+    """Keep pixels inside the image convex hull of a plane's anchors grown by this (px at 640; <0 = off)."""
     cut_px: float = 3.0
     """Cut weak regions along the projected 3D lines seen in the image, this wide (px at 640; 0 = off)."""
     border_px: int = 12
@@ -45,21 +54,27 @@ class PlaneConfig:
     """Drop pixels whose ray meets the plane at a grazing angle (|cos| below this, ~80 deg)."""
     # ---- with depth priors
     ransac_dist: float = 0.02
-    """RANSAC inlier distance (metres) of the planes fitted to the back-projected prior."""
+    """Least RANSAC inlier distance (metres) of the planes fitted to the back-projected prior."""
+    ransac_rel: float = 0.015
+    """RANSAC inlier distance as a fraction of the region's median depth (the larger one is used)."""
     max_planes: int = 3
     """At most this many planes per region (sequential RANSAC)."""
     min_plane_frac: float = 0.2
     """A plane must hold at least this fraction of the region's pixels."""
-    keep_dist: float = 0.02
-    """Keep back-projected points within this distance (metres) of an accepted plane."""
+    occlusion_rel: float = 0.06
+    """Anchors farther than the aligned prior by this fraction of its depth are hidden (not used)."""
+    agree_search_rel: float = 0.05
+    """Anchors within this fraction of the region's depth of a prior plane are its candidates."""
     agree_dist: float = 0.03
-    """A plane agrees with the cues if the median distance of the nearby anchors is below this."""
+    """A (snapped) plane agrees with the cues if their median distance to it is below this (metres)."""
     min_agree_anchors: int = 5
     """Anchors needed to test agreement (with fewer, see require_anchors)."""
     require_anchors: bool = True
     """Reject planes that no nearby line / SfM cue can confirm (the paper's line-distance test)."""
     snap_to_plane: bool = True
-    """Move kept points onto their plane, itself moved onto the agreeing anchors (removes prior noise)."""
+    """Refit each prior plane to its agreeing anchors and cut the pixel rays with it."""
+    prior_normal_std_deg: float = 5.0
+    """Trust in the prior plane's normal when refitting it to the anchors (degrees, 1 sigma)."""
     # ---- prior-free
     free_min_anchors: int = 8
     """Prior-free: anchors (near the region) needed to fit its plane."""
@@ -71,16 +86,23 @@ class PlaneConfig:
     """Prior-free: RANSAC inlier distance (metres) of the plane fitted to the anchors."""
     free_min_inlier_ratio: float = 0.3
     """Prior-free: the plane must hold at least this (group-weighted) share of the region's anchors."""
-    free_min_spread: float = 0.1
-    """Prior-free: least 2nd principal std (metres) of the inlier anchors (one line fixes no plane)."""
     free_local_k: int = 8
     """Prior-free: keep a pixel if most of its k nearest anchors in the image are plane inliers (0 = off)."""
     free_local_ratio: float = 0.6
     """Prior-free: share of those k anchors that must be inliers."""
-    free_max_extrapolation: float = 1.0
-    """Prior-free: drop points farther than this (metres) from every inlier anchor."""
-    min_views: int = 1
-    """Keep voxels supported by at least this many images."""
+    # ---- merging the images' planes
+    fuse_planes: bool = False
+    """Fuse the planes of different images that describe one surface (geocues.plane_merge)."""
+    fuse_angle_deg: float = 5.0
+    """Planes closer than this angle ..."""
+    fuse_dist: float = 0.05
+    """... and passing within this distance (metres) of each other's centroid are one surface."""
+    min_plane_views: int = 1
+    """With fusion: drop points of surfaces found in fewer images than this."""
+    min_views: int = 2
+    """Keep plane points that at least this many images (itself included) put within support_radius."""
+    support_radius: float = 0.03
+    """Radius (metres) of that multi-view agreement test."""
 
 
 @dataclass
@@ -90,6 +112,8 @@ class PlanePoints:
     xyz: np.ndarray  # [N, 3] world
     rgb: np.ndarray  # [N, 3] float32 in [0, 1]
     normal: np.ndarray  # [N, 3] plane normal, facing the camera
+    plane_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # [N] row of planes
+    planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # [K, 4] world (n, d), n·X + d = 0
     n_regions: int = 0
     n_accepted: int = 0  # regions that produced points
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> regions (or planes)
@@ -97,93 +121,37 @@ class PlanePoints:
     @staticmethod
     def empty(n_regions: int = 0, rejected: dict | None = None) -> "PlanePoints":
         return PlanePoints(np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                           n_regions, 0, dict(rejected or {}))
+                           n_regions=n_regions, rejected=dict(rejected or {}))
+
+
+class _Collector:
+    """Accumulates the accepted planes of one image: points in world, colours, facing normals."""
+
+    def __init__(self, cam: Camera, image: np.ndarray, rows: np.ndarray, cols: np.ndarray):
+        self.cam, self.image, self.rows, self.cols = cam, image, rows, cols
+        self.xyz, self.rgb, self.nrm, self.pid, self.planes = [], [], [], [], []
+
+    def add(self, pix: np.ndarray, Xc: np.ndarray, n_c: np.ndarray) -> None:
+        """pix: [m] indices into rows/cols; Xc: [m, 3] camera-frame points on the plane (normal n_c)."""
+        n_face = n_c if np.median(Xc @ n_c) < 0 else -n_c  # face the camera (rays are Xc themselves)
+        Xw = (Xc - self.cam.t) @ self.cam.R  # x_cam = R X + t
+        n_w = self.cam.R.T @ n_face
+        self.xyz.append(Xw)
+        self.rgb.append(self.image[self.rows[pix], self.cols[pix]])
+        self.nrm.append(np.broadcast_to(n_w, (len(pix), 3)))
+        self.pid.append(np.full(len(pix), len(self.planes), np.int64))
+        self.planes.append(np.r_[n_w, -float(n_w @ Xw.mean(axis=0))])
+
+    def result(self, n_regions: int, accepted: int, rejected: dict[str, int]) -> PlanePoints:
+        if not self.xyz:
+            return PlanePoints.empty(n_regions, rejected)
+        return PlanePoints(np.concatenate(self.xyz), np.concatenate(self.rgb).astype(np.float32),
+                           np.concatenate(self.nrm).astype(np.float32), np.concatenate(self.pid),
+                           np.array(self.planes), n_regions, accepted, rejected)
 
 
 def _bump(d: dict[str, int], key: str, n: int = 1) -> None:
     d[key] = d.get(key, 0) + n
-
-
-def fit_plane_ransac(points: np.ndarray, dist: float, seed: int = 0, iters: int = 500
-                     ) -> tuple[np.ndarray, float, np.ndarray]:
-    """RANSAC plane n·x + d = 0 (‖n‖ = 1) through ``points`` [N, 3], N >= 3, via Open3D
-    ``segment_plane``. Returns (n [3], d, inlier mask [N])."""
-    import open3d as o3d
-
-    pts = np.asarray(points, np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
-        raise ValueError(f"need [N >= 3, 3] points, got shape {pts.shape}")
-    o3d.utility.random.seed(seed)
-    pcd = o3d.geometry.PointCloud(points=o3d.utility.Vector3dVector(pts))
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        model, idx = pcd.segment_plane(distance_threshold=dist, ransac_n=3, num_iterations=iters)
-    model = np.asarray(model, np.float64).ravel()
-    norm = np.linalg.norm(model[:3])
-    mask = np.zeros(len(pts), bool)
-    if norm < 1e-12 or not np.all(np.isfinite(model)):
-        return np.array([0.0, 0.0, 1.0]), 0.0, mask
-    mask[np.asarray(idx, np.int64)] = True
-    return model[:3] / norm, float(model[3] / norm), mask
-
-
-def _group_weights(groups: np.ndarray) -> np.ndarray:
-    """w_i = 1 / |group(i)|: every line (all its samples together) weighs as much as one SfM point."""
-    _, inv, cnt = np.unique(groups, return_inverse=True, return_counts=True)
-    return 1.0 / cnt[inv.ravel()]
-
-
-def fit_plane_groups(points: np.ndarray, groups: np.ndarray, dist: float, rng: np.random.Generator,
-                     iters: int = 300) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """Group-weighted RANSAC plane through cue points (prior-free plane cues, paper §4.1).
-
-        π* = argmax_π Σ_i w_i [|n·p_i + d| < τ],   w_i = 1 / |group(i)|
-
-    so a line sampled every centimetre counts once, like one SfM point, and a plane is not chosen
-    just because it contains one long line. Minimal samples are drawn with probability ∝ w; the
-    winner is refined by weighted least squares on its inliers. points: [P, 3], groups: [P].
-    Returns (n [3], d, inlier mask [P], inlier weight / total weight)."""
-    P = len(points)
-    if P < 3:
-        return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(P, bool), 0.0
-    w = _group_weights(groups)
-    idx = rng.choice(P, size=(iters, 3), p=w / w.sum())
-    a, b, c = points[idx[:, 0]], points[idx[:, 1]], points[idx[:, 2]]
-    n = np.cross(b - a, c - a)  # [iters, 3]
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-9
-    if not ok.any():
-        return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(P, bool), 0.0
-    n = n[ok] / norm[ok, None]
-    d = -np.sum(n * a[ok], axis=1)
-    score = (np.abs(points @ n.T + d) < dist).T.astype(np.float64) @ w  # [iters]
-    best = int(np.argmax(score))
-    n_b, d_b = n[best], float(d[best])
-    for _ in range(2):  # weighted least-squares refinement on the inliers
-        inl = np.abs(points @ n_b + d_b) < dist
-        if inl.sum() < 3:
-            break
-        wi = w[inl]
-        mu = wi @ points[inl] / wi.sum()
-        cov = (points[inl] - mu).T @ ((points[inl] - mu) * wi[:, None])
-        n_new = np.linalg.eigh(cov)[1][:, 0]
-        n_b = n_new if n_new @ n_b >= 0 else -n_new
-        d_b = -float(n_b @ mu)
-    inl = np.abs(points @ n_b + d_b) < dist
-    return n_b, d_b, inl, float(w[inl].sum() / w.sum())
-
-
-def ray_plane_depth(rays: np.ndarray, n_cam: np.ndarray, d_cam: float) -> np.ndarray:
-    """Intersect camera rays with a plane (prior-free plane cues, paper §4.1).
-
-        x(z) = z · r  (r = (x, y, 1): z-depth parametrisation),   n·x + d = 0  ⇒  z = −d / (n·r)
-
-    rays: [N, 3] camera-frame directions with r_z = 1; n_cam, d_cam: the plane in the camera frame.
-    Returns z [N] (inf where the ray is parallel to the plane, negative behind the camera).
-    """
-    denom = rays @ n_cam
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = -d_cam / denom
-    return np.where(np.abs(denom) > 1e-12, z, np.inf)
 
 
 def _plane_to_camera(n: np.ndarray, d: float, cam: Camera) -> tuple[np.ndarray, float]:
@@ -231,6 +199,25 @@ def split_regions_by_lines(cam: Camera, regions: np.ndarray, segments: np.ndarra
     return out
 
 
+def _in_anchor_hull(cam: Camera, anchors_c: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                    margin_px: float) -> np.ndarray:
+    """[m] True for the pixels (rows, cols) inside the image convex hull of the camera-frame
+    anchors [A, 3], grown by ``margin_px``: a plane is interpolated between its anchors, never
+    extrapolated beyond them (anchors near a region may sit slightly off its surface)."""
+    import cv2
+
+    uv = anchors_c[:, :2] / anchors_c[:, 2:3] * np.diag(cam.K)[:2] + cam.K[:2, 2]  # COLMAP pixels
+    lim = 4.0 * max(cam.width, cam.height)
+    uv = np.clip(uv, -lim, lim).astype(np.float32)
+    hull = cv2.convexHull(uv.reshape(-1, 1, 2))
+    mask = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull[:, 0] - 0.5).astype(np.int32), 1)
+    if margin_px > 0:
+        k = 2 * int(round(margin_px)) + 1
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return mask[rows, cols] > 0
+
+
 def _region_pixels(regions: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Strided pixels inside weak regions: (rows [M], cols [M], region id [M])."""
     sub = regions[::stride, ::stride]
@@ -271,36 +258,18 @@ def _nearby_anchor_ids(cam: Camera, regions: np.ndarray, n_regions: int, anchors
     return out
 
 
-def _snap_plane(n_c: np.ndarray, d_c: float, a_c: np.ndarray, agree: np.ndarray, cfg: PlaneConfig
-                ) -> tuple[np.ndarray, float]:
-    """Move a prior plane onto the anchors that agree with it, changing its normal by at most
-    10 degrees: refit it to them when they span a plane; hinge it onto them (keep the prior normal's
-    component across their direction) when they lie along one line; else only shift it by their
-    median signed distance."""
-    A = a_c[agree]
-    c = A.mean(axis=0)
-    _, sv, vt = np.linalg.svd(A - c, full_matrices=False)
-    sv = sv / np.sqrt(len(A))
-    cos_max = np.cos(np.radians(10.0))
-    cand = None
-    if len(A) >= 3 and sv[1] >= cfg.free_min_spread:
-        cand = vt[2]
-    elif len(A) >= 2 and sv[0] >= cfg.free_min_spread:
-        u = vt[0]
-        cand = n_c - (n_c @ u) * u
-        cand /= max(np.linalg.norm(cand), 1e-12)
-    if cand is not None and abs(cand @ n_c) > cos_max:
-        n_new = cand if cand @ n_c > 0 else -cand
-        return n_new, -float(n_new @ c)
-    return n_c, d_c - float(np.median(A @ n_c + d_c))
-
-
 def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           aligned_depth: np.ndarray, anchors_xyz: np.ndarray, cfg: PlaneConfig,
-                          seed: int = 0, inside_only: np.ndarray | None = None) -> PlanePoints:
+                          seed: int = 0, inside_only: np.ndarray | None = None,
+                          anchors_group: np.ndarray | None = None) -> PlanePoints:
     """Plane-like points of one image from its aligned depth prior [H, W] (metres, 0 = invalid).
+
     ``anchors_xyz`` [P, 3]: line / SfM cue points that may be visible in the image; those flagged
-    ``inside_only`` [P] (SfM points) count only when they project inside a region."""
+    ``inside_only`` [P] (SfM points) count only when they project inside a region;
+    ``anchors_group`` [P] (line index, or < 0 for SfM points) weighs each line like one point.
+    Each region's back-projected prior is split into planes by sequential RANSAC; a plane is kept
+    if the nearby anchors agree with it -- after it is snapped onto them (``snap_to_plane``), which
+    removes the prior's residual low-frequency error -- and its pixels' rays are cut with it."""
     h, w = cam.height, cam.width
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
         raise ValueError(f"{cam.name}: regions {regions.shape}, depth {aligned_depth.shape} and "
@@ -315,9 +284,9 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     z = aligned_depth[rows, cols].astype(np.float64)
     rays = cam.pixel_rays()[rows, cols]  # [M, 3], z = 1
     near = _nearby_anchor_ids(cam, regions, n_regions, anchors_xyz, int(round(cfg.border_px * s)),
-                              inside_only=inside_only, depth=aligned_depth)
-    Rt = cam.R.T
-    out_xyz, out_rgb, out_n = [], [], []
+                              inside_only=inside_only, depth=aligned_depth, occl_rel=cfg.occlusion_rel)
+    groups = np.arange(len(anchors_xyz)) if anchors_group is None else np.asarray(anchors_group)
+    out = _Collector(cam, image, rows, cols)
     accepted = 0
     for k in range(n_regions):
         sel = np.flatnonzero((rid == k) & (z > 0) & (z < cfg.max_depth))
@@ -325,52 +294,57 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             _bump(rej, "too_small_or_no_depth")
             continue
         Xc = rays[sel] * z[sel, None]  # [m, 3] camera frame
-        # anchors near the region and not hidden behind the aligned surface there
-        a_ids = near[k]
+        zmed = float(np.median(z[sel]))
+        tau = max(cfg.ransac_dist, cfg.ransac_rel * zmed)  # the prior's error grows with depth
+        a_ids = near[k]  # anchors near the region, not hidden behind the aligned surface
         a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
+        a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
         remaining = np.arange(len(sel))
         got_any = False
         for p in range(cfg.max_planes):
             if len(remaining) < max(cfg.min_region_points, cfg.min_plane_frac * len(sel)):
                 break
-            n_c, d_c, inl = fit_plane_ransac(Xc[remaining], cfg.ransac_dist, seed=seed + 31 * k + p)
+            n_c, d_c, inl = fit_plane_ransac(Xc[remaining], tau, seed=seed + 31 * k + p)
             if inl.sum() < cfg.min_plane_frac * len(sel):
                 _bump(rej, "not_planar" if p == 0 else "no_further_plane")
                 break
-            dist_pts = np.abs(Xc[remaining] @ n_c + d_c)
-            keep = remaining[dist_pts < cfg.keep_dist]
-            remaining = remaining[dist_pts >= cfg.keep_dist]
+            keep = remaining[inl]
+            remaining = remaining[~inl]
             # agreement with the nearby cues (paper: keep points close to the 3D line samples)
-            sd = a_c @ n_c + d_c  # signed distances of nearby anchors
-            agree = np.abs(sd) < cfg.agree_dist
-            if len(a_ids) >= cfg.min_agree_anchors:
-                if np.median(np.abs(sd)) >= cfg.agree_dist or agree.sum() < cfg.min_agree_anchors:
+            near_plane = np.abs(a_c @ n_c + d_c) < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
+            r = rays[sel[keep]]
+            if near_plane.sum() < cfg.min_agree_anchors:
+                if cfg.require_anchors:
+                    _bump(rej, "no_nearby_cues" if len(a_ids) < cfg.min_agree_anchors else "disagrees_with_cues")
+                    continue
+                Xk = Xc[keep]  # unconfirmed prior plane (require_anchors off)
+            else:
+                ap = AnchoredPlane(a_c[near_plane], a_w[near_plane], n_c, cfg.anchor_sigma,
+                                   np.radians(cfg.prior_normal_std_deg) if cfg.snap_to_plane else 1e-9,
+                                   huber=cfg.agree_dist)
+                if weighted_median(np.abs(ap.residual), a_w[near_plane]) >= cfg.agree_dist:
                     _bump(rej, "disagrees_with_cues")
                     continue
-            elif cfg.require_anchors:
-                _bump(rej, "no_nearby_cues")
-                continue
-            if cfg.snap_to_plane:
-                if agree.sum() >= cfg.min_agree_anchors:
-                    n_c, d_c = _snap_plane(n_c, d_c, a_c, agree, cfg)
-                zk = ray_plane_depth(rays[sel[keep]], n_c, d_c)
-                ok = np.isfinite(zk) & (zk > 0) & (zk < cfg.max_depth) & \
-                    (np.abs(rays[sel[keep]] @ n_c) / np.linalg.norm(rays[sel[keep]], axis=1) >= cfg.min_ray_cos)
-                keep, Xk = keep[ok], rays[sel[keep[ok]]] * zk[ok, None]
-            else:
-                Xk = Xc[keep]
+                if cfg.snap_to_plane:  # the plane moved onto the anchors; cut the pixels' rays with it
+                    n_c, d_c = ap.n, ap.d
+                    zk = ray_plane_depth(r, n_c, d_c)
+                    ok = np.isfinite(zk) & (zk > 0) & (zk < cfg.max_depth) & \
+                        (np.abs(r @ n_c) / np.linalg.norm(r, axis=1) >= cfg.min_ray_cos)
+                    Xk = r * np.where(ok, zk, 0.0)[:, None]
+                    ok &= ap.std_at(Xk) <= cfg.max_plane_std  # only where the anchors pin it down
+                    if cfg.hull_margin_px >= 0:
+                        ok &= _in_anchor_hull(cam, a_c[near_plane], rows[sel[keep]], cols[sel[keep]],
+                                              cfg.hull_margin_px * s)
+                    keep, Xk = keep[ok], Xk[ok]
+                else:
+                    Xk = Xc[keep]
             if len(keep) == 0:
+                _bump(rej, "no_points_left")
                 continue
-            n_face = n_c if np.median(rays[sel[keep]] @ n_c) < 0 else -n_c  # face the camera
-            out_xyz.append((Xk - cam.t) @ Rt.T)
-            out_rgb.append(image[rows[sel[keep]], cols[sel[keep]]])
-            out_n.append(np.broadcast_to(Rt @ n_face, (len(keep), 3)))
+            out.add(sel[keep], Xk, n_c)
             got_any = True
         accepted += got_any
-    if not out_xyz:
-        return PlanePoints.empty(n_regions, rej)
-    return PlanePoints(np.concatenate(out_xyz), np.concatenate(out_rgb).astype(np.float32),
-                       np.concatenate(out_n).astype(np.float32), n_regions, accepted, rej)
+    return out.result(n_regions, accepted, rej)
 
 
 def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
@@ -397,8 +371,7 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
     rays = cam.pixel_rays()[rows, cols]
     near = _nearby_anchor_ids(cam, regions, n_regions, anchors_xyz, int(round(cfg.border_px * s)),
                               inside_only=inside_only)
-    Rt = cam.R.T
-    out_xyz, out_rgb, out_n = [], [], []
+    out = _Collector(cam, image, rows, cols)
     accepted = 0
     rng = np.random.default_rng(seed)
     for k in range(n_regions):
@@ -421,12 +394,8 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
         if len(groups) < cfg.free_min_groups or (n_lines <= 1 and n_points < cfg.free_min_off_line):
             _bump(rej, "single_line")  # one line (plus a stray point) does not fix a plane
             continue
-        w = _group_weights(grp[inl])
-        mu = w @ a_c[inl] / w.sum()
-        cov = (a_c[inl] - mu).T @ ((a_c[inl] - mu) * w[:, None]) / w.sum()
-        if np.sqrt(max(np.linalg.eigvalsh(cov)[1], 0.0)) < cfg.free_min_spread:
-            _bump(rej, "degenerate_anchors")
-            continue
+        ap = AnchoredPlane(a_c[inl], group_weights(grp[inl]), n_c, cfg.anchor_sigma)
+        n_c, d_c = ap.n, ap.d
         r = rays[sel]
         zk = ray_plane_depth(r, n_c, d_c)
         cosang = np.abs(r @ n_c) / np.linalg.norm(r, axis=1)
@@ -435,8 +404,12 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
             _bump(rej, "plane_behind_or_grazing")
             continue
         Xc = r[ok] * zk[ok, None]
-        dist, _ = cKDTree(a_c[inl]).query(Xc, k=1)
-        good = dist <= cfg.free_max_extrapolation
+        good = ap.std_at(Xc) <= cfg.max_plane_std  # only where the anchors pin the plane down
+        if cfg.hull_margin_px >= 0:
+            good &= _in_anchor_hull(cam, a_c[inl], rows[sel[ok]], cols[sel[ok]], cfg.hull_margin_px * s)
+        if not good.any():
+            _bump(rej, "anchors_do_not_fix_plane")
+            continue
         if cfg.free_local_k > 0:  # local consensus: the anchors nearest in the image lie on the plane
             uv_a = a_c[:, :2] / a_c[:, 2:3]  # normalised image coordinates of the anchors
             k_n = min(cfg.free_local_k, len(a_c))
@@ -447,44 +420,6 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
             continue
         keep = sel[ok][good]
         Xc = Xc[good]
-        n_face = n_c if np.median(rays[keep] @ n_c) < 0 else -n_c
-        out_xyz.append((Xc - cam.t) @ Rt.T)
-        out_rgb.append(image[rows[keep], cols[keep]])
-        out_n.append(np.broadcast_to(Rt @ n_face, (len(keep), 3)))
+        out.add(keep, Xc, n_c)
         accepted += 1
-    if not out_xyz:
-        return PlanePoints.empty(n_regions, rej)
-    return PlanePoints(np.concatenate(out_xyz), np.concatenate(out_rgb).astype(np.float32),
-                       np.concatenate(out_n).astype(np.float32), n_regions, accepted, rej)
-
-
-def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, normal: np.ndarray, view: np.ndarray,
-                     voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Merge points per voxel of edge ``voxel``: mean position and colour, mean normal
-    (re-normalised, sign-aligned to the voxel's first normal) and the number of distinct images
-    (``view`` [N]) that put a point in the voxel. Returns (xyz, rgb, normal, n_views) per voxel."""
-    xyz = np.asarray(xyz, np.float64)
-    if len(xyz) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), \
-            np.zeros(0, np.int64)
-    if voxel <= 0:
-        raise ValueError(f"voxel size must be > 0, got {voxel}")
-    keys = np.floor(xyz / voxel).astype(np.int64)
-    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    m = len(cnt)
-
-    def mean(a: np.ndarray) -> np.ndarray:
-        out = np.zeros((m, a.shape[1]))
-        np.add.at(out, inv, a)
-        return out / cnt[:, None]
-
-    first = np.full(m, -1, np.int64)
-    first[inv[::-1]] = np.arange(len(inv))[::-1]
-    ref = normal[first]
-    sign = np.where(np.sum(normal * ref[inv], axis=1) < 0, -1.0, 1.0)
-    nrm = mean(normal * sign[:, None])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    pairs = np.unique(np.stack([inv, np.asarray(view, np.int64)], axis=1), axis=0)
-    n_views = np.bincount(pairs[:, 0], minlength=m)
-    return mean(xyz), mean(rgb).astype(np.float32), nrm.astype(np.float32), n_views
+    return out.result(n_regions, accepted, rej)

@@ -84,6 +84,25 @@ class TestAlignDepthPrior:
         assert al.ok and al.scale == pytest.approx(2.0, rel=0.01) and abs(al.shift) < 0.02
         assert al.residual_median_m < 0.01
 
+    def test_warp_correction(self, room):
+        """A smooth (quadratic) multiplicative warp of the prior: the affine fit leaves centimetres,
+        the warp correction removes it; with warp_degree=0 it stays."""
+        scene, depths = room
+        cam = scene.cameras[1]
+        j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        x, y = (j - cam.width / 2) / (cam.width / 2), (i - cam.height / 2) / (cam.width / 2)
+        warp = 1 + 0.03 * (x * x - 0.5 * y + 0.5 * x * y)
+        prior = np.where(depths[1] > 0, 0.7 * depths[1] * warp + 0.2, 0).astype(np.float32)
+        X = _surface_points(scene, depths, 1, n=600)
+        off = align_depth_prior(cam, prior, X, DepthAlignConfig(warp_degree=0))
+        on = align_depth_prior(cam, prior, X, DepthAlignConfig(warp_degree=2))
+        assert off.ok and on.ok and on.warp_degree == 2
+        assert on.residual_median_m < 0.2 * off.residual_median_m and on.residual_median_m < 0.004
+        m = depths[1] > 0
+        err_on = np.median(np.abs(on.apply(prior)[m] - depths[1][m]))
+        err_off = np.median(np.abs(off.apply(prior)[m] - depths[1][m]))
+        assert err_on < 0.3 * err_off
+
     def test_too_few_anchors_is_skipped_with_reason(self, room):
         scene, depths = room
         cam = scene.cameras[0]

@@ -31,7 +31,8 @@ def fake_lines(monkeypatch):
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("extract")
-    return {p: make_room_scene(root / p, n_views=4, priors=p) for p in ("all", "none", "some")}
+    # 8 views, 45 degrees apart: neighbouring views overlap, as the multi-view plane test needs
+    return {p: make_room_scene(root / p, n_views=8, priors=p) for p in ("all", "none", "some")}
 
 
 def _report(out):
@@ -57,7 +58,7 @@ class TestRun:
         for stage in ("sfm", "lines", "texture", "depth_align", "planes", "total"):
             assert rep["seconds"][stage] >= 0
         aligned = [r for r in rep["per_image"] if r["alignment"]["ok"]]
-        assert len(aligned) >= 3  # view 1 sees one fronto-parallel edge: too narrow a depth range
+        assert len(aligned) >= 6  # a view that sees one fronto-parallel edge has too narrow a depth range
         for r in rep["per_image"]:
             assert r["plane_mode"] == ("prior" if r["alignment"]["ok"] else "prior_free")
             assert r["alignment"]["ok"] or "too narrow" in r["alignment"]["reason"]
@@ -84,7 +85,7 @@ class TestRun:
             ex.run(scenes["all"], out, cfg)
         ex.run(scenes["all"], out, cfg, overwrite=True)
         second = _report(out)
-        assert second["planes"]["texture_cache_hits"] == 4
+        assert second["planes"]["texture_cache_hits"] == 8
         assert second["counts"]["PLANE"] < first["counts"]["PLANE"]  # coarser voxels
 
     @pytest.mark.parametrize("off", ["sfm", "lines", "planes"])
@@ -98,7 +99,7 @@ class TestRun:
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
         out = ex.run(scenes["all"], tmp_path / "free", ex.ExtractConfig(priors=False))
         rep = _report(out)
-        assert rep["planes"]["plane_modes"]["prior_free"] == 4
+        assert rep["planes"]["plane_modes"]["prior_free"] == 8
         assert any("priors ignored" in n for n in rep["notes"])
         plane = _no_nan(out).of_type(CueType.PLANE)
         assert len(plane) > 100 and np.mean(distance_to_surface(plane.xyz) < 0.03) > 0.9
@@ -110,7 +111,7 @@ class TestRun:
 
 class TestHardCases:
     def test_empty_sfm_model(self, tmp_path):
-        scene = make_room_scene(tmp_path / "room", n_views=3, priors="all", n_sfm=0)
+        scene = make_room_scene(tmp_path / "room", n_views=8, priors="all", n_sfm=0)
         out = ex.run(scene, tmp_path / "cues")
         cues, rep = _no_nan(out), _report(out)
         assert rep["counts"]["SFM"] == 0 and rep["counts"]["PLANE"] > 0
@@ -128,16 +129,19 @@ class TestHardCases:
         out = ex.run(scenes["some"], tmp_path / "cues")
         rep = _report(out)
         _no_nan(out)
-        modes = {r["index"]: r["plane_mode"] for r in rep["per_image"]}
-        assert modes == {0: "prior", 1: "prior_free", 2: "prior", 3: "prior_free"}
-        assert any("depth priors for 2 of 4 images" in n for n in rep["notes"])
+        for r in rep["per_image"]:
+            if r["index"] % 2:
+                assert r["plane_mode"] == "prior_free" and "alignment" not in r
+            else:
+                assert r["plane_mode"] == ("prior" if r["alignment"]["ok"] else "prior_free")
+        assert any("depth priors for 4 of 8 images" in n for n in rep["notes"])
 
     def test_images_with_no_lines(self, scenes, tmp_path, fake_lines):
         fake_lines["drop"] = (1, 3)
         out = ex.run(scenes["all"], tmp_path / "cues")
         rep = _report(out)
         _no_nan(out)
-        assert any("2 of 4 images support no 3D line" in n for n in rep["notes"])
+        assert any("2 of 8 images support no 3D line" in n for n in rep["notes"])
 
     def test_no_lines_no_sfm_no_priors(self, scenes, tmp_path):
         """Nothing to anchor planes: every region is rejected with a reason, no crash."""

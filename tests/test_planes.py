@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from geocues.depth_align import Anchors
-from geocues.planes import (PlaneConfig, fit_plane_ransac, plane_cues_prior_free, plane_cues_with_prior,
-                            ray_plane_depth, voxel_downsample)
+from geocues.plane_fit import AnchoredPlane, fit_plane_groups, fit_plane_ransac, ray_plane_depth
+from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample
+from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, split_regions_by_lines
 from geocues.scene import Scene
 from geocues.texture import TextureConfig, weak_texture_regions
 
@@ -59,6 +60,70 @@ class TestGeometry:
         with pytest.raises(ValueError, match="N >= 3"):
             fit_plane_ransac(P[:2], 0.01)
 
+    def test_fit_plane_groups_ignores_one_long_line(self):
+        """A long off-plane line with 200 samples must not outvote 12 SfM points on the plane."""
+        rng = np.random.default_rng(1)
+        pts = np.column_stack([rng.random(12) * 2, rng.random(12) * 2, np.zeros(12)])  # plane z = 0
+        t = np.linspace(0, 2, 200)[:, None]
+        line = np.array([0.0, 1.0, 0.5]) + t * np.array([1.0, 0.0, 0.1])  # off the plane
+        P = np.concatenate([pts, line])
+        groups = np.r_[-1 - np.arange(12), np.zeros(200, np.int64)]
+        n, d, inl, frac = fit_plane_groups(P, groups, 0.01, rng)
+        assert abs(abs(n[2]) - 1) < 1e-6 and abs(d) < 1e-6 and inl[:12].all() and not inl[12:].any()
+        assert frac == pytest.approx(12 / 13)
+        n_plain, _, _ = fit_plane_ransac(P, 0.01)
+        assert abs(n_plain[2]) < 0.9, "plain RANSAC should have picked a plane through the line"
+
+    def test_split_regions_by_lines(self, room):
+        scene = room[0]
+        cam = scene.cameras[0]
+        regions = np.zeros((cam.height, cam.width), np.int32)
+        # a vertical 3D segment in front of the camera, projecting across the whole image height
+        c, R = cam.center, cam.R
+        p = c + 2.0 * R[2] + 0.1 * R[0]
+        seg = np.stack([p - 5.0 * R[1], p + 5.0 * R[1]])[None]
+        out = split_regions_by_lines(cam, regions, seg, width_px=2, min_pixels=50)
+        assert out.max() == 1 and np.all(out[:, :5] == out[0, 0]) and np.all(out[:, -5:] == out[0, -1])
+        assert out[0, 0] != out[0, -1] and (out == -1).sum() < 4 * cam.height
+        assert np.array_equal(split_regions_by_lines(cam, regions, np.zeros((0, 2, 3)), 2, 50), regions)
+
+    def test_anchored_plane_uncertainty(self):
+        """Two crossing lines fix a plane everywhere near them; one line fixes it only along
+        itself, unless a prior normal is given."""
+        t = np.linspace(-1, 1, 50)[:, None]
+        l1 = t * np.array([1.0, 0, 0]) + [0, 0, 2.0]
+        l2 = t * np.array([0, 1.0, 0]) + [0, 0, 2.0]
+        w = np.full(50, 1 / 50)
+        two = AnchoredPlane(np.concatenate([l1, l2]), np.r_[w, w], np.array([0.1, 0, 1.0]), sigma=0.01)
+        np.testing.assert_allclose(np.abs(two.n), [0, 0, 1], atol=1e-9)
+        assert two.d * np.sign(two.n[2]) == pytest.approx(-2.0)
+        far = np.array([[0.3, 0.3, 2.0], [0.0, 3.0, 2.0]])
+        assert two.std_at(far)[0] < 0.015 < two.std_at(far)[1]
+        one = AnchoredPlane(l1, w, np.array([0, 0, 1.0]), sigma=0.01)
+        assert one.std_at(np.array([[0.0, 0.5, 2.0]]))[0] > 1.0  # off the line: unknown
+        assert one.std_at(np.array([[0.5, 0.0, 2.0]]))[0] < 0.015  # on it: known
+        prior = AnchoredPlane(l1, w, np.array([0, 0, 1.0]), sigma=0.01, prior_normal_std_rad=np.radians(2))
+        assert 0.01 < prior.std_at(np.array([[0.0, 0.5, 2.0]]))[0] < 0.03  # ~ 0.5 m * tan(2 deg)
+
+    def test_multiview_support_and_fusion(self):
+        rng = np.random.default_rng(0)
+        wall = np.column_stack([rng.random(30000) * 2, np.zeros(30000), rng.random(30000) * 2])
+        view = rng.integers(0, 3, 30000)  # three images see the wall y = 0
+        ghost = np.column_stack([rng.random(300) * 2, np.full(300, 0.5), rng.random(300) * 2])
+        X = np.concatenate([wall, ghost])
+        V = np.r_[view, np.full(300, 3)]  # a fourth image puts a wrong plane at y = 0.5
+        sup = multiview_support(X, V, radius=0.03, voxel=0.02)
+        assert np.mean(sup[:30000] >= 2) > 0.999 and np.all(sup[30000:] == 1)  # (edge points may lack support)
+        # fusion: the same wall from two images, 2 cm apart, meets in the middle
+        a = np.column_stack([rng.random(500) * 2, np.full(500, 0.01), rng.random(500) * 2])
+        b = np.column_stack([rng.random(500) * 2, np.full(500, -0.01), rng.random(500) * 2])
+        planes = np.array([[0, -1.0, 0, 0.01], [0, -1.0, 0, -0.01]])
+        out, nrm, nv = consolidate_planes(np.concatenate([a, b]), np.r_[np.zeros(500, int), np.ones(500, int)],
+                                          planes, np.array([0, 1]), np.array([[1.0, -3.0, 1.0], [1.5, -3.0, 1.0]]),
+                                          max_angle_deg=5, max_dist=0.05, min_ray_cos=0.1)
+        assert np.all(nv == 2) and np.abs(out[:, 1]).max() < 1e-9
+        assert np.all(nrm[:, 1] < -0.99)  # facing the cameras at y = -3
+
     def test_voxel_downsample_counts_views(self):
         xyz = np.array([[0.001, 0.001, 0.001], [0.004, 0.002, 0.003], [0.5, 0.5, 0.5], [0.003, 0.0, 0.0]])
         nrm = np.array([[0, 0, 1.0], [0, 0, -1.0], [1, 0, 0], [0, 0, 1.0]])
@@ -101,7 +166,7 @@ class TestWithPrior:
                                      PlaneConfig(agree_dist=0.12))
         raw = plane_cues_with_prior(scene.cameras[i], scene.load_image(i), regions[i], prior, a,
                                     PlaneConfig(agree_dist=0.12, snap_to_plane=False))
-        assert len(snap.xyz) > 500 and len(raw.xyz) > 500
+        assert len(snap.xyz) > 200 and len(raw.xyz) > 500  # snapped: only where the anchors fix the plane
         assert np.median(distance_to_surface(snap.xyz)) < 0.005
         assert np.median(distance_to_surface(raw.xyz)) > 0.04
 
