@@ -1,17 +1,20 @@
 """Plane-like cues (paper §4.1): 3D points for weak-texture regions, where SfM finds nothing.
 
-Two modes per image:
+Two modes per image (details and the reasons for each choice in docs/geocues.md):
 
 * **with a depth prior** (:func:`plane_cues_with_prior`): back-project the region's pixels with the
-  aligned prior, find its planes by sequential RANSAC (Open3D ``segment_plane``), keep a plane only
-  if the line / SfM cues near the region agree with it (after snapping it onto them), and cut its
+  aligned prior, split them into planes by sequential RANSAC (Open3D ``segment_plane``), refit each
+  plane to the nearby line / SfM cues with the prior normal as a pseudo-observation
+  (:class:`~geocues.plane_fit.AnchoredPlane`), keep it if those cues agree with it, and cut the
   pixels' rays with it;
-* **prior-free** (:func:`plane_cues_prior_free`): fit one plane to the line / SfM cues that project
-  into the region or onto its border and intersect the region's pixel rays with it
-  (:func:`ray_plane_depth`).
+* **prior-free** (:func:`plane_cues_prior_free`): fit the plane of the line / SfM cues that border
+  or project into the region (group-weighted RANSAC, then the same anchored fit) and intersect the
+  region's pixel rays with it (:func:`~geocues.plane_fit.ray_plane_depth`).
 
-The points of all images are merged by :func:`voxel_downsample`, which also counts how many images
-support each voxel (the cue's confidence). Every rejected region is counted under a reason.
+Both keep a pixel only where the anchors pin the plane down (offset std and anchor hull). Regions
+can first be cut along projected 3D lines (:func:`split_regions_by_lines`). Merging across images
+(multi-view support, voxel grid) is in ``geocues.plane_merge``. Every rejected region or plane is
+counted under a reason.
 """
 
 from __future__ import annotations
