@@ -111,10 +111,12 @@ def ewa_covariance_2d(axes_cam: Tensor, scales: Tensor, p_cam: Tensor, camera: C
     x, y, z = p_cam.unbind(-1)
     tx = z * torch.clamp(x / z, -(cx / fx + 0.3 * tan_x), (camera.width - cx) / fx + 0.3 * tan_x)
     ty = z * torch.clamp(y / z, -(cy / fy + 0.3 * tan_y), (camera.height - cy) / fy + 0.3 * tan_y)
-    zeros = torch.zeros_like(z)
-    jac = torch.stack([fx / z, zeros, -fx * tx / (z * z),
-                       zeros, fy / z, -fy * ty / (z * z)], -1).reshape(-1, 2, 3)  # [N, 2, 3]
-    m = jac @ (axes_cam * scales[:, None, :])  # [N, 2, 3]
+    # J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]], applied row by row (no tiny bmm)
+    rs = axes_cam * scales[:, None, :]  # [N, 3, 3] = W R S
+    inv_z = 1.0 / z
+    m = torch.stack([(fx * inv_z)[:, None] * rs[:, 0] - (fx * tx * inv_z * inv_z)[:, None] * rs[:, 2],
+                     (fy * inv_z)[:, None] * rs[:, 1] - (fy * ty * inv_z * inv_z)[:, None] * rs[:, 2]],
+                    1)  # [N, 2, 3] = J W R S
     m = torch.clamp(m, -1e9, 1e9)  # keeps squared minors below float32 overflow
     a = (m[:, 0] * m[:, 0]).sum(-1)
     b = (m[:, 0] * m[:, 1]).sum(-1)
@@ -163,8 +165,8 @@ def depth_plane_and_normal(axes_cam: Tensor, log_scales: Tensor, p_cam: Tensor, 
     weights = torch.where(flat & ~is_min, torch.zeros_like(weights), weights)
     x, y, z = p_cam.unbind(-1)
     r0 = torch.stack([x / z, y / z, torch.ones_like(z)], -1)  # [N, 3]
-    local = (axes_cam.transpose(1, 2) @ r0[:, :, None]).squeeze(-1)  # [N, 3] r0 in Gaussian axes
-    n = (axes_cam @ (weights * local)[:, :, None]).squeeze(-1)  # [N, 3]
+    local = (axes_cam * r0[:, :, None]).sum(1)  # [N, 3] r0 in Gaussian axes (A^T r0)
+    n = (axes_cam * (weights * local)[:, None, :]).sum(2)  # [N, 3] A (w * local)
     n_hat = n * torch.rsqrt(torch.clamp((n * n).sum(-1, keepdim=True), min=1e-30))
     r0n = (r0 * n_hat).sum(-1)  # >= 0 in exact arithmetic
     r0_norm = torch.linalg.vector_norm(r0, dim=-1)
@@ -175,9 +177,43 @@ def depth_plane_and_normal(axes_cam: Tensor, log_scales: Tensor, p_cam: Tensor, 
     return slopes, normals
 
 
+def _ewa_stage(means: Tensor, quats: Tensor, log_scales: Tensor, cam: Camera, cfg: ProjectionConfig):
+    """Camera-frame means, axes, 2D covariance, conic and 2D means of a set of Gaussians.
+
+    Gaussians not strictly between the near and far planes get a stand-in point 1 m straight ahead
+    so that no branch divides by ~0 (their results are discarded by the caller).
+    """
+    rel = means - cam.center  # [N, 3] camera centre -> mean, world frame
+    p_cam = rel @ cam.R.T  # [N, 3]
+    z_raw = p_cam[:, 2]
+    in_depth = (z_raw > cfg.near) & (z_raw < cfg.far) & torch.isfinite(p_cam).all(-1)
+    p_safe = torch.where(in_depth[:, None], p_cam, torch.tensor([0.0, 0.0, 1.0], dtype=means.dtype,
+                                                                device=means.device))
+    rot = quat_to_rotmat(quats)  # [N, 3, 3]
+    # Gaussian axes in the camera frame, W R, as one [3N, 3] x [3, 3] product (no tiny bmm)
+    axes_cam = (rot.transpose(1, 2).reshape(-1, 3) @ cam.R.T).reshape(-1, 3, 3).transpose(1, 2)
+    cov2d, det = ewa_covariance_2d(axes_cam, torch.exp(log_scales), p_safe, cam)
+    conics, det_lp, lam = low_pass_conic(cov2d, det, cfg.eps2d)
+    fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+    z = p_safe[:, 2]
+    means2d = torch.stack([fx * p_safe[:, 0] / z + cx, fy * p_safe[:, 1] / z + cy], -1)  # [N, 2]
+    return rel, p_safe, in_depth, axes_cam, det, conics, det_lp, lam, means2d
+
+
+def _scatter_rows(rows: Tensor, values: Tensor, n: int, fill: float = 0.0) -> Tensor:
+    """[n, ...] tensor holding ``values`` at ``rows`` and ``fill`` elsewhere (differentiable)."""
+    full = torch.full((n,) + tuple(values.shape[1:]), fill, dtype=values.dtype, device=values.device)
+    return full.index_put((rows,), values)
+
+
 def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: int | None = None,
                       config: ProjectionConfig | None = None) -> Projected:
-    """Project every Gaussian of ``params`` (gsplat naming, see docs/rasterizer.md) into ``camera``."""
+    """Project every Gaussian of ``params`` (gsplat naming, see docs/rasterizer.md) into ``camera``.
+
+    Two stages: culling for all Gaussians without autograd (depth range, radius box on the image),
+    then the differentiable projection, colour and depth plane for the visible ones only. Culled
+    Gaussians get radius 0 and zeros elsewhere (depth 1.0), and no gradient.
+    """
     cfg = config or ProjectionConfig()
     n = check_params(params)
     means = params["means"]
@@ -186,20 +222,9 @@ def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: i
         sh_degree = sh_degree_of(params["shN"])
     cam = Camera(K=camera.K.to(device=device, dtype=dtype), viewmat=camera.viewmat.to(device=device, dtype=dtype),
                  width=camera.width, height=camera.height, center=camera.center.to(device=device, dtype=dtype))
-    rel = means - cam.center  # [N, 3] camera centre -> mean, world frame
-    p_cam = rel @ cam.R.T  # [N, 3]
-    z_raw = p_cam[:, 2]
-    in_depth = (z_raw > cfg.near) & (z_raw < cfg.far) & torch.isfinite(p_cam).all(-1)
-    # Culled Gaussians get a stand-in point straight ahead so that no branch divides by ~0.
-    p_safe = torch.where(in_depth[:, None], p_cam, torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device))
-    z = p_safe[:, 2]
-    axes_cam = cam.R @ quat_to_rotmat(params["quats"])  # [N, 3, 3] Gaussian axes in the camera frame
-    log_scales = params["scales"]
-    cov2d, det = ewa_covariance_2d(axes_cam, torch.exp(log_scales), p_safe, cam)
-    conics, det_lp, lam = low_pass_conic(cov2d, det, cfg.eps2d)
-    fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
-    means2d = torch.stack([fx * p_safe[:, 0] / z + cx, fy * p_safe[:, 1] / z + cy], -1)  # [N, 2]
     with torch.no_grad():
+        _, _, in_depth, _, _, conics, _, lam, means2d = _ewa_stage(
+            means, params["quats"], params["scales"], cam, cfg)
         radius = torch.ceil(3.0 * torch.sqrt(lam)).clamp(max=MAX_RADIUS)
         mx, my = means2d[:, 0], means2d[:, 1]
         # the radius box must contain a pixel centre (j + 0.5, i + 0.5) of the image
@@ -207,12 +232,20 @@ def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: i
                     & (my + radius >= 0.5) & (my - radius <= camera.height - 0.5))
         visible = in_depth & on_image & torch.isfinite(means2d).all(-1) & torch.isfinite(conics).all(-1)
         radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
-    opacities = torch.sigmoid(params["opacities"])
+        vis = torch.nonzero(visible).squeeze(1)
+    log_scales = params["scales"][vis]
+    rel, p_cam, _, axes_cam, det, conics, det_lp, _, means2d = _ewa_stage(
+        means[vis], params["quats"][vis], log_scales, cam, cfg)
+    opacities = torch.sigmoid(params["opacities"][vis])
     if cfg.antialiased:
         opacities = opacities * torch.sqrt(torch.clamp(det / det_lp, min=1e-12))
     dirs = rel * torch.rsqrt(torch.clamp((rel * rel).sum(-1, keepdim=True), min=1e-24))
-    colors = sh_to_rgb(params["sh0"], params["shN"], dirs, sh_degree)
-    slopes, normals = depth_plane_and_normal(axes_cam, log_scales, p_safe, cam, cfg.min_plane_cos)
-    assert means2d.shape == (n, 2) and conics.shape == (n, 3)
-    return Projected(means2d=means2d, conics=conics, depths=z, radii=radii,
-                     opacities=opacities, colors=colors, depth_slopes=slopes, normals=normals)
+    colors = sh_to_rgb(params["sh0"][vis], params["shN"][vis], dirs, sh_degree)
+    slopes, normals = depth_plane_and_normal(axes_cam, log_scales, p_cam, cam, cfg.min_plane_cos)
+    out = Projected(
+        means2d=_scatter_rows(vis, means2d, n), conics=_scatter_rows(vis, conics, n),
+        depths=_scatter_rows(vis, p_cam[:, 2], n, fill=1.0), radii=radii,
+        opacities=_scatter_rows(vis, opacities, n), colors=_scatter_rows(vis, colors, n),
+        depth_slopes=_scatter_rows(vis, slopes, n), normals=_scatter_rows(vis, normals, n))
+    assert out.means2d.shape == (n, 2) and out.conics.shape == (n, 3)
+    return out
