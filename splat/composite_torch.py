@@ -23,7 +23,6 @@ on splat.bench's room scene 64 still cut a few hundred pixels short, 128 was exa
 from __future__ import annotations
 
 import logging
-import math
 
 import torch
 from torch import Tensor
