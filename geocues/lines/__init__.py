@@ -7,5 +7,6 @@ Entry point (the stage chain in ``geocues.extract`` calls it)::
 """
 
 from geocues.lines.config import LineConfig, LineCues
+from geocues.lines.pipeline import extract_line_cues
 
-__all__ = ["LineConfig", "LineCues"]
+__all__ = ["LineConfig", "LineCues", "extract_line_cues"]

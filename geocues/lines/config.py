@@ -29,6 +29,8 @@ class LineConfig:
     """RGB and normal-map segments closer than this angle (and dedup_dist_px) are one segment."""
     dedup_dist_px: float = 2.0
     """Perpendicular distance, pixels at reference_width, under which two segments are duplicates."""
+    use_test_views: bool = True
+    """Use the held-out test views too (as SfM does); False restricts lines to training views."""
     # ---- view pairs (pairs.py)
     n_neighbors: int = 10
     """Neighbour views per image used for matching and multi-view scoring."""
@@ -51,6 +53,9 @@ class LineConfig:
     """Smallest angle between a ray of one view and the segment plane of the other (LIMAP: 1)."""
     min_epipolar_iou: float = 0.1
     """Smallest epipolar IoU (overlap of a segment with the other's epipolar band) (LIMAP: 0.1)."""
+    min_ray_angle_deg: float = 15.0
+    """Lines closer than this to the viewing rays (LIMAP sensitivity > 75 deg) cannot be located:
+    rejected when both views of a match see them so, and tracks need min_views views that do not."""
     max_depth_m: float = 30.0
     """Hypotheses with an endpoint farther than this from the camera are rejected."""
     # ---- multi-view scoring (score.py)
@@ -60,9 +65,21 @@ class LineConfig:
     """... and its endpoints lie within this many pixels (at reference_width) of the projection."""
     support_depth_rel: float = 0.05
     """... and the depths it implies along the source rays agree within this relative tolerance."""
-    min_views: int = 3
+    support_coverage: float = 0.3
+    """... and consistent segments of that view cover at least this share of its projection."""
+    min_support_ratio: float = 0.5
+    """Supporting views / views where the hypothesis is checkable (in view, depth-sensitive)."""
+    min_views: int = 4
     """Minimum number of supporting views (including the two that triangulated it) per 3D line."""
     # ---- tracks, merging and output (merge.py)
+    max_line_sigma_m: float = 0.02
+    """Largest position std (metres for 1 px of 2D noise at reference_width) of a fitted 3D line."""
+    link_depth_rel: float = 0.01
+    """Two segments' hypotheses join one track if within merge_dist_m + this * depth (and the angle)."""
+    min_track_ratio: float = 0.4
+    """A line must be supported in this share of the views it projects into (guided matching)."""
+    min_track_nodes: int = 1
+    """A track needs this many 2D segments whose own best hypotheses agree (mutual confirmation)."""
     merge_angle_deg: float = 10.0
     """Two 3D lines closer than this angle and merge_dist_m are duplicates and are merged."""
     merge_dist_m: float = 0.02
