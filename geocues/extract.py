@@ -301,6 +301,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
         timings["depth_align"] += t2 - t1
         row["align_s"] = t2 - t1
         regions = wt.regions
+        pc = cand if cfg.plane.sfm_anchors else cand[~strict[cand]]  # the planes' anchors
         if lines is not None and cfg.plane.cut_px > 0 and lines_of.get(i):
             regions = split_regions_by_lines(cam, regions, lines.segments[lines_of[i]],
                                              cfg.plane.cut_px * cam.width / 640.0,
@@ -312,13 +313,13 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
             pp = None
             row["plane_mode"] = "none"
         elif aligned is not None:
-            pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[cand], cfg.plane,
-                                       seed=cfg.seed + i, inside_only=strict[cand],
-                                       anchors_group=anchors.group[cand])
+            pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[pc], cfg.plane,
+                                       seed=cfg.seed + i, inside_only=strict[pc],
+                                       anchors_group=anchors.group[pc])
             row["plane_mode"] = "prior"
         elif cfg.prior_free_fallback or not cfg.priors or not has_priors:
-            pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[cand], anchors.group[cand],
-                                       cfg.plane, seed=cfg.seed + i, inside_only=strict[cand])
+            pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[pc], anchors.group[pc],
+                                       cfg.plane, seed=cfg.seed + i, inside_only=strict[pc])
             row["plane_mode"] = "prior_free"
         else:
             pp = None

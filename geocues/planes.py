@@ -41,6 +41,8 @@ class PlaneConfig:
     """Voxel edge (metres) of the final downsampling."""
     min_region_points: int = 100
     """Regions with fewer sampled pixels than this are skipped."""
+    sfm_anchors: bool = True
+    """Use SfM points as plane anchors besides the line samples (they are biased on weak texture)."""
     anchor_sigma: float = 0.01
     """Assumed error (metres) of one anchor group (a line or an SfM point) when fitting a plane."""
     max_plane_std: float = 0.015
