@@ -1,0 +1,76 @@
+"""`splat bench`: the benchmark room's geometry, and a tiny end-to-end run through the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+
+from cli.splat_cli import main
+from splat.bench import FURNITURE, ROOM, bench_camera, box_triangles, room_triangles, surface_gaussians
+
+
+def _normals(tris: np.ndarray) -> np.ndarray:
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def test_box_normals_face_out_or_in():
+    lo, hi = np.array([1.0, 2.0, 0.0]), np.array([2.0, 4.0, 1.5])
+    centre = 0.5 * (lo + hi)
+    for inward, sign in ((False, 1.0), (True, -1.0)):
+        tris = box_triangles(lo, hi, inward=inward)
+        away = tris.mean(1) - centre  # [12, 3] from the centre to each face
+        assert (sign * (_normals(tris) * away).sum(1) > 0).all()
+    assert room_triangles().shape == (12 * (1 + len(FURNITURE)), 3, 3)
+
+
+def test_gaussians_lie_flat_on_the_room_surfaces():
+    params = surface_gaussians(3000, sh_degree=1, seed=3)
+    means = params["means"].double().numpy()
+    # every mean lies on one of the axis-aligned faces of the room or of a furniture box
+    boxes = [((0.0, 0.0, 0.0), ROOM)] + list(FURNITURE)
+    on_face = np.zeros(len(means), bool)
+    normal_ok = np.zeros(len(means), bool)
+    q = params["quats"].double()
+    w, x, y, z = q.unbind(-1)
+    # third column of R(q): the axis with the smallest scale
+    axis = torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1).numpy()
+    for lo, hi in boxes:
+        lo, hi = np.asarray(lo), np.asarray(hi)
+        inside = ((means >= lo - 1e-5) & (means <= hi + 1e-5)).all(1)
+        for d in range(3):
+            for plane in (lo[d], hi[d]):
+                hit = inside & (np.abs(means[:, d] - plane) < 1e-5)
+                on_face |= hit
+                normal_ok |= hit & (np.abs(axis[:, d]) > 1 - 1e-5)
+    assert on_face.all() and normal_ok.all()
+    scales = params["scales"].exp()
+    assert (scales[:, 2] < 0.1 * scales[:, :2].min(1).values).all()  # flat along the normal
+    assert params["shN"].shape == (3000, 3, 3) and params["opacities"].shape == (3000,)
+
+
+def test_camera_is_inside_the_room():
+    cam = bench_camera(64, 48)
+    centre = cam.center.numpy()
+    assert ((centre > 0) & (centre < np.asarray(ROOM))).all()
+    assert cam.K[0, 2] == 32 and cam.K[1, 2] == 24
+
+
+def test_bench_cli_tiny_run(tmp_path):
+    out = tmp_path / "bench.json"
+    rc = main(["bench", "--sizes", "64", "48", "--counts", "2000", "--iters", "1", "--sh-degree", "1",
+               "--json", str(out)])
+    assert rc == 0
+    result = json.loads(out.read_text())
+    runs = {r["backend"]: r for r in result["runs"]}
+    assert set(runs) == {"torch", "cpu"}
+    for r in runs.values():
+        assert r["status"] == "ok", r["status"]
+        assert r["seconds_per_iter"] > 0 and len(r["times"]) == 1
+        assert 0 < r["n_visible"] < 2000  # the camera sees part of the room
+        assert r["peak_rss_mb"] >= 0
+    assert runs["torch"]["speedup_vs_torch"] == 1.0
+    assert runs["cpu"]["speedup_vs_torch"] > 0
+    assert runs["cpu"]["n_visible"] == runs["torch"]["n_visible"]
