@@ -78,6 +78,10 @@ class PlaneConfig:
     """Reject planes that no nearby line / SfM cue can confirm (the paper's line-distance test)."""
     snap_to_plane: bool = True
     """Refit each prior plane to its agreeing anchors and cut the pixel rays with it."""
+    occluder_jump: float = 0.03
+    """Drop line anchors bounding an object in front of the region (prior depth jump; 0 = off)."""
+    occluder_step_px: float = 8.0
+    """Pixels (at 640) stepped to each side of a projected line for that test."""
     prior_normal_std_deg: float = 5.0
     """Trust in the prior plane's normal when refitting it to the anchors (degrees, 1 sigma)."""
     # ---- prior-free
@@ -104,9 +108,9 @@ class PlaneConfig:
     """... and passing within this distance (metres) of each other's centroid are one surface."""
     min_plane_views: int = 1
     """With fusion: drop points of surfaces found in fewer images than this."""
-    min_views: int = 2
+    min_views: int = 3
     """Keep plane points that at least this many images (itself included) put within support_radius."""
-    support_radius: float = 0.03
+    support_radius: float = 0.02
     """Radius (metres) of that multi-view agreement test."""
 
 
@@ -223,6 +227,42 @@ def _in_anchor_hull(cam: Camera, anchors_c: np.ndarray, rows: np.ndarray, cols: 
     return mask[rows, cols] > 0
 
 
+def _on_occluder(cam: Camera, regions: np.ndarray, k: int, depth: np.ndarray, X: np.ndarray,
+                 groups: np.ndarray, jump: float, step: int) -> np.ndarray:
+    """[a] True for line samples that lie on an occluding edge in front of region ``k``.
+
+    A line next to a region either lies on its surface (a crease or the region's own boundary) or
+    on an object in front of it. The prior tells them apart locally, where its low-frequency error
+    cancels: at each sample, step ``step`` px to both sides of the projected line; if the side in
+    region k is farther than the other side by more than ``jump`` (relative), the line bounds the
+    occluder. A line is dropped when most of its samples say so. SfM points (group < 0) are kept."""
+    out = np.zeros(len(X), bool)
+    h, w = regions.shape
+    uv, z = cam.project(X)
+    for g in np.unique(groups[groups >= 0]):
+        m = np.flatnonzero(groups == g)
+        if len(m) < 2:
+            continue
+        p = uv[m] - 0.5  # COLMAP -> array indices (pixel centres at integers)
+        c = p - p.mean(axis=0)
+        t = np.linalg.svd(c, full_matrices=False)[2][0]  # 2D direction of the projected line
+        nrm = np.array([-t[1], t[0]])
+        votes = []
+        for sgn in (1.0, -1.0):
+            q = np.round(p + sgn * step * nrm).astype(np.int64)
+            ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+            qq = np.where(ok[:, None], q, 0)
+            votes.append((ok & (regions[qq[:, 1], qq[:, 0]] == k), np.where(ok, depth[qq[:, 1], qq[:, 0]], 0.0)))
+        (in_a, d_a), (in_b, d_b) = votes
+        one_side = in_a ^ in_b
+        d_in = np.where(in_a, d_a, d_b)
+        d_out = np.where(in_a, d_b, d_a)
+        valid = one_side & (d_in > 0) & (d_out > 0)
+        if valid.sum() >= 2 and np.mean(d_in[valid] > (1.0 + jump) * d_out[valid]) > 0.5:
+            out[m] = True
+    return out
+
+
 def _region_pixels(regions: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Strided pixels inside weak regions: (rows [M], cols [M], region id [M])."""
     sub = regions[::stride, ::stride]
@@ -302,6 +342,9 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
         zmed = float(np.median(z[sel]))
         tau = max(cfg.ransac_dist, cfg.ransac_rel * zmed)  # the prior's error grows with depth
         a_ids = near[k]  # anchors near the region, not hidden behind the aligned surface
+        if cfg.occluder_jump > 0 and len(a_ids):
+            a_ids = a_ids[~_on_occluder(cam, regions, k, aligned_depth, anchors_xyz[a_ids], groups[a_ids],
+                                        cfg.occluder_jump, max(2, int(round(cfg.occluder_step_px * s))))]
         a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
         a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
         remaining = np.arange(len(sel))
