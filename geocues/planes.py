@@ -227,6 +227,24 @@ def _in_anchor_hull(cam: Camera, anchors_c: np.ndarray, rows: np.ndarray, cols: 
     return mask[rows, cols] > 0
 
 
+def _lines_confirm_plane(X: np.ndarray, groups: np.ndarray, parallel_deg: float = 15.0) -> bool:
+    """Whether the lines among anchors X [A, 3] (groups >= 0) are evidence of a plane: two
+    non-parallel coplanar lines are (generic 3D lines are skew), and so are three parallel ones;
+    two parallel lines are not (any two parallel lines are coplanar)."""
+    dirs = []
+    for g in np.unique(groups[groups >= 0]):
+        P = X[groups == g]
+        if len(P) >= 2:
+            dirs.append(np.linalg.svd(P - P.mean(axis=0), full_matrices=False)[2][0])
+    if len(dirs) < 2:
+        return False
+    D = np.array(dirs)
+    cos = np.abs(D @ D.T)
+    if np.any(cos < np.cos(np.radians(parallel_deg))):
+        return True
+    return len(dirs) >= 3
+
+
 def _on_occluder(cam: Camera, regions: np.ndarray, k: int, depth: np.ndarray, X: np.ndarray,
                  groups: np.ndarray, jump: float, step: int) -> np.ndarray:
     """[a] True for line samples that lie on an occluding edge in front of region ``k``.
@@ -434,6 +452,10 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
         a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3] camera frame
         grp = anchors_group[a_ids]
         n_c, d_c, inl, frac = fit_plane_groups(a_c, grp, cfg.free_ransac_dist, rng)
+        _, ginv = np.unique(grp, return_inverse=True)
+        share = np.bincount(ginv, weights=inl) / np.bincount(ginv)  # inlier share of each group
+        inl &= share[ginv] >= 0.6  # a line supports the plane only if it lies in it, not if it crosses it
+        frac = float(group_weights(grp)[inl].sum() / max(group_weights(grp).sum(), 1e-12))
         if frac < cfg.free_min_inlier_ratio or inl.sum() < cfg.free_min_anchors:
             _bump(rej, "anchors_not_coplanar")
             continue
@@ -441,6 +463,9 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
         n_lines, n_points = int(np.sum(groups >= 0)), int(np.sum(groups < 0))
         if len(groups) < cfg.free_min_groups or (n_lines <= 1 and n_points < cfg.free_min_off_line):
             _bump(rej, "single_line")  # one line (plus a stray point) does not fix a plane
+            continue
+        if n_points < cfg.free_min_off_line and not _lines_confirm_plane(a_c[inl], grp[inl]):
+            _bump(rej, "only_parallel_lines")  # two parallel lines are always coplanar: no evidence
             continue
         ap = AnchoredPlane(a_c[inl], group_weights(grp[inl]), n_c, cfg.anchor_sigma)
         n_c, d_c = ap.n, ap.d

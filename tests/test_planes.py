@@ -225,6 +225,21 @@ class TestPriorFree:
         assert len(pp.xyz) == 0
         assert set(pp.rejected) & {"single_line", "degenerate_anchors", "too_few_anchors"}
 
+    def test_parallel_lines_are_no_evidence(self, room):
+        """Two parallel lines on different surfaces (a wall corner and a box edge 1 m in front)
+        are coplanar, as any two parallel lines are: no plane from them alone."""
+        from geocues.planes import _lines_confirm_plane
+
+        t = np.linspace(0, 1, 30)[:, None]
+        corner = np.array([0.0, 0.0, 4.0]) + t * [0, 1.0, 0]
+        box = np.array([-1.0, 0.2, 3.0]) + t * [0, 0.5, 0]
+        floor = np.array([0.0, 1.0, 4.0]) + t * [-1.0, 0, -0.5]
+        g = np.r_[np.zeros(30, int), np.ones(30, int)]
+        assert not _lines_confirm_plane(np.concatenate([corner, box]), g)
+        assert _lines_confirm_plane(np.concatenate([corner, floor]), g)  # crossing lines: evidence
+        third = np.array([1.0, 0.0, 4.0]) + t * [0, 1.0, 0]
+        assert _lines_confirm_plane(np.concatenate([corner, box, third]), np.r_[g, np.full(30, 2)])
+
     def test_no_anchors(self, room):
         scene, _, regions, _ = room
         pp = plane_cues_prior_free(scene.cameras[0], scene.load_image(0), regions[0], np.zeros((0, 3)),
