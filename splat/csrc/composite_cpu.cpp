@@ -1,11 +1,12 @@
 // Tile-based front-to-back alpha compositing of projected 2D Gaussians on the CPU.
 //
 // Forward and analytic backward of the per-pixel rule in splat/composite.py (3DGS forward.cu /
-// backward.cu semantics): 16x16 tiles, Gaussians binned to the tiles their pixel radius box
-// touches, one global stable depth sort (radix sort on the float bits) so every tile's list is
-// already front to back, early termination per pixel, backward back to front recovering T by
-// division. OpenMP over tiles. Gradients are written per (tile, Gaussian) entry and then summed
-// per Gaussian in a fixed order, so results do not depend on the thread count or schedule.
+// backward.cu semantics): 16x16 tiles with depth-sorted lists (composite_cpu.h), Gaussian-outer
+// loops per tile over the rows and columns of each Gaussian's box that can pass the alpha
+// threshold, 4 pixels of a row evaluated at once, early termination per pixel; the backward runs
+// back to front recovering T by division. OpenMP over tiles (dynamic schedule). Gradients are
+// written per (tile, Gaussian) slot and summed per Gaussian in a fixed order afterwards, so the
+// results do not depend on the thread count or schedule.
 
 #include "composite_cpu.h"
 
@@ -20,13 +21,18 @@ struct ForwardOut {
   torch::Tensor out, alpha, median, n_contrib, final_T, last, median_idx;
 };
 
+// Forward: alphas are evaluated for 4 pixels of a row at once (the same eval4 as the backward,
+// so both take the same skip decisions); the lanes that blend then update their pixel one by one,
+// with the pixel's channels contiguous (padded to a multiple of 4: vector adds).
 template <typename scalar_t, int NC>  // NC > 0: channel count known at compile time
 void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, const Bins& bins,
                   ForwardOut& o, int nthreads) {
+  typedef typename Lanes<scalar_t>::V V;
+  typedef typename Lanes<scalar_t>::M Mk;
+  typedef typename Lanes<scalar_t>::MaskInt MaskInt;
   const int64_t C = NC > 0 ? NC : in.C, W = in.W, H = in.H, n_tiles = bins.tiles_x * bins.tiles_y;
   constexpr int64_t kPad = NC > 0 ? (NC + 3) / 4 * 4 : 1;  // channels padded to vector width
-  const int64_t CS = NC > 0 ? kPad : C;                      // stride of per-pixel channels
-  constexpr int64_t kP = NC > 0 ? kPad : 0;                  // compile-time channel loop length
+  const int64_t CS = NC > 0 ? kPad : C;                      // stride of a pixel's channels
   const int32_t* offs = bins.tile_offsets.data_ptr<int32_t>();
   const int32_t* slot_rank = bins.slot_rank.data_ptr<int32_t>();
   std::vector<Packed<scalar_t>> pk;
@@ -39,11 +45,14 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
   int32_t* o_n = o.n_contrib.data_ptr<int32_t>();
   int32_t* o_last = o.last.data_ptr<int32_t>();
   int32_t* o_midx = o.median_idx.data_ptr<int32_t>();
+  const V lanes = {0, 1, 2, 3};
 #pragma omp parallel num_threads(nthreads)
   {
+    // per pixel: transmittance, blended channels, last blended list position, count, stopped
+    // mask (all bits set), median Gaussian
     std::vector<scalar_t> T(kTilePix), acc(kTilePix * CS);
     std::vector<int32_t> lastc(kTilePix), ncon(kTilePix), med(kTilePix);
-    std::vector<uint8_t> done(kTilePix);
+    std::vector<MaskInt> done(kTilePix);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) {
       const int64_t px0 = (tile % bins.tiles_x) * kTile, py0 = (tile / bins.tiles_x) * kTile;
@@ -53,34 +62,41 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
       std::fill(lastc.begin(), lastc.end(), 0);
       std::fill(ncon.begin(), ncon.end(), 0);
       std::fill(med.begin(), med.end(), -1);
-      std::fill(done.begin(), done.end(), 0);
+      std::fill(done.begin(), done.end(), MaskInt(0));
       int64_t alive = (px1 - px0 + 1) * (py1 - py0 + 1);
       const int64_t start = offs[tile], end = offs[tile + 1];
       for (int64_t s = start; s < end && alive > 0; ++s) {
         const int64_t r = slot_rank[s];
         const Splat2D<scalar_t> sp(pk[r], &fs[r * C], px0, px1, py0, py1);
         const int32_t q1 = int32_t(s - start + 1);
-        scalar_t fl[kPad];  // features in a zero-padded local array: no aliasing, vector loops
+        alignas(16) scalar_t fl[kPad];  // zero-padded local copy: no aliasing, vector adds
         const scalar_t* f = sp.f;
         if (NC > 0) { std::fill(std::copy(sp.f, sp.f + C, fl), fl + kPad, scalar_t(0)); f = fl; }
         for (int64_t y = sp.y0; y <= sp.y1; ++y) {
           int64_t rx0, rx1;
           if (!sp.row(y, rx0, rx1)) continue;
           const scalar_t dy = sp.my - (scalar_t(y) + scalar_t(0.5));
-          for (int64_t x = rx0; x <= rx1; ++x) {
-            const int64_t i = (y - py0) * kTile + (x - px0);
-            if (done[i]) continue;
-            scalar_t G, raw;
-            const scalar_t al = sp.alpha(sp.mx - (scalar_t(x) + scalar_t(0.5)), dy, G, raw);
-            if (al < scalar_t(0)) continue;
-            const scalar_t test_T = T[i] * (scalar_t(1) - al);
-            if (test_T < scalar_t(1e-4)) { done[i] = 1; --alive; continue; }
-            const scalar_t w = al * T[i];
-            axpy<scalar_t, kP>(&acc[i * CS], f, w, CS);
-            if (T[i] > scalar_t(0.5) && test_T <= scalar_t(0.5)) med[i] = sp.p.g;
-            T[i] = test_T;
-            lastc[i] = q1;
-            ++ncon[i];
+          const int64_t c0 = rx0 - px0, c1 = rx1 - px0, row = (y - py0) * kTile;
+          for (int64_t g4 = c0 & ~int64_t(3); g4 <= c1; g4 += 4) {
+            const int64_t i4 = row + g4;  // first pixel of the 4 lanes
+            const V col = lanes + scalar_t(g4);
+            Mk m = (col >= scalar_t(c0)) & (col <= scalar_t(c1)) & ~vload<Mk>(&done[i4]);
+            if (!any(m)) continue;
+            const V dx = sp.mx - ((lanes + scalar_t(px0 + g4)) + scalar_t(0.5));
+            V G, raw, al;
+            m = sp.eval4(dx, dy, m, G, raw, al);
+            if (!any(m)) continue;
+            for (int l = 0; l < 4; ++l) {
+              if (!m[l]) continue;
+              const int64_t i = i4 + l;
+              const scalar_t test_T = T[i] * (scalar_t(1) - al[l]);
+              if (test_T < scalar_t(1e-4)) { done[i] = MaskInt(-1); --alive; continue; }
+              axpy<scalar_t, NC>(&acc[i * CS], f, al[l] * T[i], CS);
+              if (T[i] > scalar_t(0.5) && test_T <= scalar_t(0.5)) med[i] = sp.p.g;
+              T[i] = test_T;
+              lastc[i] = q1;
+              ++ncon[i];
+            }
           }
         }
       }
@@ -111,25 +127,28 @@ template <typename scalar_t, int NC>  // NC > 0: channel count known at compile 
 void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const scalar_t* g_alpha,
                     const scalar_t* fT, const int32_t* o_last, const Bins& bins, scalar_t* ent,
                     scalar_t* tbg, int nthreads) {
+  typedef typename Lanes<scalar_t>::V V;
+  typedef typename Lanes<scalar_t>::M Mk;
   const int64_t C = NC > 0 ? NC : in.C, W = in.W, H = in.H, D = 6 + C;
-  constexpr int64_t kPad = NC > 0 ? (NC + 3) / 4 * 4 : 1;  // channels padded to vector width
-  const int64_t CS = NC > 0 ? kPad : C;                      // stride of per-pixel channels
-  constexpr int64_t kP = NC > 0 ? kPad : 0;                  // compile-time channel loop length
   const int64_t tiles_x = bins.tiles_x, n_tiles = bins.tiles_x * bins.tiles_y;
   const int32_t* offs = bins.tile_offsets.data_ptr<int32_t>();
   const int32_t* slot_rank = bins.slot_rank.data_ptr<int32_t>();
   std::vector<Packed<scalar_t>> pk;
   std::vector<scalar_t> fs;
   pack_gaussians(in, bins, pk, fs, nthreads);
+  const V lanes = {0, 1, 2, 3};
 #pragma omp parallel num_threads(nthreads)
   {
-    std::vector<scalar_t> T(kTilePix), extra(kTilePix), gp(kTilePix * CS, 0), S(kTilePix * CS), df(C);
-    std::vector<int32_t> lastc(kTilePix);
+    // per pixel: T (recovered back to front), T_N (d alpha_out - bg . d out), last blended list
+    // position; channel-major: d out and the suffix sums S
+    std::vector<scalar_t> T(kTilePix), extra(kTilePix), lastc(kTilePix);
+    std::vector<scalar_t> gp(C * kTilePix), S(C * kTilePix);
+    std::vector<V> dfeat(C);  // per-channel feature-gradient accumulators of one Gaussian
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) {
       const int64_t px0 = (tile % tiles_x) * kTile, py0 = (tile / tiles_x) * kTile;
       const int64_t px1 = std::min(px0 + kTile, W) - 1, py1 = std::min(py0 + kTile, H) - 1;
-      std::fill(lastc.begin(), lastc.end(), 0);
+      std::fill(lastc.begin(), lastc.end(), scalar_t(0));
       std::fill(S.begin(), S.end(), scalar_t(0));
       scalar_t* tb = tbg + tile * C;
       std::fill(tb, tb + C, scalar_t(0));
@@ -138,11 +157,11 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
         for (int64_t x = px0; x <= px1; ++x) {
           const int64_t i = (y - py0) * kTile + (x - px0), p = y * W + x;
           T[i] = fT[p];
-          lastc[i] = o_last[p];
-          maxlast = std::max(maxlast, lastc[i]);
+          lastc[i] = scalar_t(o_last[p]);
+          maxlast = std::max(maxlast, o_last[p]);
           scalar_t bg_dot = 0;
           for (int64_t ch = 0; ch < C; ++ch) {
-            gp[i * CS + ch] = g_out[p * C + ch];
+            gp[ch * kTilePix + i] = g_out[p * C + ch];
             bg_dot += in.bg[ch] * g_out[p * C + ch];
             tb[ch] += fT[p] * g_out[p * C + ch];
           }
@@ -154,36 +173,43 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
       for (int64_t q = int64_t(maxlast) - 1; q >= 0; --q) {
         const int64_t r = slot_rank[start + q];
         const Splat2D<scalar_t> sp(pk[r], &fs[r * C], px0, px1, py0, py1);
-        scalar_t dmx = 0, dmy = 0, da = 0, db = 0, dc = 0, dop = 0;
-        scalar_t fl[kPad], dfl[kPad];  // zero-padded local arrays: no aliasing, vector loops
-        const scalar_t* f = sp.f;
-        scalar_t* dfp = df.data();
-        if (NC > 0) { std::fill(std::copy(sp.f, sp.f + C, fl), fl + kPad, scalar_t(0)); f = fl; dfp = dfl; }
-        std::fill(dfp, dfp + CS, scalar_t(0));
+        const scalar_t qf = scalar_t(q);
+        V dmx{}, dmy{}, da{}, db{}, dc{}, dop{};
+        std::fill(dfeat.begin(), dfeat.end(), V{});
         for (int64_t y = sp.y0; y <= sp.y1; ++y) {
           int64_t rx0, rx1;
           if (!sp.row(y, rx0, rx1)) continue;
           const scalar_t dy = sp.my - (scalar_t(y) + scalar_t(0.5));
-          for (int64_t x = rx0; x <= rx1; ++x) {
-            const int64_t i = (y - py0) * kTile + (x - px0);
-            if (q >= lastc[i]) continue;  // behind this pixel's last blended Gaussian
-            const scalar_t dx = sp.mx - (scalar_t(x) + scalar_t(0.5));
-            scalar_t G, raw;
-            const scalar_t al = sp.alpha(dx, dy, G, raw);
-            if (al < scalar_t(0)) continue;
-            const scalar_t inv = scalar_t(1) / (scalar_t(1) - al);
-            const scalar_t Ti = T[i] * inv;  // transmittance in front of this Gaussian
-            const scalar_t w = al * Ti;
-            scalar_t* Si = &S[i * CS];
-            const scalar_t* gi = &gp[i * CS];
-            const scalar_t gf = dot<scalar_t, kP>(gi, f, CS), gs = dot<scalar_t, kP>(gi, Si, CS);
-            axpy<scalar_t, kP>(dfp, gi, w, CS);
-            axpy<scalar_t, kP>(Si, f, w, CS);
-            const scalar_t dL_da = Ti * gf + inv * (extra[i] - gs);
-            T[i] = Ti;
-            if (raw > scalar_t(0.99)) continue;  // clamped: no gradient into opacity or power
-            dop += G * dL_da;
-            const scalar_t dL_dpow = sp.op * G * dL_da;
+          const int64_t c0 = rx0 - px0, c1 = rx1 - px0, row = (y - py0) * kTile;
+          for (int64_t g4 = c0 & ~int64_t(3); g4 <= c1; g4 += 4) {
+            const int64_t i = row + g4;
+            const V col = lanes + scalar_t(g4);
+            // lanes in the box whose pixel blended this Gaussian (list position < last)
+            Mk m = (col >= scalar_t(c0)) & (col <= scalar_t(c1)) & (qf < vload<V>(&lastc[i]));
+            if (!any(m)) continue;
+            const V dx = sp.mx - ((lanes + scalar_t(px0 + g4)) + scalar_t(0.5));
+            V G, raw, al;
+            m = sp.eval4(dx, dy, m, G, raw, al);
+            if (!any(m)) continue;
+            const V inv = scalar_t(1) / (scalar_t(1) - al);
+            const V Tn = vload<V>(&T[i]);
+            const V Ti = Tn * inv;  // transmittance in front of this Gaussian
+            const V w = al * Ti;
+            V gf{}, gs{};  // d out . f and d out . S
+            for (int64_t ch = 0; ch < C; ++ch) {
+              const V g = vload<V>(&gp[ch * kTilePix + i]);
+              const V S_c = vload<V>(&S[ch * kTilePix + i]);
+              gf += g * sp.f[ch];
+              gs += g * S_c;
+              dfeat[ch] += m ? w * g : V{};
+              vstore(&S[ch * kTilePix + i], m ? S_c + sp.f[ch] * w : S_c);
+            }
+            const V dL_da = Ti * gf + inv * (vload<V>(&extra[i]) - gs);
+            vstore(&T[i], m ? Ti : Tn);
+            const Mk unclamped = m & (raw <= scalar_t(0.99));  // clamped: no grad to op or power
+            const V gda = unclamped ? G * dL_da : V{};
+            dop += gda;
+            const V dL_dpow = sp.op * gda;
             dmx += dL_dpow * (-sp.a * dx - sp.b * dy);
             dmy += dL_dpow * (-sp.c * dy - sp.b * dx);
             da += dL_dpow * scalar_t(-0.5) * dx * dx;
@@ -192,8 +218,9 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
           }
         }
         scalar_t* e = ent + (start + q) * D;
-        e[0] = dmx; e[1] = dmy; e[2] = da; e[3] = db; e[4] = dc; e[5] = dop;
-        std::copy(dfp, dfp + C, e + 6);
+        e[0] = hsum(dmx); e[1] = hsum(dmy); e[2] = hsum(da); e[3] = hsum(db); e[4] = hsum(dc);
+        e[5] = hsum(dop);
+        for (int64_t ch = 0; ch < C; ++ch) e[6 + ch] = hsum(dfeat[ch]);
       }
     }
   }

@@ -20,6 +20,10 @@
 #include <type_traits>
 #include <vector>
 
+#if defined(__SSE2__)
+#include <immintrin.h>
+#endif
+
 namespace composite_cpu {
 
 constexpr int64_t kTile = 16;
@@ -203,6 +207,93 @@ void pack_gaussians(const Splats<scalar_t>& in, const Bins& bins, std::vector<Pa
   }
 }
 
+// 4-lane vectors (GCC vector extensions): the tile loops process 4 neighbouring pixels of a row
+// at once. V holds scalar_t lanes, M the matching lane mask (all bits set = true).
+template <typename T>
+struct Lanes;
+template <>
+struct Lanes<float> {
+  typedef float V __attribute__((vector_size(16)));
+  typedef int32_t M __attribute__((vector_size(16)));
+  typedef int32_t MaskInt;
+};
+template <>
+struct Lanes<double> {
+  typedef double V __attribute__((vector_size(32)));
+  typedef int64_t M __attribute__((vector_size(32)));
+  typedef int64_t MaskInt;
+};
+
+template <typename V, typename T>
+inline V vload(const T* p) {
+  V v;
+  std::memcpy(&v, p, sizeof(V));
+  return v;
+}
+template <typename V, typename T>
+inline void vstore(T* p, const V& v) {
+  std::memcpy(p, &v, sizeof(V));
+}
+template <typename M>
+inline bool any(const M& m) {
+#if defined(__SSE2__)
+  if constexpr (sizeof(M) == 16) {  // float lanes: one movmskps instead of three ORs
+    __m128 v;
+    std::memcpy(&v, &m, sizeof(v));
+    return _mm_movemask_ps(v) != 0;
+  }
+#endif
+  return (m[0] | m[1] | m[2] | m[3]) != 0;
+}
+template <typename M>
+inline int64_t count(const M& m) {
+  return -int64_t(m[0] + m[1] + m[2] + m[3]);
+}
+template <typename V>
+inline auto hsum(const V& v) {
+  return (v[0] + v[1]) + (v[2] + v[3]);
+}
+
+// y[k] += x[k] * a for k < n; NC > 0 with float: n is NC padded to a multiple of 4 (vector adds).
+template <typename T, int NC>
+inline void axpy(T* __restrict y, const T* __restrict x, T a, int64_t n) {
+  if constexpr (std::is_same_v<T, float> && NC > 0) {
+    typedef Lanes<float>::V V;
+    for (int64_t k = 0; k < (NC + 3) / 4 * 4; k += 4) vstore(y + k, vload<V>(y + k) + vload<V>(x + k) * a);
+  } else {
+    for (int64_t k = 0; k < n; ++k) y[k] += x[k] * a;
+  }
+}
+
+// exp of 4 floats (Cephes expf: range reduction by ln 2, degree-6 polynomial; ~1 ulp on
+// [-87, 0], exp(0) = 1 exactly); arguments below -87 are clamped (their alpha is skipped anyway).
+inline Lanes<float>::V vexp(Lanes<float>::V x) {
+  typedef Lanes<float>::V V;
+  typedef Lanes<float>::M M;
+  x = x < -87.0f ? V{} - 87.0f : x;
+  const V t = x * 1.44269504088896341f + 0.5f;
+  M n = __builtin_convertvector(t, M);     // truncation towards zero ...
+  n += __builtin_convertvector(n, V) > t;  // ... then floor (true = -1)
+  const V nf = __builtin_convertvector(n, V);
+  const V r = (x - nf * 0.693359375f) - nf * -2.12194440e-4f;
+  V p = V{} + 1.9875691500e-4f;
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const V y = p * (r * r) + r + 1.0f;
+  const M bits = (n + 127) << 23;  // 2^n
+  V scale;
+  std::memcpy(&scale, &bits, sizeof(V));
+  return y * scale;
+}
+
+// double (tests, gradcheck): exp per lane.
+inline Lanes<double>::V vexp(Lanes<double>::V x) {
+  return Lanes<double>::V{std::exp(x[0]), std::exp(x[1]), std::exp(x[2]), std::exp(x[3])};
+}
+
 // One Gaussian's box clipped to one tile, and the rows / columns worth evaluating.
 template <typename scalar_t>
 struct Splat2D {
@@ -240,45 +331,19 @@ struct Splat2D {
     return rx0 <= rx1;
   }
 
-  // alpha at offset (dx, dy) = mean - pixel centre, or -1 where the rule skips the pixel.
-  inline scalar_t alpha(scalar_t dx, scalar_t dy, scalar_t& G, scalar_t& raw) const {
-    const scalar_t power = scalar_t(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
-    if (power > scalar_t(0) || power < skip_below) return scalar_t(-1);
-    G = std::exp(power);
+  // The rule at 4 pixels: offsets dx (lanes) and dy = mean - pixel centre; m = lanes to evaluate.
+  // Returns m without the skipped lanes (power > 0, alpha < 1/255); G = exp(power),
+  // raw = op G, al = min(0.99, raw). Forward and backward call this same code.
+  typedef typename Lanes<scalar_t>::V V;
+  typedef typename Lanes<scalar_t>::M M;
+  inline M eval4(const V& dx, scalar_t dy, M m, V& G, V& raw, V& al) const {
+    const V power = scalar_t(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
+    m &= (power <= scalar_t(0)) & (power >= skip_below);  // NaN fails both: skipped
+    G = vexp(power);
     raw = op * G;
-    const scalar_t al = std::min(scalar_t(0.99), raw);
-    return al < scalar_t(1.0 / 255.0) ? scalar_t(-1) : al;
+    al = raw < scalar_t(0.99) ? raw : V{} + scalar_t(0.99);
+    return m & (al >= scalar_t(1.0 / 255.0));
   }
 };
-
-// Channel loops. P > 0: n == P, a multiple of 4 known at compile time; float then uses 4-lane
-// GCC vectors explicitly (the auto-vectoriser leaves these short loops scalar).
-typedef float f32x4 __attribute__((vector_size(16)));
-inline f32x4 load4(const float* p) { f32x4 v; std::memcpy(&v, p, sizeof(v)); return v; }
-inline void store4(float* p, f32x4 v) { std::memcpy(p, &v, sizeof(v)); }
-
-// y[k] += x[k] * a for k < n.
-template <typename T, int64_t P>
-inline void axpy(T* __restrict y, const T* __restrict x, T a, int64_t n) {
-  if constexpr (std::is_same_v<T, float> && P > 0) {
-    for (int64_t k = 0; k < P; k += 4) store4(y + k, load4(y + k) + load4(x + k) * a);
-  } else {
-    for (int64_t k = 0; k < n; ++k) y[k] += x[k] * a;
-  }
-}
-
-// sum_k a[k] b[k] for k < n, in four interleaved partial sums.
-template <typename T, int64_t P>
-inline T dot(const T* __restrict a, const T* __restrict b, int64_t n) {
-  if constexpr (std::is_same_v<T, float> && P > 0) {
-    f32x4 s = {0, 0, 0, 0};
-    for (int64_t k = 0; k < P; k += 4) s += load4(a + k) * load4(b + k);
-    return (s[0] + s[1]) + (s[2] + s[3]);
-  } else {
-    T s[4] = {0, 0, 0, 0};
-    for (int64_t k = 0; k < n; ++k) s[k & 3] += a[k] * b[k];
-    return (s[0] + s[1]) + (s[2] + s[3]);
-  }
-}
 
 }  // namespace composite_cpu
