@@ -29,7 +29,8 @@ from geocues.cue_io import CueCloud, atomic_path, write_cues_ply, write_lines_np
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample
-from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, split_regions_by_lines
+from geocues.plane_regions import split_regions_by_lines
+from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
 from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
 from geocues.texture import TextureConfig, config_key, load_or_compute

@@ -115,7 +115,7 @@ class TestHardCases:
         scene = make_room_scene(tmp_path / "room", n_views=16, priors="all", n_sfm=0)
         out = ex.run(scene, tmp_path / "cues")
         cues, rep = _no_nan(out), _report(out)
-        assert rep["counts"]["SFM"] == 0 and rep["counts"]["PLANE"] > 0
+        assert rep["counts"]["SFM"] == 0 and rep["counts"]["PLANE"] > 0 and len(cues) == rep["n_points"]
         assert any("no 3D points" in n for n in rep["notes"])
 
     def test_no_priors_at_all(self, scenes, tmp_path):

@@ -8,7 +8,8 @@ import pytest
 from geocues.depth_align import Anchors
 from geocues.plane_fit import AnchoredPlane, fit_plane_groups, fit_plane_ransac, ray_plane_depth
 from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample
-from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior, split_regions_by_lines
+from geocues.plane_regions import split_regions_by_lines
+from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
 from geocues.scene import Scene
 from geocues.texture import TextureConfig, weak_texture_regions
 
@@ -228,17 +229,17 @@ class TestPriorFree:
     def test_parallel_lines_are_no_evidence(self, room):
         """Two parallel lines on different surfaces (a wall corner and a box edge 1 m in front)
         are coplanar, as any two parallel lines are: no plane from them alone."""
-        from geocues.planes import _lines_confirm_plane
+        from geocues.plane_regions import lines_confirm_plane
 
         t = np.linspace(0, 1, 30)[:, None]
         corner = np.array([0.0, 0.0, 4.0]) + t * [0, 1.0, 0]
         box = np.array([-1.0, 0.2, 3.0]) + t * [0, 0.5, 0]
         floor = np.array([0.0, 1.0, 4.0]) + t * [-1.0, 0, -0.5]
         g = np.r_[np.zeros(30, int), np.ones(30, int)]
-        assert not _lines_confirm_plane(np.concatenate([corner, box]), g)
-        assert _lines_confirm_plane(np.concatenate([corner, floor]), g)  # crossing lines: evidence
+        assert not lines_confirm_plane(np.concatenate([corner, box]), g)
+        assert lines_confirm_plane(np.concatenate([corner, floor]), g)  # crossing lines: evidence
         third = np.array([1.0, 0.0, 4.0]) + t * [0, 1.0, 0]
-        assert _lines_confirm_plane(np.concatenate([corner, box, third]), np.r_[g, np.full(30, 2)])
+        assert lines_confirm_plane(np.concatenate([corner, box, third]), np.r_[g, np.full(30, 2)])
 
     def test_no_anchors(self, room):
         scene, _, regions, _ = room
