@@ -10,6 +10,7 @@ import tyro
 
 from cli._dispatch import dispatch
 from cli.rooms_cli import make_room
+from evaluation.cue_metrics import CueMetricsConfig
 from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, format_table, save_json
 
 
@@ -33,9 +34,35 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
     return 0
 
 
+def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CUES")],
+         scene: Annotated[Path, tyro.conf.arg(metavar="SCENE")],
+         gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
+         json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
+         cfg: Annotated[CueMetricsConfig, tyro.conf.arg(name="")] = CueMetricsConfig()) -> int:
+    """Accuracy (distance to GT per cue type) and coverage of `geocues extract` output.
+
+    Args:
+        cues_dir: the folder `geocues extract` wrote (cues.ply, report.json).
+        scene: the scene the cues came from (its cameras define the seen GT surface).
+        gt: the ground-truth mesh (default: SCENE/gt/mesh.ply).
+        json: write the result to this JSON file.
+    """
+    import json as _json
+
+    from evaluation.cue_metrics import evaluate_cues_dir, format_cue_table
+
+    result = evaluate_cues_dir(cues_dir, scene, gt, cfg)
+    print(format_cue_table(result))
+    if json is not None:
+        json.parent.mkdir(parents=True, exist_ok=True)
+        json.write_text(_json.dumps(result, indent=1))
+        print(f"wrote {json}")
+    return 0
+
+
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
 # The default command (metrics of a mesh) is registered under "mesh" and runs without its name.
-COMMANDS: dict = {"mesh": mesh, "make-room": make_room}
+COMMANDS: dict = {"mesh": mesh, "make-room": make_room, "cues": cues}
 DEFAULT = "mesh"
 
 

@@ -1,0 +1,135 @@
+"""Accuracy and coverage of geometric cues (``geocues extract`` output) against a GT surface.
+
+Distances are exact point-to-triangle distances (Open3D ``RaycastingScene``). Coverage is the share
+of GT surface samples — uniform by area, restricted to what the scene's cameras see (frustum and
+occlusion by the GT itself) — that have a cue point within ``coverage_dist``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from geocues.cue_io import CueCloud, read_cues_ply
+from geocues.types import CueType
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CueMetricsConfig:
+    """Options of the cue evaluation."""
+
+    n_gt_samples: int = 100_000
+    """GT surface samples for coverage (on the part of the surface the cameras see)."""
+    coverage_dist: float = 0.05
+    """A GT sample is covered when a cue point lies within this distance (metres)."""
+    occlusion_tolerance: float = 0.02
+    """A GT sample counts as seen if it lies at most this far behind the GT surface along a ray."""
+    seed: int = 0
+    """Seed of the GT sampling."""
+
+
+def _share(d: np.ndarray, t: float) -> float | None:
+    return float(np.mean(d <= t)) if len(d) else None
+
+
+def _median(d: np.ndarray) -> float | None:
+    return float(np.median(d)) if len(d) else None
+
+
+class GroundTruth:
+    """A GT mesh prepared for cue evaluation: exact-distance queries and seen-surface samples."""
+
+    def __init__(self, gt_path: str | Path, cameras: list, cfg: CueMetricsConfig):
+        from evaluation.culling import CameraSet, raycasting_scene, visible_mask
+        from evaluation.mesh_metrics import load_mesh, sample_kept_surface
+
+        self.path = Path(gt_path)
+        mesh = load_mesh(self.path)
+        self.scene = raycasting_scene(mesh.vertices, mesh.faces)
+        cams = CameraSet.from_cameras(cameras)
+        self.samples, _, self.seen_fraction = sample_kept_surface(
+            mesh, cfg.n_gt_samples, np.random.default_rng(cfg.seed),
+            keep=lambda p: visible_mask(p, cams, occluder=self.scene, tolerance=cfg.occlusion_tolerance))
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """Exact distance of each point [N, 3] to the GT surface, [N]."""
+        from evaluation.mesh_metrics import surface_distances
+
+        return surface_distances(np.asarray(points, np.float64), self.scene)[0] if len(points) else np.zeros(0)
+
+
+def coverage(points: np.ndarray, gt_samples: np.ndarray, dist: float) -> float:
+    """Share of GT samples with a point within ``dist`` (0 when there are no points)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) == 0:
+        return 0.0
+    return float(np.mean(cKDTree(points).query(gt_samples, k=1, workers=-1)[0] <= dist))
+
+
+def cue_accuracy(cues: CueCloud, gt: GroundTruth, cfg: CueMetricsConfig) -> dict:
+    """Per cue type: count, median distance to GT, shares within 1/2/3/5 cm, and coverage."""
+    dist = gt.distances(cues.xyz)
+    out: dict = {"counts": cues.counts(), "per_type": {}, "coverage": {}}
+    for t in CueType:
+        mask = cues.cue_type == t
+        d = dist[mask]
+        out["per_type"][t.name] = {"n": int(mask.sum()), "median_m": _median(d),
+                                   **{f"within_{c}cm": _share(d, c / 100) for c in (1, 2, 3, 5)}}
+        out["coverage"][t.name] = coverage(cues.xyz[mask], gt.samples, cfg.coverage_dist)
+    out["coverage"]["ALL"] = coverage(cues.xyz, gt.samples, cfg.coverage_dist)
+    out["coverage_dist_m"] = cfg.coverage_dist
+    out["gt_seen_fraction"] = gt.seen_fraction
+    return out
+
+
+def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str | Path | None = None,
+                      cfg: CueMetricsConfig | None = None) -> dict:
+    """Evaluate ``CUES/cues.ply`` against the GT mesh (default ``SCENE/gt/mesh.ply``), with the
+    SfM points of the scene before statistical outlier removal as a reference."""
+    from geocues.scene import Scene
+
+    cfg = cfg or CueMetricsConfig()
+    cues_path = Path(cues_dir) / "cues.ply"
+    if not cues_path.is_file():
+        raise FileNotFoundError(f"no cues.ply in {cues_dir} (run `geocues extract SCENE -o {cues_dir}`)")
+    scene = Scene.load(scene_dir, check_priors=False)
+    gt_path = Path(gt_path) if gt_path is not None else scene.gt_mesh_path
+    if gt_path is None:
+        raise FileNotFoundError(f"no GT mesh: pass --gt or put one at {Path(scene_dir) / 'gt' / 'mesh.ply'}")
+    gt = GroundTruth(gt_path, scene.cameras, cfg)
+    result = cue_accuracy(read_cues_ply(cues_path), gt, cfg)
+    sfm_all = gt.distances(scene.points.xyz)
+    result["sfm_before_sor"] = {"n": int(len(sfm_all)), "within_5cm": _share(sfm_all, 0.05)}
+    result.update(cues=str(cues_path), scene=str(scene_dir), gt=str(gt_path))
+    report = Path(cues_dir) / "report.json"
+    if report.is_file():
+        result["seconds"] = json.loads(report.read_text()).get("seconds", {})
+    return result
+
+
+def format_cue_table(result: dict) -> str:
+    """A plain-text table of :func:`evaluate_cues_dir`'s result."""
+    def pct(v):
+        return "   -  " if v is None else f"{100 * v:5.1f}%"
+
+    lines = [f"{'type':<6} {'points':>8} {'median':>9} {'<=1cm':>7} {'<=2cm':>7} {'<=3cm':>7} {'<=5cm':>7} "
+             f"{'coverage':>9}"]
+    for name, m in result["per_type"].items():
+        med = "      -  " if m["median_m"] is None else f"{1000 * m['median_m']:6.1f} mm"
+        lines.append(f"{name:<6} {m['n']:>8} {med:>9} {pct(m['within_1cm']):>7} {pct(m['within_2cm']):>7} "
+                     f"{pct(m['within_3cm']):>7} {pct(m['within_5cm']):>7} {pct(result['coverage'][name]):>9}")
+    lines.append(f"{'ALL':<6} {sum(result['counts'].values()):>8} {'':>9} {'':>7} {'':>7} {'':>7} {'':>7} "
+                 f"{pct(result['coverage']['ALL']):>9}")
+    sfm = result.get("sfm_before_sor")
+    if sfm and sfm["n"]:
+        lines.append(f"SfM points before SOR: {sfm['n']}, {pct(sfm['within_5cm']).strip()} within 5 cm")
+    lines.append(f"coverage = share of the seen GT surface ({pct(result['gt_seen_fraction']).strip()} of its area) "
+                 f"within {100 * result['coverage_dist_m']:.0f} cm of a cue point")
+    return "\n".join(lines)
