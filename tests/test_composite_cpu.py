@@ -121,10 +121,11 @@ def test_gradcheck_float64(cpu):
         torch.set_num_threads(threads)
 
 
-def test_deterministic_across_thread_counts(cpu):
+@pytest.mark.parametrize("n", [3000, 150_000])  # 150k: the binning passes run threaded too
+def test_deterministic_across_thread_counts(cpu, n):
     """Per-(tile, Gaussian) gradients summed in a fixed order: bitwise equal for 1 and 2 threads."""
     width, height = 100, 70
-    leaves, depths, radii = random_scene(3000, width, height, seed=6)
+    leaves, depths, radii = random_scene(n, width, height, seed=6, spread=1.5 if n < 10_000 else 0.3)
     threads = torch.get_num_threads()
     results = []
     try:

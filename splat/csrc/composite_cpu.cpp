@@ -234,7 +234,7 @@ void reduce_slots(const scalar_t* ent, int64_t C, const Bins& bins, scalar_t* d_
   const int32_t* gord = bins.g_order.data_ptr<int32_t>();
   const int32_t* gst = bins.g_start.data_ptr<int32_t>();
   const int32_t* gsl = bins.g_slots.data_ptr<int32_t>();
-#pragma omp parallel for num_threads(nthreads) schedule(static)
+#pragma omp parallel for num_threads(threads_for(nv, nthreads)) schedule(static)
   for (int64_t k = 0; k < nv; ++k) {
     const int64_t g = gord[k];
     for (int64_t j = gst[k]; j < gst[k + 1]; ++j) {

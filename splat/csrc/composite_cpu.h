@@ -29,6 +29,10 @@ namespace composite_cpu {
 constexpr int64_t kTile = 16;
 constexpr int64_t kTilePix = kTile * kTile;
 
+// Threads for a light O(n) pass: one below ~1 ms of work, where a second thread's wake-up and the
+// end-of-loop barrier cost more than they save (much more on cores shared with other processes).
+inline int threads_for(int64_t n, int nthreads) { return n >= 131072 ? nthreads : 1; }
+
 // Pixel box of a Gaussian (inclusive, clipped to the image): columns j with |j + 0.5 - mx| <= r.
 // Returns false when the Gaussian is culled (r <= 0), not finite, or its box misses the image.
 template <typename scalar_t>
@@ -92,7 +96,7 @@ Bins bin_gaussians(const scalar_t* means, const scalar_t* depths, const int32_t*
   const int64_t n_tiles = b.tiles_x * b.tiles_y;
   std::vector<int64_t> rect(4 * N);  // tile rect [tx0, tx1, ty0, ty1], inclusive
   std::vector<uint8_t> vis(N, 0);
-#pragma omp parallel for num_threads(nthreads) schedule(static)
+#pragma omp parallel for num_threads(threads_for(N, nthreads)) schedule(static)
   for (int64_t g = 0; g < N; ++g) {
     int64_t box[4];
     if (!std::isfinite(depths[g]) ||
@@ -136,7 +140,7 @@ Bins bin_gaussians(const scalar_t* means, const scalar_t* depths, const int32_t*
       for (int64_t t = 0; t < n_tiles; ++t) offs[t + 1] += offs[t];
       cursor.assign(offs, offs + n_tiles);
     }
-#pragma omp parallel num_threads(nthreads)
+#pragma omp parallel num_threads(threads_for(total, nthreads))
     {
       const int64_t nt = omp_get_num_threads(), tid = omp_get_thread_num();
       const int64_t band0 = b.tiles_y * tid / nt, band1 = b.tiles_y * (tid + 1) / nt;
@@ -185,7 +189,7 @@ void pack_gaussians(const Splats<scalar_t>& in, const Bins& bins, std::vector<Pa
   const int32_t* order = bins.g_order.data_ptr<int32_t>();
   pk.resize(nv);
   feat.resize(nv * C);
-#pragma omp parallel for num_threads(nthreads) schedule(static)
+#pragma omp parallel for num_threads(threads_for(nv, nthreads)) schedule(static)
   for (int64_t r = 0; r < nv; ++r) {
     const int64_t g = order[r];
     Packed<scalar_t>& p = pk[r];
