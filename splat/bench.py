@@ -12,6 +12,11 @@ own: ``peak_rss_mb`` is ``ru_maxrss`` after the timed iterations minus ``ru_maxr
 the scene (resource.getrusage; torch's allocations are included, unlike tracemalloc). A parent-side
 timeout turns a configuration that hangs into a "skipped (timeout ...)" entry, and a backend whose
 iteration already exceeded ``max_iter_s`` on a smaller problem skips the larger ones.
+
+Timings on a machine shared with other processes vary several-fold: the result records the load
+average before and after, and each run's process gets ``OMP_WAIT_POLICY=PASSIVE`` by default
+(spin-waiting OpenMP threads are many times slower when a core is taken by someone else). With
+more runnable processes than cores, ``--threads 1`` can beat the default thread count.
 """
 
 from __future__ import annotations
