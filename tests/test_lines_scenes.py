@@ -111,7 +111,7 @@ def test_no_lines_at_all_gives_empty_cues(tmp_path):
 
 def test_edges_only_visible_in_normal_priors(tmp_path):
     # blank walls without shading: the room's corner edges show in the normal maps only
-    root = synth.make_scene(tmp_path, n_views=10, pattern="blank", shading=False, normals=True,
+    root = synth.make_scene(tmp_path, n_views=14, pattern="blank", shading=False, normals=True,
                             path="corner")
     scene = Scene.load(root)
     assert scene.has_normal_priors

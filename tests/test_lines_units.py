@@ -72,6 +72,12 @@ class TestDetect:
         keep = dedup_segments(segs, angle_deg=3.0, dist_px=2.0)
         assert keep.tolist() == [0, 2]
 
+    def test_dedup_prefers_rgb_over_an_offset_normal_map_segment(self):
+        segs = np.array([[10, 10, 110, 10], [5, 13, 115, 13]], float)  # normal one: longer, 3 px off
+        keep = dedup_segments(segs, 3.0, 2.0, priority=np.array([0, 1]), cross_dist_px=4.0)
+        assert keep.tolist() == [0]
+        assert dedup_segments(segs, 3.0, 2.0).tolist() == [0, 1]  # same source: 3 px apart is two
+
     def test_normal_crease_is_detected_only_from_normals(self):
         img = np.full((120, 160, 3), 0.5, np.float32)  # no colour edge at all
         n = np.zeros((120, 160, 3), np.float32)
@@ -215,8 +221,19 @@ class TestFit:
         track = np.zeros(4, np.int64)
         view = np.arange(4)
         s = np.array([[0.0, 1.0], [0.1, 0.9], [-5.0, 0.95], [0.05, 9.0]])
-        lo, hi = robust_extent(track, view, s, 1)
+        lo, hi = robust_extent(track, view, s, 1, min_share=0.2)  # k = 2 views
         assert lo[0] == pytest.approx(0.0) and hi[0] == pytest.approx(1.0)
+        lo, hi = robust_extent(track, view, s, 1, min_share=0.75)  # k = 3 views
+        assert lo[0] == pytest.approx(0.05) and hi[0] == pytest.approx(0.95)
+
+    def test_robust_extent_unions_fragments_of_one_view_and_handles_one_view(self):
+        track = np.array([0, 0, 0, 1])
+        view = np.array([0, 0, 1, 2])
+        s = np.array([[0.0, 0.4], [0.5, 1.0], [0.2, 0.8], [3.0, 4.0]])
+        lo, hi = robust_extent(track, view, s, 3)
+        assert (lo[0], hi[0]) == (pytest.approx(0.2), pytest.approx(0.8))  # covered by both views
+        assert (lo[1], hi[1]) == (3.0, 4.0)  # a single view: its own interval
+        assert np.isnan(lo[2]) and np.isnan(hi[2])
 
     def test_duplicate_pairs(self):
         S = np.array([[[0, 0, 0], [1, 0, 0]], [[0.5, 0.005, 0], [1.5, 0.005, 0]],

@@ -26,9 +26,9 @@ class LineConfig:
     use_normal_priors: bool = True
     """Also detect segments on the normal priors when the scene has them (paper Fig. 3)."""
     dedup_angle_deg: float = 3.0
-    """RGB and normal-map segments closer than this angle (and dedup_dist_px) are one segment."""
+    """Segments closer than this angle (and dedup_dist_px) are one segment; RGB ones win."""
     dedup_dist_px: float = 2.0
-    """Perpendicular distance, pixels at reference_width, under which two segments are duplicates."""
+    """Perpendicular distance (px at reference_width) of duplicates; twice it across RGB/normals."""
     use_test_views: bool = True
     """Use the held-out test views too (as SfM does); False restricts lines to training views."""
     # ---- view pairs (pairs.py)
@@ -61,7 +61,7 @@ class LineConfig:
     # ---- multi-view scoring (score.py)
     support_angle_deg: float = 5.0
     """A 2D segment supports a 3D hypothesis if its angle to the projection is at most this."""
-    support_dist_px: float = 2.0
+    support_dist_px: float = 1.5
     """... and its endpoints lie within this many pixels (at reference_width) of the projection."""
     support_depth_rel: float = 0.05
     """... and the depths it implies along the source rays agree within this relative tolerance."""
@@ -69,7 +69,7 @@ class LineConfig:
     """... and consistent segments of that view cover at least this share of its projection."""
     min_support_ratio: float = 0.5
     """Supporting views / views where the hypothesis is checkable (in view, depth-sensitive)."""
-    min_views: int = 4
+    min_views: int = 6
     """Minimum number of supporting views (including the two that triangulated it) per 3D line."""
     # ---- tracks, merging and output (merge.py)
     max_line_sigma_m: float = 0.02
@@ -80,6 +80,8 @@ class LineConfig:
     """A line must be supported in this share of the views it projects into (guided matching)."""
     min_track_nodes: int = 1
     """A track needs this many 2D segments whose own best hypotheses agree (mutual confirmation)."""
+    extent_min_share: float = 0.35
+    """Segment ends: the line extends as far as this share of its views (at least 2) see it."""
     merge_angle_deg: float = 10.0
     """Two 3D lines closer than this angle and merge_dist_m are duplicates and are merged."""
     merge_dist_m: float = 0.02

@@ -24,7 +24,7 @@ from geocues.lines.config import LineConfig
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 LSD_SCALE = 0.8  # OpenCV's default LSD scale; its output needs + 0.5 / scale to reach COLMAP pixels
 SOURCE_RGB, SOURCE_NORMAL = 0, 1
 
@@ -85,16 +85,21 @@ def normal_map_to_channels(normal: np.ndarray) -> list[np.ndarray]:
     return [np.ascontiguousarray(u8[:, :, c]) for c in range(3)]
 
 
-def dedup_segments(segs: np.ndarray, angle_deg: float, dist_px: float) -> np.ndarray:
-    """Indices of segments [N, 4] to keep after dropping duplicates: a segment is dropped when a
-    longer one is within ``angle_deg``, both its endpoints lie within ``dist_px`` of the longer
-    one's line and at least half of it overlaps the longer one."""
+def dedup_segments(segs: np.ndarray, angle_deg: float, dist_px: float,
+                   priority: np.ndarray | None = None, cross_dist_px: float | None = None) -> np.ndarray:
+    """Indices of segments [N, 4] to keep after dropping duplicates. Segments are ranked by
+    ``priority`` [N] (lower first; default all equal), then by length; a segment is dropped when
+    a higher-ranked one is within ``angle_deg``, both its endpoints lie within ``dist_px`` of
+    that one's line (``cross_dist_px`` when their priorities differ) and at least half of it
+    overlaps it. RGB segments rank before normal-map ones: a prior's edges are blurred and
+    offset (1-2 px on the benchmark rooms' simulated priors), the image's are not."""
     n = len(segs)
     if n < 2:
         return np.arange(n)
+    prio = np.zeros(n) if priority is None else np.asarray(priority, float)
     length = segment_lengths(segs)
-    order = np.argsort(-length, kind="stable")
-    s, length = segs[order], length[order]
+    order = np.lexsort((-length, prio))
+    s, length, prio = segs[order], length[order], prio[order]
     p, q = s[:, :2], s[:, 2:]
     d = (q - p) / np.maximum(length, 1e-9)[:, None]  # [N, 2] unit directions
     cos = np.abs(d @ d.T)  # [N, N]
@@ -106,12 +111,13 @@ def dedup_segments(segs: np.ndarray, angle_deg: float, dist_px: float) -> np.nda
     tq = np.einsum("ik,ijk->ij", d, q[None] - p[:, None])
     lo, hi = np.minimum(tp, tq), np.maximum(tp, tq)
     overlap = np.clip(np.minimum(hi, length[:, None]) - np.maximum(lo, 0.0), 0.0, None)
-    dup = ((cos >= np.cos(np.deg2rad(angle_deg))) & (dp <= dist_px) & (dq <= dist_px)
+    tol = np.where(prio[:, None] == prio[None, :], dist_px,
+                   dist_px if cross_dist_px is None else cross_dist_px)
+    dup = ((cos >= np.cos(np.deg2rad(angle_deg))) & (dp <= tol) & (dq <= tol)
            & (overlap >= 0.5 * length[None, :]))
-    np.fill_diagonal(dup, False)
-    dup &= np.arange(n)[:, None] < np.arange(n)[None, :]  # only a longer (earlier) one removes
+    dup &= np.arange(n)[:, None] < np.arange(n)[None, :]  # only a higher-ranked one removes
     drop = np.zeros(n, bool)
-    for i in range(n):  # greedy, longest first: a dropped segment removes nothing
+    for i in range(n):  # greedy in rank order: a dropped segment removes nothing
         if not drop[i]:
             drop |= dup[i]
     return np.sort(order[~drop])
@@ -174,7 +180,8 @@ def detect_image(image: np.ndarray, normal: np.ndarray | None, cfg: LineConfig) 
         parts.append(nseg)
         sources.append(np.full(len(nseg), SOURCE_NORMAL, np.uint8))
     segs, source = np.concatenate(parts), np.concatenate(sources)
-    keep = dedup_segments(segs, cfg.dedup_angle_deg, cfg.px(cfg.dedup_dist_px, w))
+    keep = dedup_segments(segs, cfg.dedup_angle_deg, cfg.px(cfg.dedup_dist_px, w), priority=source,
+                          cross_dist_px=cfg.px(2.0 * cfg.dedup_dist_px, w))
     n_dup = len(segs) - len(keep)
     segs, source = segs[keep], source[keep]
     order = np.argsort(-segment_lengths(segs), kind="stable")[: 2 * cfg.max_segments]

@@ -11,9 +11,6 @@ import numpy as np
 
 from geocues.lines.config import LineConfig
 
-# popcount of every byte value, for Hamming distances of binary descriptors
-_POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(1).astype(np.float32)
-
 
 def skew(v: np.ndarray) -> np.ndarray:
     """[v]_x, the 3x3 cross-product matrix of v [3]."""
@@ -36,24 +33,18 @@ def homog(pts: np.ndarray) -> np.ndarray:
 def epipolar_iou(segs_a: np.ndarray, segs_b: np.ndarray, F: np.ndarray) -> np.ndarray:
     """Epipolar IoU [La, Lb] in view b (LIMAP ``compute_epipolar_IoU``).
 
-    The epipolar lines F p1, F p2 of a's endpoints cut b's line at parameters c1 <= c2
-    (b = q1 + c (q2 - q1)); IoU = (min(c2, 1) - max(c1, 0)) / (max(c2, 1) - min(c1, 0)).
-    Pairs whose cuts are undefined (b parallel to the epipolar lines) get -inf."""
-    l1 = homog(segs_a[:, :2]) @ F.T  # [La, 3] epipolar lines in b
-    l2 = homog(segs_a[:, 2:]) @ F.T
-    q1, q2 = segs_b[:, :2], segs_b[:, 2:]
-    m = np.cross(homog(q1), homog(q2))  # [Lb, 3] lines of b
-    d = q2 - q1
-    dd = np.maximum((d * d).sum(-1), 1e-12)  # [Lb]
-
-    def cut(lines: np.ndarray) -> np.ndarray:  # parameter along b where it meets `lines`
-        x = np.cross(m[None, :, :], lines[:, None, :])  # [La, Lb, 3]
+    The epipolar lines l = F p of a's endpoints p1, p2 cut b's line q(c) = q1 + c (q2 - q1) at
+    c = -(l . q1~) / (l_xy . (q2 - q1)) (two matrix products); with c1 <= c2 the IoU is
+    (min(c2, 1) - max(c1, 0)) / (max(c2, 1) - min(c1, 0)). Pairs whose cuts are undefined
+    (b parallel to the epipolar lines) get -inf."""
+    q1h = homog(segs_b[:, :2])  # [Lb, 3]
+    d = segs_b[:, 2:] - segs_b[:, :2]  # [Lb, 2]
+    cuts = []
+    for p in (segs_a[:, :2], segs_a[:, 2:]):
+        lines = homog(p) @ F.T  # [La, 3] epipolar lines in b
         with np.errstate(divide="ignore", invalid="ignore"):
-            xy = x[..., :2] / x[..., 2:3]
-            return ((xy - q1[None]) * d[None]).sum(-1) / dd[None]
-
-    c1, c2 = cut(l1), cut(l2)
-    lo, hi = np.minimum(c1, c2), np.maximum(c1, c2)
+            cuts.append(-(lines @ q1h.T) / (lines[:, :2] @ d.T))  # [La, Lb]
+    lo, hi = np.minimum(*cuts), np.maximum(*cuts)
     with np.errstate(invalid="ignore", divide="ignore"):
         iou = (np.minimum(hi, 1.0) - np.maximum(lo, 0.0)) / (np.maximum(hi, 1.0) - np.minimum(lo, 0.0))
     return np.where(np.isfinite(iou), iou, -np.inf)
@@ -73,16 +64,12 @@ def epipolar_angle(segs: np.ndarray, epipole: np.ndarray) -> np.ndarray:
     return np.degrees(np.arcsin(np.clip(s, 0.0, 1.0)))
 
 
-def point_line_distance(pts: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """Distance of pixels pts [..., 2] to homogeneous lines [..., 3] (broadcast)."""
-    num = np.abs((homog(pts) * lines).sum(-1))
-    return num / np.maximum(np.linalg.norm(lines[..., :2], axis=-1), 1e-12)
-
-
 def hamming(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
-    """Hamming distances [La, Lb] between binary descriptors [La, 32] and [Lb, 32] uint8."""
-    x = desc_a[:, None, :] ^ desc_b[None, :, :]  # [La, Lb, 32]
-    return _POPCOUNT[x].sum(-1)
+    """Hamming distances [La, Lb] between binary descriptors [La, 32] and [Lb, 32] uint8:
+    |a| + |b| - 2 a . b on the unpacked bits (one matrix product)."""
+    a = np.unpackbits(desc_a, axis=1).astype(np.float32)  # [La, 256]
+    b = np.unpackbits(desc_b, axis=1).astype(np.float32)
+    return a.sum(1)[:, None] + b.sum(1)[None, :] - 2.0 * (a @ b.T)
 
 
 def match_pair(seg_a, seg_b, cam_a, cam_b, cfg: LineConfig) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
@@ -113,8 +100,9 @@ def match_pair(seg_a, seg_b, cam_a, cam_b, cfg: LineConfig) -> tuple[np.ndarray,
     deg = deg_a[:, None] | deg_b[None, :]
     # along the epipolar direction the band collapses to a line: b must lie on a's epipolar line
     band = cfg.px(4.0 * cfg.support_dist_px, cam_b.width)
-    l_mid = homog(0.5 * (A[:, :2] + A[:, 2:])) @ F.T  # [La, 3]
-    on_line = point_line_distance(0.5 * (B[None, :, :2] + B[None, :, 2:]), l_mid[:, None, :]) <= band
+    l_mid = homog(0.5 * (A[:, :2] + A[:, 2:])) @ F.T  # [La, 3] epipolar lines of a's midpoints
+    dist = np.abs(l_mid @ homog(0.5 * (B[:, :2] + B[:, 2:])).T)  # [La, Lb], times |l_xy|
+    on_line = dist <= band * np.linalg.norm(l_mid[:, :2], axis=1, keepdims=True)
     cand = np.where(deg_a[:, None] & deg_b[None, :], on_line, (iou > 0) & ~deg)
     if not cand.any():
         return empty, empty, counts

@@ -215,26 +215,44 @@ def endpoint_params(P: np.ndarray, u: np.ndarray, segs: np.ndarray, view: np.nda
     return np.sort(np.nan_to_num(s), axis=1), ok
 
 
-def robust_extent(track: np.ndarray, view: np.ndarray, s: np.ndarray, n_tracks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Extent [lo, hi] per track covered by at least two views: per (track, view) the union of
-    its members' intervals s [M, 2]; lo = second-smallest start, hi = second-largest end over
-    views (the only view's interval when there is one). nan for tracks without members."""
+def robust_extent(track: np.ndarray, view: np.ndarray, s: np.ndarray, n_tracks: int,
+                  min_share: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """Extent [lo, hi] per track: the part of the line covered by at least
+    k = max(2, ceil(min_share * views)) of its views (k = 1 for a single view), where each view
+    covers the union of its members' intervals s [M, 2] (positions along the line). A few
+    views whose segments overshoot (a contour, a badly conditioned endpoint ray) cannot stretch
+    it. nan for tracks without members; hi <= lo when no part reaches k."""
     lo, hi = np.full(n_tracks, np.nan), np.full(n_tracks, np.nan)
     if len(track) == 0:
         return lo, hi
-    key, inv = np.unique(track * (view.max() + 1) + view, return_inverse=True)
-    g_track = key // (view.max() + 1)
-    g_lo = np.full(len(key), np.inf)
-    g_hi = np.full(len(key), -np.inf)
+    V = int(view.max()) + 1
+    key, inv = np.unique(track * V + view, return_inverse=True)
+    g_track = key // V
+    g_lo, g_hi = np.full(len(key), np.inf), np.full(len(key), -np.inf)
     np.minimum.at(g_lo, inv, s[:, 0])
     np.maximum.at(g_hi, inv, s[:, 1])
-    for vals, out, sign in ((g_lo, lo, 1.0), (g_hi, hi, -1.0)):
-        order = np.lexsort((sign * vals, g_track))
-        t_sorted = g_track[order]
-        start = np.r_[0, np.nonzero(t_sorted[1:] != t_sorted[:-1])[0] + 1]
-        count = np.diff(np.r_[start, len(order)])
-        pick = order[start + (count >= 2)]  # second entry when there are two or more views
-        out[t_sorted[start]] = vals[pick]
+    n_views = np.bincount(g_track, minlength=n_tracks)
+    k = np.where(n_views >= 2, np.maximum(2, np.ceil(min_share * n_views)), 1)
+    # sweep: +1 at each view's start, -1 at its end, ordered by position within each track
+    ev_t = np.r_[g_track, g_track]
+    ev_pos = np.r_[g_lo, g_hi]
+    ev_d = np.r_[np.ones(len(key)), -np.ones(len(key))]
+    order = np.lexsort((-ev_d, ev_pos, ev_t))  # starts before ends at equal positions
+    ev_t, ev_pos, ev_d = ev_t[order], ev_pos[order], ev_d[order]
+    cum = np.cumsum(ev_d)
+    start = np.r_[0, np.nonzero(ev_t[1:] != ev_t[:-1])[0] + 1]
+    base = np.repeat(cum[start] - ev_d[start], np.diff(np.r_[start, len(ev_t)]))
+    after = cum - base  # coverage just after each event
+    before = after - ev_d
+    need = k[ev_t]
+    lo_cand = np.where(after >= need, ev_pos, np.inf)
+    hi_cand = np.where(before >= need, ev_pos, -np.inf)
+    lo_t = np.full(n_tracks, np.inf)
+    hi_t = np.full(n_tracks, -np.inf)
+    np.minimum.at(lo_t, ev_t, lo_cand)
+    np.maximum.at(hi_t, ev_t, hi_cand)
+    has = n_views > 0
+    lo[has], hi[has] = lo_t[has], hi_t[has]
     return lo, hi
 
 

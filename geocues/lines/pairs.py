@@ -1,5 +1,6 @@
-"""View pairs for line matching: covisibility of SfM points when the model has them, otherwise
-the overlap of frustum samples; both weighted by the pair's triangulation angle so that the
+"""View pairs for line matching: the overlap of frustum samples (placed at the depths of each
+camera's SfM points when it has enough, else at fixed depths), raised by the covisibility of
+SfM points where the model has them; weighted by the pair's triangulation angle so that the
 near-duplicate frames of a video do not crowd out the pairs that can triangulate.
 """
 
@@ -50,20 +51,21 @@ def covisibility_scores(scene, cams_idx: np.ndarray) -> tuple[np.ndarray, np.nda
     return overlap, np.where(shared > 0, angle, 0.0)
 
 
-def frustum_scores(cams, depths: tuple[float, ...], grid: tuple[int, int] = (8, 6)) -> tuple[np.ndarray, np.ndarray]:
+def frustum_scores(cams, depths: list[tuple[float, ...]], grid: tuple[int, int] = (8, 6)) -> tuple[np.ndarray, np.ndarray]:
     """Overlap [n, n] (share of frustum samples of each view seen by the other, the smaller of
     the two directions) and the median triangulation angle [n, n] (degrees) at the shared
-    samples, for cameras without SfM points. Samples: a ``grid`` of pixels at ``depths`` metres."""
+    samples. Samples: a ``grid`` of pixels at each camera's ``depths`` (z, metres; the same
+    number per camera)."""
     n = len(cams)
     C, _ = _centers_axes(cams)
     samples = []
-    for cam in cams:
+    for cam, cam_depths in zip(cams, depths):
         u = (np.arange(grid[0]) + 0.5) / grid[0] * cam.width
         v = (np.arange(grid[1]) + 0.5) / grid[1] * cam.height
         uu, vv = np.meshgrid(u, v)
         rays = np.stack([(uu.ravel() - cam.K[0, 2]) / cam.K[0, 0],
                          (vv.ravel() - cam.K[1, 2]) / cam.K[1, 1], np.ones(uu.size)], -1)
-        Xc = (rays[None] * np.asarray(depths, float)[:, None, None]).reshape(-1, 3)  # z-depths
+        Xc = (rays[None] * np.asarray(cam_depths, float)[:, None, None]).reshape(-1, 3)  # z-depths
         samples.append((Xc - cam.t) @ cam.R)  # camera -> world
     X = np.stack(samples)  # [n, S, 3]
     seen = np.zeros((n, n, X.shape[1]), bool)  # [viewer j, source i, sample]
@@ -102,13 +104,24 @@ def select_neighbors(scene, cfg: LineConfig, cams_idx: list[int] | None = None) 
     neighbors = [np.zeros(0, np.int64) for _ in range(n_all)]
     if len(idx) < 2:
         return neighbors, {"source": "none", "pairs": 0, "images_without_neighbors": int(len(idx))}
-    use_points = len(scene.points) > 0 and sum(len(v) for v in scene.points.visible_in.values()) > 0
-    if use_points:
-        overlap, angle = covisibility_scores(scene, idx)
-        source = "covisibility"
-    else:
-        overlap, angle = frustum_scores(cams, cfg.pair_depths_m)
-        source = "frustum"
+    # frustum samples at each camera's SfM depths (quartiles, >= 20 points) or at pair_depths_m
+    depths, n_sfm = [], 0
+    for cam in cams:
+        vis = scene.points.visible_in.get(cam.index, np.zeros(0, np.int64)) if len(scene.points) else []
+        z = (scene.points.xyz[vis] @ cam.R.T + cam.t)[:, 2] if len(vis) else np.zeros(0)
+        z = z[z > 0]
+        if len(z) >= 20:
+            n_sfm += 1
+            q = np.percentile(z, np.linspace(25, 75, len(cfg.pair_depths_m)))
+            depths.append(tuple(q))
+        else:
+            depths.append(tuple(cfg.pair_depths_m))
+    overlap, angle = frustum_scores(cams, depths)
+    source = f"frustum ({n_sfm} of {len(cams)} cameras at SfM depths)"
+    if len(scene.points) and sum(len(v) for v in scene.points.visible_in.values()):
+        covis, _ = covisibility_scores(scene, idx)  # shared points can only add overlap
+        overlap = np.maximum(overlap, covis)
+        source += " + covisibility"
     _, axes = _centers_axes(cams)
     axis_angle = np.degrees(np.arccos(np.clip(axes @ axes.T, -1.0, 1.0)))
     valid = ((overlap >= cfg.min_pair_overlap) & (angle >= cfg.min_tri_angle_deg)

@@ -19,8 +19,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from geocues.lines.config import LineConfig
-from geocues.lines.merge import (Views, duplicate_pairs, endpoint_params, ray_angle_views, refine_tracks,
-                                 robust_extent)
+from geocues.lines.merge import (Views, duplicate_pairs, endpoint_params, member_residuals, ray_angle_views,
+                                 refine_tracks, robust_extent)
 from geocues.lines.score import LabelMaps, collect_supports
 
 log = logging.getLogger(__name__)
@@ -31,17 +31,22 @@ def fit_tracks(mem_track: np.ndarray, mem_view: np.ndarray, mem_segs: np.ndarray
     """Fit every track to its members (see :func:`refine_tracks`) and find its extent (see
     :func:`robust_extent`). Returns per-track arrays: seg3d [T, 2, 3], sigma, groups (distinct
     viewpoints), n_ray (views seeing it away from the rays), n_views (views with inliers),
-    fitted (bool), and the per-member ``inlier`` mask."""
+    rms (inlier endpoint residual, pixels at reference_width), fitted (bool), and the
+    per-member ``inlier`` mask."""
     T = len(P0)
     P, u, inlier, sigma, groups = refine_tracks(mem_track, mem_view, mem_segs, P0, u0, views, cfg)
     s, s_ok = endpoint_params(P[mem_track], u[mem_track], mem_segs, mem_view, views)
     use = inlier & s_ok
-    lo, hi = robust_extent(mem_track[use], mem_view[use], s[use], T)
+    lo, hi = robust_extent(mem_track[use], mem_view[use], s[use], T, cfg.extent_min_share)
     seg3d = np.stack([P + lo[:, None] * u, P + hi[:, None] * u], 1)
     fitted = np.isfinite(sigma) & np.isfinite(seg3d).all((1, 2)) & (hi > lo)
     V = len(views.cameras)
     key = np.unique(mem_track[inlier] * V + mem_view[inlier])
-    return {"seg3d": seg3d, "sigma": sigma, "groups": groups, "fitted": fitted, "inlier": inlier,
+    dist, _ = member_residuals(P[mem_track], u[mem_track], mem_segs, mem_view, views)
+    dist *= cfg.reference_width / views.width[mem_view]  # pixels at reference_width
+    n_in = np.maximum(np.bincount(mem_track[inlier], minlength=T), 1)
+    rms = np.sqrt(np.bincount(mem_track[inlier], weights=dist[inlier] ** 2, minlength=T) / n_in)
+    return {"seg3d": seg3d, "sigma": sigma, "groups": groups, "fitted": fitted, "inlier": inlier, "rms": rms,
             "n_ray": ray_angle_views(mem_track, mem_view, mem_segs, u, inlier, views, cfg.min_ray_angle_deg),
             "n_views": np.bincount(key // V, minlength=T)}
 
@@ -61,6 +66,24 @@ def accept_tracks(fit: dict, n_visible: np.ndarray, cfg: LineConfig, rejected: C
         rejected[reason] += int((ok & bad).sum())
         ok &= ~bad
     return ok
+
+
+def exclusive_members(track: np.ndarray, view: np.ndarray, seg: np.ndarray, inlier: np.ndarray,
+                      n_views: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Members [M] to keep so that each (view, segment) belongs to one track: among the tracks
+    it is an inlier of, the one with the most views (then the smallest sigma). Ghost lines of
+    repetitive textures (planks, books) live on segments that belong to real lines; once those
+    are taken they fall below min_views."""
+    keep = np.zeros(len(track), bool)
+    m = np.nonzero(inlier)[0]
+    if len(m) == 0:
+        return keep
+    key = view[m].astype(np.int64) * (int(seg.max()) + 1) + seg[m]
+    order = np.lexsort((sigma[track[m]], -n_views[track[m]], key))
+    k = key[order]
+    first = np.r_[True, k[1:] != k[:-1]]
+    keep[m[order[first]]] = True
+    return keep
 
 
 def _segs(segments: list, view: np.ndarray, seg: np.ndarray, field: str = "segs") -> np.ndarray:
@@ -122,6 +145,12 @@ def build_lines(mem_node: np.ndarray, mem_track: np.ndarray, node_X: np.ndarray,
         timings["lines_merge"] += time.perf_counter() - t0
         return np.zeros((0, 2, 3)), [], np.zeros((0, 3), np.float32)
     S0 = fit["seg3d"][rep]
+    fit = fit_tracks(tr, vw, _segs(segments, vw, sg), S0[:, 0], S0[:, 1] - S0[:, 0], views, cfg)
+    # a 2D segment images one 3D line: it stays only with its strongest track, then refit
+    win = exclusive_members(tr, vw, sg, fit["inlier"], fit["n_views"], fit["sigma"])
+    rejected["shared_segments_dropped"] += int((fit["inlier"] & ~win).sum())
+    tr, vw, sg = tr[win], vw[win], sg[win]
+    S0 = np.where(fit["fitted"][:, None, None], fit["seg3d"], S0)
     fit = fit_tracks(tr, vw, _segs(segments, vw, sg), S0[:, 0], S0[:, 1] - S0[:, 0], views, cfg)
     keep = accept_tracks(fit, n_vis_g, cfg, rejected)
     inl = fit["inlier"]
