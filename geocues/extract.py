@@ -88,6 +88,24 @@ def _line_confidence(lines: LineCues) -> np.ndarray:
     return np.minimum(1.0, lines.n_views[lines.point_line] / 6.0).astype(np.float32)
 
 
+def triangulation_angles(scene: Scene, idx: np.ndarray) -> np.ndarray:
+    """Largest angle (degrees) between two rays that observe each SfM point ``idx`` [M] (indices
+    into scene.points), from the cameras in its track; inf where the model has no tracks."""
+    pts = scene.points
+    cams_of: list[list[int]] = [[] for _ in range(len(pts))]
+    for c, ids in pts.visible_in.items():
+        for k in np.asarray(ids, np.int64).tolist():
+            cams_of[k].append(c)
+    centers = np.array([c.center for c in scene.cameras])
+    out = np.full(len(idx), np.inf)
+    for j, k in enumerate(np.asarray(idx, np.int64)):
+        if len(cams_of[k]) >= 2:
+            r = centers[cams_of[k]] - pts.xyz[k]
+            r /= np.linalg.norm(r, axis=1, keepdims=True)
+            out[j] = np.degrees(np.arccos(np.clip((r @ r.T).min(), -1.0, 1.0)))
+    return out
+
+
 def _per_image_seconds(rows: list[dict], timings: dict[str, float], n_img: int) -> dict:
     """Mean / max seconds per image of the per-image stages (lines: whole stage / images)."""
     out: dict[str, dict] = {}
@@ -206,11 +224,17 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
         line_points=lines.points if lines else None,
         line_of_point=lines.point_line if lines else None,
         line_views=lines.views if lines else None)
+    plane_ok = np.ones(len(anchors), bool)  # anchors the planes may use
+    if not cfg.plane.sfm_anchors:
+        plane_ok &= anchors.cue_type != int(CueType.SFM)
+    elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
+        angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
+        plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
     if cfg.planes:
-        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, anchors, lines, cache,
+        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, anchors, plane_ok, lines, cache,
                                                                timings, notes)
         rejections.update(pr)
 
@@ -251,7 +275,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     return out_dir
 
 
-def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: LineCues | None, cache: Path,
+def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, plane_ok: np.ndarray,
+                 lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str]
                  ) -> tuple[CueCloud, list[dict], dict[str, dict], dict]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
@@ -302,7 +327,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, lines: Line
         timings["depth_align"] += t2 - t1
         row["align_s"] = t2 - t1
         regions = wt.regions
-        pc = cand if cfg.plane.sfm_anchors else cand[~strict[cand]]  # the planes' anchors
+        pc = cand[plane_ok[cand]]  # the planes' anchors
         if lines is not None and cfg.plane.cut_px > 0 and lines_of.get(i):
             regions = split_regions_by_lines(cam, regions, lines.segments[lines_of[i]],
                                              cfg.plane.cut_px * cam.width / 640.0,

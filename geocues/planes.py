@@ -44,6 +44,8 @@ class PlaneConfig:
     """Regions with fewer sampled pixels than this are skipped."""
     sfm_anchors: bool = True
     """Use SfM points as plane anchors besides the line samples (they are biased on weak texture)."""
+    sfm_min_angle_deg: float = 15.0
+    """Plane anchors: only SfM points seen from rays at least this far apart, degrees (0 = all)."""
     anchor_sigma: float = 0.01
     """Assumed error (metres) of one anchor group (a line or an SfM point) when fitting a plane."""
     max_plane_std: float = 0.015

@@ -110,6 +110,22 @@ class TestRun:
             ex.run(tmp_path / "missing", tmp_path / "out")
 
 
+def test_triangulation_angles():
+    """Largest ray angle per SfM point from its track; inf when fewer than two cameras see it."""
+    from types import SimpleNamespace
+
+    from geocues.scene import Points3D
+
+    cams = [SimpleNamespace(center=np.array(c, float)) for c in ([0, 0, 0], [1, 0, 0], [0.1, 0, 0])]
+    pts = Points3D(np.arange(2), np.array([[0.5, 0, 0.5], [0, 0, 10.0]]), np.zeros((2, 3), np.uint8),
+                   np.zeros(2), np.zeros(2, np.int32), {0: np.array([0, 1]), 1: np.array([0])})
+    scene = SimpleNamespace(points=pts, cameras=cams)
+    ang = ex.triangulation_angles(scene, np.array([0, 1]))
+    assert ang[0] == pytest.approx(90.0) and np.isinf(ang[1])
+    pts.visible_in[2] = np.array([1])  # camera 2, 10 cm beside camera 0, also sees point 1
+    assert ex.triangulation_angles(scene, np.array([1]))[0] == pytest.approx(np.degrees(np.arctan2(0.1, 10.0)))
+
+
 class TestHardCases:
     def test_empty_sfm_model(self, tmp_path):
         scene = make_room_scene(tmp_path / "room", n_views=16, priors="all", n_sfm=0)
