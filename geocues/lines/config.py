@@ -69,6 +69,8 @@ class LineConfig:
     """... and consistent segments of that view cover at least this share of its projection."""
     min_support_ratio: float = 0.5
     """Supporting views / views where the hypothesis is checkable (in view, depth-sensitive)."""
+    seed_views: int = 0
+    """Supporting views a two-view hypothesis needs to seed a track (0: min_views)."""
     min_views: int = 6
     """Minimum number of supporting views (including the two that triangulated it) per 3D line."""
     # ---- tracks, merging and output (merge.py)
@@ -97,6 +99,11 @@ class LineConfig:
         """A pixel threshold given at ``reference_width``, scaled to an image ``width`` wide."""
         return float(value) * float(width) / float(self.reference_width)
 
+    @property
+    def min_seed_views(self) -> int:
+        """Supporting views a hypothesis needs to seed a track."""
+        return self.seed_views or self.min_views
+
     def validate(self) -> None:
         """Raise ValueError on an inconsistent configuration."""
         if self.detector not in ("lsd", "fld"):
@@ -105,6 +112,8 @@ class LineConfig:
             raise ValueError(f"matcher must be 'lbd' or 'epipolar', got {self.matcher!r}")
         if self.min_views < 2:
             raise ValueError(f"min_views must be >= 2, got {self.min_views}")
+        if self.seed_views < 0 or 0 < self.seed_views < 2:
+            raise ValueError(f"seed_views must be 0 (= min_views) or >= 2, got {self.seed_views}")
         for name in ("min_length_px", "sample_step", "support_dist_px", "merge_dist_m",
                      "reference_width", "n_neighbors", "topk_matches", "max_segments"):
             if getattr(self, name) <= 0:

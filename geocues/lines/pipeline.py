@@ -95,7 +95,7 @@ def extract_line_cues(scene, cfg: LineConfig | None = None, cache_dir: Path | No
         n_hyp[i] = len(X)
         a = np.nonzero(best >= 0)[0]
         h = best[a]
-        few = n_views[h] < cfg.min_views
+        few = n_views[h] < cfg.min_seed_views
         weak = ~few & (ratio[h] < cfg.min_support_ratio)
         rejected["few_views"] += int(few.sum())
         rejected["low_support_ratio"] += int(weak.sum())
@@ -111,14 +111,14 @@ def extract_line_cues(scene, cfg: LineConfig | None = None, cache_dir: Path | No
 
     t0 = time.perf_counter()
     views = Views(cams)
-    valid = node_nv >= cfg.min_views
+    valid = node_nv >= cfg.min_seed_views
     per_image["segments_with_3d_hypothesis"] = np.bincount(node_view[valid], minlength=len(cams)).tolist()
     edges = np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)
     rank = node_nv + node_ratio  # supporting views, then the support ratio
     mem_node, mem_track, n_isolated = link_tracks(node_X, valid, node_view, rank, edges, views, cfg)
     rejected["isolated_tracks"] += n_isolated
     if len(mem_track) == 0:
-        log.info("lines: no 2D segment has a hypothesis with >= %d supporting views", cfg.min_views)
+        log.info("lines: no 2D segment has a hypothesis with >= %d supporting views", cfg.min_seed_views)
         timings["lines_tracks"] = time.perf_counter() - t0
         return LineCues.empty(dict(rejected), dict(timings), per_image)
     timings["lines_tracks"] += time.perf_counter() - t0

@@ -12,7 +12,7 @@ import numpy as np
 
 from geocues.lines.config import LineConfig
 from geocues.lines.detect import segment_lengths
-from geocues.lines.triangulate import pixel_rays, ray_plane_depth, segment_planes
+from geocues.lines.triangulate import ray_plane_depth, segment_planes
 
 N_SAMPLES = 12  # points per projected hypothesis looked up in a label map
 
