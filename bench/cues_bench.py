@@ -39,6 +39,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from evaluation.cue_metrics import (  # noqa: E402
+    CueMetricsConfig, GroundTruth, coverage, median_or_none, share_within)
 from geocues import extract as ex  # noqa: E402
 from geocues.cue_io import atomic_path, read_cues_ply  # noqa: E402
 from geocues.scene import Scene  # noqa: E402
@@ -115,39 +117,22 @@ def simulated_prior_scene(scene_dir: Path, depth_dir: Path, out: Path, png_scale
     return out
 
 
-def _share(d: np.ndarray, t: float) -> float | None:
-    return float(np.mean(d <= t)) if len(d) else None
-
-
-def _median(d: np.ndarray) -> float | None:
-    return float(np.median(d)) if len(d) else None
-
-
-def measure(cues_dir: Path, scene: Scene, gt_scene, gt_samples: np.ndarray, cfg: BenchConfig) -> dict:
+def measure(cues_dir: Path, gt: GroundTruth, cfg: BenchConfig) -> dict:
     """Accuracy and coverage of one extract output against the GT."""
-    from scipy.spatial import cKDTree
-
-    from evaluation.mesh_metrics import surface_distances
-
     cues = read_cues_ply(cues_dir / "cues.ply")
     rep = json.loads((cues_dir / "report.json").read_text())
-    dist = surface_distances(cues.xyz, gt_scene)[0] if len(cues) else np.zeros(0)
+    dist = gt.distances(cues.xyz)
     out: dict = {"counts": cues.counts()}
     line_d = dist[cues.cue_type == CueType.LINE]
     plane_d = dist[cues.cue_type == CueType.PLANE]
     sfm_d = dist[cues.cue_type == CueType.SFM]
-    out["line"] = {"n": int(len(line_d)), "median_m": _median(line_d), "within_1cm": _share(line_d, 0.01),
-                   "within_2cm": _share(line_d, 0.02), "n_lines": rep["n_lines"]}
-    out["plane"] = {"n": int(len(plane_d)), "median_m": _median(plane_d),
-                    "within_3cm": _share(plane_d, 0.03), "within_5cm": _share(plane_d, 0.05)}
-    out["sfm_after_sor"] = {"n": int(len(sfm_d)), "within_5cm": _share(sfm_d, 0.05)}
-    cov = {}
-    for t in CueType:
-        pts = cues.xyz[cues.cue_type == t]
-        cov[t.name] = (float(np.mean(cKDTree(pts).query(gt_samples, k=1)[0] <= cfg.coverage_dist))
-                       if len(pts) else 0.0)
-    cov["ALL"] = (float(np.mean(cKDTree(cues.xyz).query(gt_samples, k=1)[0] <= cfg.coverage_dist))
-                  if len(cues) else 0.0)
+    out["line"] = {"n": int(len(line_d)), "median_m": median_or_none(line_d), "within_1cm": share_within(line_d, 0.01),
+                   "within_2cm": share_within(line_d, 0.02), "n_lines": rep["n_lines"]}
+    out["plane"] = {"n": int(len(plane_d)), "median_m": median_or_none(plane_d),
+                    "within_3cm": share_within(plane_d, 0.03), "within_5cm": share_within(plane_d, 0.05)}
+    out["sfm_after_sor"] = {"n": int(len(sfm_d)), "within_5cm": share_within(sfm_d, 0.05)}
+    cov = {t.name: coverage(cues.xyz[cues.cue_type == t], gt.samples, cfg.coverage_dist) for t in CueType}
+    cov["ALL"] = coverage(cues.xyz, gt.samples, cfg.coverage_dist)
     out["coverage_5cm"] = cov
     out["seconds"] = rep["seconds"]
     out["line_timings"] = rep.get("line_timings", {})
@@ -157,8 +142,8 @@ def measure(cues_dir: Path, scene: Scene, gt_scene, gt_samples: np.ndarray, cfg:
     out["alignment"] = {
         "images_with_prior": len(rows), "aligned": len(ok),
         "skipped": {k: v for k, v in rep["rejections"].get("depth_align", {}).items()},
-        "residual_median_m": _median(np.array([a["residual_median_m"] for a in ok])),
-        "residual_p90_m_median": _median(np.array([a["residual_p90_m"] for a in ok])),
+        "residual_median_m": median_or_none(np.array([a["residual_median_m"] for a in ok])),
+        "residual_p90_m_median": median_or_none(np.array([a["residual_p90_m"] for a in ok])),
     }
     out["plane_modes"] = rep.get("planes", {}).get("plane_modes", {})
     out["rejections"] = rep["rejections"]
@@ -167,9 +152,6 @@ def measure(cues_dir: Path, scene: Scene, gt_scene, gt_samples: np.ndarray, cfg:
 
 
 def run(cfg: BenchConfig) -> Path:
-    from evaluation.culling import CameraSet, raycasting_scene, visible_mask
-    from evaluation.mesh_metrics import load_mesh, sample_kept_surface, surface_distances
-
     scene_dir = Path(cfg.scene)
     cfg.out.mkdir(parents=True, exist_ok=True)
     if cfg.simulate_priors_from is not None:
@@ -179,23 +161,20 @@ def run(cfg: BenchConfig) -> Path:
     gt_path = Path(cfg.gt) if cfg.gt else scene.gt_mesh_path
     if gt_path is None:
         raise FileNotFoundError(f"no GT mesh: pass --gt or put one at {scene_dir / 'gt' / 'mesh.ply'}")
-    mesh = load_mesh(gt_path)
-    gt_scene = raycasting_scene(mesh.vertices, mesh.faces)
-    cams = CameraSet.from_cameras(scene.cameras)
-    rng = np.random.default_rng(cfg.seed)
     t0 = time.perf_counter()
-    gt_samples, _, seen_frac = sample_kept_surface(
-        mesh, cfg.n_gt_samples, rng, keep=lambda p: visible_mask(p, cams, occluder=gt_scene, tolerance=0.02))
+    gt = GroundTruth(gt_path, scene.cameras, CueMetricsConfig(
+        n_gt_samples=cfg.n_gt_samples, coverage_dist=cfg.coverage_dist, occlusion_tolerance=0.02, seed=cfg.seed))
+    gt_samples, seen_frac = gt.samples, gt.seen_fraction
     log.info("GT: %s, %d samples on the seen %.1f %% of the surface (%.1f s)", gt_path, len(gt_samples),
              100 * seen_frac, time.perf_counter() - t0)
 
-    sfm_all = surface_distances(scene.points.xyz, gt_scene)[0] if len(scene.points) else np.zeros(0)
+    sfm_all = gt.distances(scene.points.xyz)
     result: dict = {
         "scene": str(cfg.scene), "scene_used": str(scene_dir), "gt": str(gt_path),
         "n_images": len(scene.cameras), "image_size": [scene.cameras[0].width, scene.cameras[0].height],
         "priors_simulated": bool(scene.metadata.get("priors", {}).get("simulated", False)),
         "gt_samples": len(gt_samples), "gt_seen_fraction": seen_frac,
-        "sfm_before_sor": {"n": int(len(sfm_all)), "within_5cm": _share(sfm_all, 0.05)},
+        "sfm_before_sor": {"n": int(len(sfm_all)), "within_5cm": share_within(sfm_all, 0.05)},
         "modes": {}, "config": json.loads(json.dumps(asdict(cfg), default=str)),
         "machine": {"cpus": os.cpu_count(), "note": "2 shared cores; other jobs ran at the same time"},
     }
@@ -214,7 +193,7 @@ def run(cfg: BenchConfig) -> Path:
         t = time.perf_counter()
         ex.run(scene_dir, out_dir, ecfg, overwrite=True, cache_dir=cache)
         wall = time.perf_counter() - t
-        m = measure(out_dir, scene, gt_scene, gt_samples, cfg)
+        m = measure(out_dir, gt, cfg)
         m["wall_s"] = wall
         m["cold_cache"] = bool(cfg.fresh and mode == cfg.modes[0])  # first run after clearing the cache
         result["modes"][mode] = m

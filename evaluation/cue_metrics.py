@@ -34,11 +34,13 @@ class CueMetricsConfig:
     """Seed of the GT sampling."""
 
 
-def _share(d: np.ndarray, t: float) -> float | None:
+def share_within(d: np.ndarray, t: float) -> float | None:
+    """Share of distances <= t (None for no distances)."""
     return float(np.mean(d <= t)) if len(d) else None
 
 
-def _median(d: np.ndarray) -> float | None:
+def median_or_none(d: np.ndarray) -> float | None:
+    """Median of the distances (None for no distances)."""
     return float(np.median(d)) if len(d) else None
 
 
@@ -80,8 +82,8 @@ def cue_accuracy(cues: CueCloud, gt: GroundTruth, cfg: CueMetricsConfig) -> dict
     for t in CueType:
         mask = cues.cue_type == t
         d = dist[mask]
-        out["per_type"][t.name] = {"n": int(mask.sum()), "median_m": _median(d),
-                                   **{f"within_{c}cm": _share(d, c / 100) for c in (1, 2, 3, 5)}}
+        out["per_type"][t.name] = {"n": int(mask.sum()), "median_m": median_or_none(d),
+                                   **{f"within_{c}cm": share_within(d, c / 100) for c in (1, 2, 3, 5)}}
         out["coverage"][t.name] = coverage(cues.xyz[mask], gt.samples, cfg.coverage_dist)
     out["coverage"]["ALL"] = coverage(cues.xyz, gt.samples, cfg.coverage_dist)
     out["coverage_dist_m"] = cfg.coverage_dist
@@ -106,7 +108,7 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
     gt = GroundTruth(gt_path, scene.cameras, cfg)
     result = cue_accuracy(read_cues_ply(cues_path), gt, cfg)
     sfm_all = gt.distances(scene.points.xyz)
-    result["sfm_before_sor"] = {"n": int(len(sfm_all)), "within_5cm": _share(sfm_all, 0.05)}
+    result["sfm_before_sor"] = {"n": int(len(sfm_all)), "within_5cm": share_within(sfm_all, 0.05)}
     result.update(cues=str(cues_path), scene=str(scene_dir), gt=str(gt_path))
     report = Path(cues_dir) / "report.json"
     if report.is_file():
