@@ -42,7 +42,8 @@ sys.path.insert(0, str(REPO))
 from evaluation.cue_metrics import (  # noqa: E402
     CueMetricsConfig, GroundTruth, coverage, median_or_none, share_within)
 from geocues import extract as ex  # noqa: E402
-from geocues.cue_io import atomic_path, read_cues_ply  # noqa: E402
+from geocues.atomic import atomic_path  # noqa: E402
+from geocues.cue_io import read_cues_ply  # noqa: E402
 from geocues.scene import Scene  # noqa: E402
 from geocues.types import CueType  # noqa: E402
 

@@ -9,13 +9,12 @@ diffable) and can convert it to binary with pycolmap.
 from __future__ import annotations
 
 import logging
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from geocues.atomic import atomic_dir
 
 log = logging.getLogger(__name__)
 
@@ -149,30 +148,6 @@ def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
     return images, RawPoints(ids, xyz, rgb, err, tlen, tracks)
 
 
-def _atomic_dir(final: Path):
-    """Context: write into a temp sibling folder, then move it over ``final`` (nothing half-written)."""
-    class _Ctx:
-        def __enter__(self):
-            final.parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
-            return self.tmp
-
-        def __exit__(self, exc_type, exc, tb):
-            if exc_type is not None:
-                shutil.rmtree(self.tmp, ignore_errors=True)
-                return False
-            if final.exists():
-                backup = final.with_name(f".{final.name}.old")
-                shutil.rmtree(backup, ignore_errors=True)
-                os.replace(final, backup)
-                os.replace(self.tmp, final)
-                shutil.rmtree(backup, ignore_errors=True)
-            else:
-                os.replace(self.tmp, final)
-            return False
-    return _Ctx()
-
-
 def write_model(model_dir: Path, images: list[RawImage], points: RawPoints | None = None,
                 binary: bool = False) -> Path:
     """Write a COLMAP model (text, or binary via pycolmap) atomically into ``model_dir``.
@@ -184,7 +159,7 @@ def write_model(model_dir: Path, images: list[RawImage], points: RawPoints | Non
     model_dir = Path(model_dir)
     if not images:
         raise ValueError(f"refusing to write an empty model to {model_dir}: no images")
-    with _atomic_dir(model_dir) as tmp:
+    with atomic_dir(model_dir) as tmp:
         cams: dict[int, RawImage] = {}
         for im in images:
             cams.setdefault(im.camera_id, im)

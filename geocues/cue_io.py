@@ -14,16 +14,13 @@ uint8, and the line samples ``points`` [P, 3], ``point_colors`` [P, 3] uint8, ``
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
+from geocues.atomic import atomic_path
 from geocues.types import CueType
 
 log = logging.getLogger(__name__)
@@ -39,21 +36,6 @@ _NP_TO_PLY = {"f4": "float", "f8": "double", "u1": "uchar", "i1": "char", "u2": 
               "i2": "short", "u4": "uint", "i4": "int"}
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path``; on success rename it onto ``path`` (atomic on POSIX),
-    on error remove it. The temp name keeps the suffix so writers that append one (np.savez) agree."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 @dataclass

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from geocues.cue_io import CueCloud, atomic_path, write_cues_ply, write_lines_npz
+from geocues.atomic import atomic_path
+from geocues.cue_io import CueCloud, write_cues_ply, write_lines_npz
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample

@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from geocues import sfm_steps as U
-from geocues.colmap_io import _atomic_dir, find_model_dir
+from geocues.atomic import atomic_dir, atomic_path
+from geocues.colmap_io import find_model_dir
 from geocues.scene import IMAGE_EXTS
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -288,7 +289,7 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
 
     # ---- write
     target = (model_dir if in_place and model_dir is not None else root / "sparse" / "0")
-    with _atomic_dir(target) as tmp_model:
+    with atomic_dir(target) as tmp_model:
         (rec.write_binary if cfg.binary else rec.write_text)(str(tmp_model))
     report = summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
                          n_verified=n_verified, seconds=seconds)
@@ -297,9 +298,8 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
     gt = root / "gt" / "mesh.ply"
     if cfg.check_gt and gt.is_file() and report["points"] > 0:
         report["gt_check"] = distance_to_mesh_stats(points_xyz(rec), gt)
-    tmp_report = root / ".sfm_report.json.tmp"
-    tmp_report.write_text(json.dumps(report, indent=2))
-    os.replace(tmp_report, root / "sfm_report.json")
+    with atomic_path(root / "sfm_report.json") as tmp_report:
+        tmp_report.write_text(json.dumps(report, indent=2))
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],
              sum(seconds.values()))

@@ -237,7 +237,7 @@ def load_or_compute(image_path: Path, load_image, cfg: TextureConfig, cache_dir:
                     size: tuple[int, int]) -> tuple[WeakTexture, bool]:
     """Weak texture of one image, from ``cache_dir`` when present. ``load_image()`` returns the RGB
     image; ``size`` = (width, height) is part of the key. Returns (result, came_from_cache)."""
-    from geocues.cue_io import atomic_path
+    from geocues.atomic import atomic_path
 
     path = None
     if cache_dir is not None:

@@ -14,7 +14,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from geocues.colmap_io import PINHOLE_MODELS, _atomic_dir, find_model_dir
+from geocues.atomic import atomic_dir
+from geocues.colmap_io import PINHOLE_MODELS, find_model_dir
 
 log = logging.getLogger(__name__)
 
@@ -68,10 +69,10 @@ def run(scene_dir: Path, out_dir: Path, cfg: UndistortConfig = UndistortConfig()
         pycolmap.undistort_images(str(tmp), str(model_dir), str(image_dir), output_type="COLMAP",
                                   copy_policy=pycolmap.FileCopyType.copy, undistort_options=opts)
         new = pycolmap.Reconstruction(str(tmp / "sparse"))
-        with _atomic_dir(out_dir / "images") as img_tmp:
+        with atomic_dir(out_dir / "images") as img_tmp:
             img_tmp.rmdir()
             shutil.move(str(tmp / "images"), str(img_tmp))
-        with _atomic_dir(out_dir / "sparse" / "0") as model_tmp:
+        with atomic_dir(out_dir / "sparse" / "0") as model_tmp:
             (new.write_binary if cfg.binary else new.write_text)(str(model_tmp))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -122,7 +122,8 @@ def make_room(out: str | Path, cfg: RoomConfig = RoomConfig(), overwrite: bool =
     """Generate, render and write the room scene folder ``out``; return its path."""
     import cv2
 
-    from geocues.colmap_io import RawImage, _atomic_dir, write_model
+    from geocues.atomic import atomic_dir
+    from geocues.colmap_io import RawImage, write_model
 
     out = Path(out)
     _check(cfg)
@@ -141,7 +142,7 @@ def make_room(out: str | Path, cfg: RoomConfig = RoomConfig(), overwrite: bool =
     prior_rngs = [np.random.default_rng(s) for s in ss_priors.spawn(cfg.n_views)]
     rays = pixel_directions(K, cfg.width, cfg.height, np.array([[0.5, 0.5]]))[:, :, 0]  # [H, W, 3]
 
-    with _atomic_dir(out) as tmp:
+    with atomic_dir(out) as tmp:
         for sub in ("images", "gt/depth", "gt/normal", "priors/depth", "priors/normal"):
             (tmp / sub).mkdir(parents=True)
         room.mesh.write_ply(tmp / "gt" / "mesh.ply")

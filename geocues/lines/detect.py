@@ -11,8 +11,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +18,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from geocues.atomic import atomic_path
 from geocues.lines.config import LineConfig
 
 log = logging.getLogger(__name__)
@@ -199,13 +198,9 @@ def cache_key(cfg: LineConfig, width: int, height: int, with_normals: bool) -> s
 
 
 def _save_npz(path: Path, seg: Segments2D, counts: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-    os.close(fd)
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, segs=seg.segs, source=seg.source, desc=seg.desc, colors=seg.colors,
                  counts=np.array([counts["rgb"], counts["normal"], counts["duplicates"]]))
-    os.replace(tmp, path)  # atomic
 
 
 def detect_all(scene, cfg: LineConfig, cache_dir: Path | None = None) -> tuple[list[Segments2D], dict]:
