@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from splat.camera import Camera
-from splat.sh import sh_degree_of, sh_to_rgb
+from splat.sh import num_sh_bases, sh_degree_of, sh_to_rgb
 
 PARAM_KEYS = ("means", "quats", "scales", "opacities", "sh0", "shN")
 FLAT_VARIANCE = 1e-8  # RaDe-GS: smallest variance (m^2) below which a Gaussian is treated as flat
@@ -207,12 +207,15 @@ def _scatter_rows(rows: Tensor, values: Tensor, n: int, fill: float = 0.0) -> Te
 
 
 def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: int | None = None,
-                      config: ProjectionConfig | None = None) -> Projected:
+                      config: ProjectionConfig | None = None, backend: str = "torch") -> Projected:
     """Project every Gaussian of ``params`` (gsplat naming, see docs/rasterizer.md) into ``camera``.
 
     Two stages: culling for all Gaussians without autograd (depth range, radius box on the image),
     then the differentiable projection, colour and depth plane for the visible ones only. Culled
     Gaussians get radius 0 and zeros elsewhere (depth 1.0), and no gradient.
+
+    ``backend="cpu"`` runs the same computation fused in C++ (:mod:`splat.project_cpu`; CPU
+    tensors, no camera gradients); it falls back to this torch code when the camera requires grad.
     """
     cfg = config or ProjectionConfig()
     n = check_params(params)
@@ -220,6 +223,16 @@ def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: i
     dtype, device = means.dtype, means.device
     if sh_degree is None:
         sh_degree = sh_degree_of(params["shN"])
+    elif num_sh_bases(sh_degree) > params["shN"].shape[1] + 1:
+        raise ValueError(f"SH degree {sh_degree} needs {num_sh_bases(sh_degree)} coefficients, "
+                         f"have {params['shN'].shape[1] + 1}")
+    if backend not in ("torch", "cpu"):
+        raise ValueError(f"projection backend must be 'torch' or 'cpu', got {backend!r}")
+    camera_grad = any(t is not None and t.requires_grad for t in (camera.K, camera.viewmat, camera.center))
+    if backend == "cpu" and device.type == "cpu" and not camera_grad:
+        from splat.project_cpu import project_gaussians_cpu
+
+        return project_gaussians_cpu(params, camera, sh_degree, cfg)
     cam = Camera(K=camera.K.to(device=device, dtype=dtype), viewmat=camera.viewmat.to(device=device, dtype=dtype),
                  width=camera.width, height=camera.height, center=camera.center.to(device=device, dtype=dtype))
     with torch.no_grad():

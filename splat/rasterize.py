@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from splat.camera import Camera
-from splat.composite import composite
+from splat.composite import composite, resolve_backend
 from splat.projection import ProjectionConfig, project_gaussians
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,9 @@ def render(
 ) -> dict[str, Tensor]:
     """Render one view of the Gaussians ``params`` (keys means, quats, scales, opacities, sh0, shN).
 
+    ``backend`` picks the projection and compositing code: "torch" (reference, any device), "cpu"
+    (C++ kernels, CPU tensors), "auto" ("cpu" when it builds and the tensors are on the CPU).
+
     Returns a dict (H, W = camera.height, camera.width):
       rgb [H, W, 3]           colour, background [3] (default black) blended behind
       depth [H, W]            expected z-depth in metres, NORMALISED by alpha (sum w d / sum w);
@@ -67,7 +70,8 @@ def render(
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a splat.camera.Camera, got {type(camera).__name__}")
     cfg = ProjectionConfig(near=near, far=far, eps2d=eps2d, antialiased=antialiased)
-    proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg)
+    backend = resolve_backend(backend, params["means"].device) if "means" in params else backend
+    proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg, backend=backend)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()  # for densification (accumulated screen-space gradients)

@@ -178,11 +178,13 @@ def test_build_failure_raises_import_error_with_compiler_message(cpu, tmp_path, 
     """A source that does not compile gives ImportError carrying the compiler's message."""
     bad = tmp_path / "bad.cpp"
     bad.write_text("#error deliberate_build_failure_marker\n")
+    from splat import cpu_ext
+
     monkeypatch.setenv("INDOORGS_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(cpu, "SOURCE", bad)
-    assert cpu.build_dir().parent == tmp_path / "cache" / "torch_extensions" / cpu.EXT_NAME
+    monkeypatch.setattr(cpu_ext, "SOURCES", (bad,))
+    assert cpu_ext.build_dir().parent == tmp_path / "cache" / "torch_extensions" / cpu_ext.EXT_NAME
     with pytest.raises(ImportError, match="deliberate_build_failure_marker"):
-        cpu._build()
+        cpu_ext._build()
 
 
 def test_render_matches_torch_backend_on_room_surfaces(cpu):

@@ -336,9 +336,3 @@ std::vector<torch::Tensor> composite_backward(
   torch::Tensor d_bg = tile_bg.sum(0);  // [C]
   return {d_means, d_conics, d_opac, d_feat, d_bg, d_medf};
 }
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "Tile-based CPU alpha compositing of 2D Gaussians (forward + analytic backward)";
-  m.def("forward", &composite_forward, "composite forward (see splat/composite.py)");
-  m.def("backward", &composite_backward, "composite backward (see splat/composite.py)");
-}
