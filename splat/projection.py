@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from splat.camera import Camera
+from splat.composite import cpu_backend_available
 from splat.sh import num_sh_bases, sh_degree_of, sh_to_rgb
 
 PARAM_KEYS = ("means", "quats", "scales", "opacities", "sh0", "shN")
@@ -215,7 +216,8 @@ def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: i
     Gaussians get radius 0 and zeros elsewhere (depth 1.0), and no gradient.
 
     ``backend="cpu"`` runs the same computation fused in C++ (:mod:`splat.project_cpu`; CPU
-    tensors, no camera gradients); it falls back to this torch code when the camera requires grad.
+    tensors, no camera gradients); it falls back to this torch code when the camera requires grad
+    or the C++ extension cannot be built (the compositing dispatcher has logged why).
     """
     cfg = config or ProjectionConfig()
     n = check_params(params)
@@ -229,8 +231,8 @@ def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: i
     if backend not in ("torch", "cpu"):
         raise ValueError(f"projection backend must be 'torch' or 'cpu', got {backend!r}")
     camera_grad = any(t is not None and t.requires_grad for t in (camera.K, camera.viewmat, camera.center))
-    if backend == "cpu" and device.type == "cpu" and not camera_grad:
-        from splat.project_cpu import project_gaussians_cpu
+    if backend == "cpu" and device.type == "cpu" and not camera_grad and cpu_backend_available():
+        from splat.project_cpu import project_gaussians_cpu  # built with the compositing kernel
 
         return project_gaussians_cpu(params, camera, sh_degree, cfg)
     cam = Camera(K=camera.K.to(device=device, dtype=dtype), viewmat=camera.viewmat.to(device=device, dtype=dtype),
