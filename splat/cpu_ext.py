@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 EXT_NAME = "indoorgs_cpu"
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "bindings.cpp")
-HEADERS = (CSRC / "composite_cpu.h",)
+HEADERS = (CSRC / "composite_cpu.h", CSRC / "kernels.h")
 # -ffp-contract=off: forward and backward must evaluate alpha bit-identically (same skip decisions).
 # SSE4.2 (every x86-64 CPU since ~2009) gives inline floor/ceil; not -march=native, so that a cached
 # build stays valid when the repository moves to another x86-64 machine.

@@ -1,34 +1,6 @@
 // Python bindings of the CPU rasterizer extension (splat/cpu_ext.py builds it).
 
-#include <torch/extension.h>
-
-#include <vector>
-
-std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics,
-                                             torch::Tensor opacities, torch::Tensor features,
-                                             torch::Tensor depths, torch::Tensor radii,
-                                             torch::Tensor background, torch::Tensor median_features,
-                                             int64_t W, int64_t H);
-std::vector<torch::Tensor> composite_backward(
-    torch::Tensor grad_out, torch::Tensor grad_alpha, torch::Tensor grad_median,
-    torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities, torch::Tensor features,
-    torch::Tensor radii, torch::Tensor background, torch::Tensor median_features,
-    torch::Tensor final_T, torch::Tensor last, torch::Tensor median_idx, torch::Tensor tile_offsets,
-    torch::Tensor slot_rank, torch::Tensor g_order, torch::Tensor g_start, torch::Tensor g_slots,
-    int64_t W, int64_t H);
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats,
-                                           torch::Tensor log_scales, torch::Tensor opacities,
-                                           torch::Tensor sh0, torch::Tensor shN, torch::Tensor R,
-                                           torch::Tensor C, torch::Tensor K, int64_t W, int64_t H,
-                                           double near, double far, double eps2d, double min_cos,
-                                           bool antialiased, int64_t sh_degree);
-std::vector<torch::Tensor> project_backward(
-    torch::Tensor means, torch::Tensor quats, torch::Tensor log_scales, torch::Tensor opacities,
-    torch::Tensor sh0, torch::Tensor shN, torch::Tensor R, torch::Tensor C, torch::Tensor K,
-    torch::Tensor radii, torch::Tensor g_m2, torch::Tensor g_con, torch::Tensor g_z,
-    torch::Tensor g_op, torch::Tensor g_col, torch::Tensor g_sl, torch::Tensor g_nrm, int64_t W,
-    int64_t H, double near, double far, double eps2d, double min_cos, bool antialiased,
-    int64_t sh_degree);
+#include "kernels.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "CPU rasterizer kernels: tile-based alpha compositing and fused Gaussian projection "

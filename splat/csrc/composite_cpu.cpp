@@ -9,6 +9,7 @@
 // results do not depend on the thread count or schedule.
 
 #include "composite_cpu.h"
+#include "kernels.h"
 
 #include <ATen/Parallel.h>
 

@@ -11,6 +11,7 @@
 // when the camera requires grad).
 
 #include <torch/extension.h>
+#include "kernels.h"
 
 #include <omp.h>
 
