@@ -71,7 +71,7 @@ def _load_cpu_backend():
     global _cpu_module, _cpu_error
     if _cpu_module is None and _cpu_error is None:
         try:
-            from splat import composite_cpu  # lazy: building takes ~30 s the first time
+            from splat import composite_cpu  # lazy: building takes about a minute the first time
 
             _cpu_module = composite_cpu
         except Exception as exc:  # noqa: BLE001 - any build/import failure means "fall back"
