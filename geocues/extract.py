@@ -29,7 +29,7 @@ from geocues.atomic import atomic_path
 from geocues.cue_io import CueCloud, write_cues_ply, write_lines_npz
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
-from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample
+from geocues.plane_merge import consolidate_planes, multiview_conflict, multiview_support, voxel_downsample
 from geocues.plane_regions import split_regions_by_lines
 from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
 from geocues.scene import Scene
@@ -139,12 +139,18 @@ def _merge_planes(scene: Scene, cfg: PlaneConfig, xyz: list, rgb: list, nrm: lis
             rej["points_on_planes_seen_in_too_few_images"] = int(lone.sum())
             X, C, N, P = X[~lone], C[~lone], N[~lone], P[~lone]
     view = PV[P]
-    if cfg.min_views > 1:  # multi-view consistency of the planes of different images
-        support = multiview_support(X, view, cfg.support_radius, cfg.voxel_size)
-        few = support < cfg.min_views
-        if few.any():
-            rej["points_seen_by_fewer_images"] = int(few.sum())
-            X, C, N, view = X[~few], C[~few], N[~few], view[~few]
+    drop = np.zeros(len(X), bool)  # multi-view consistency of the planes of different images:
+    if cfg.min_views > 1:  # enough images put the same plane there ...
+        few = multiview_support(X, view, cfg.support_radius, cfg.voxel_size, normal=N,
+                                max_angle_deg=cfg.support_angle_deg) < cfg.min_views
+        rej["points_seen_by_fewer_images"] = int(few.sum())
+        drop |= few
+    if cfg.conflict_radius > 0:  # ... and no more images put the surface elsewhere (votes of all images)
+        agree, disagree = multiview_conflict(X, view, N, cfg.conflict_radius, cfg.support_radius,
+                                             cfg.support_angle_deg, cfg.voxel_size)
+        rej["points_outvoted_by_other_images"] = int((~drop & (agree < disagree)).sum())
+        drop |= agree < disagree
+    X, C, N, view = X[~drop], C[~drop], N[~drop], view[~drop]
     vx, vc, vn, nv = voxel_downsample(X, C, N, view, cfg.voxel_size)
     return CueCloud.make(vx, vc, CueType.PLANE, normal=vn, confidence=np.minimum(1.0, nv / 3.0)), rej
 

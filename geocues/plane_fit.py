@@ -151,3 +151,33 @@ def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
     order = np.argsort(x)
     cw = np.cumsum(w[order])
     return float(x[order][min(np.searchsorted(cw, 0.5 * cw[-1]), len(x) - 1)])
+
+
+def loo_group_residuals(points: np.ndarray, groups: np.ndarray, n0: np.ndarray, sigma: float,
+                        max_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-group-out test of a plane's anchors (prior-free plane cues, our addition).
+
+    For every anchor group g (a line, or an SfM point), fit the plane to the *other* groups
+    (:class:`AnchoredPlane`) and measure how far it passes from g:
+
+        r_g = | mean_{i ∈ g} (n₋g · p_i + d₋g) |
+
+    A fitted plane passes close to every anchor it was fitted to, the more so the fewer the anchors
+    (each one pulls the plane towards itself): in-sample residuals cannot tell a plane from a
+    surface that bends, or from anchors on two surfaces (a wall and the edge of a chair in front
+    of it). The held-out residual can. Where the other groups do not pin the plane down at g
+    (offset std there > ``max_std``, the bound the plane stage keeps pixels under), g is needed to
+    fix the plane and cannot be tested: r_g is NaN, as it is for every group when there are fewer
+    than three. points: [A, 3], groups: [A], n0: [3] start normal. Returns (unique groups [G],
+    r [G] in metres)."""
+    ug, gi = np.unique(groups, return_inverse=True)
+    gi = gi.ravel()
+    r = np.full(len(ug), np.nan)
+    if len(ug) < 3:
+        return ug, r
+    for k in range(len(ug)):
+        held = gi == k
+        ap = AnchoredPlane(points[~held], group_weights(groups[~held]), n0, sigma)
+        if np.mean(ap.std_at(points[held])) <= max_std:
+            r[k] = abs(float(np.mean(points[held] @ ap.n + ap.d)))
+    return ug, r

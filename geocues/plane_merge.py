@@ -1,7 +1,10 @@
 """Merging the plane-like points of all images (paper §4.1, "voxel-downsample").
 
 :func:`voxel_downsample` merges points per voxel and counts the images that support each voxel
-(the PLANE cues' confidence).
+(the PLANE cues' confidence). Before that, the planes of different images check each other:
+:func:`multiview_support` (enough images put the same plane -- position and orientation -- near a
+point) and :func:`multiview_conflict` (no more images put the surface elsewhere there);
+:func:`consolidate_planes` optionally fuses the planes of one surface.
 """
 
 from __future__ import annotations
@@ -105,20 +108,10 @@ def consolidate_planes(xyz: np.ndarray, plane_of: np.ndarray, planes: np.ndarray
     return out, face, views_of[pc]
 
 
-def multiview_support(xyz: np.ndarray, view: np.ndarray, radius: float, voxel: float, k: int = 32
-                      ) -> np.ndarray:
-    """Number of images that put a plane point within ``radius`` of each point (its own included).
-
-    Planes found independently in several images agree where they are right; a wrong plane (a bad
-    anchor, a region straddling two surfaces) is rarely repeated by other images. Points are first
-    merged per (voxel, image); the count looks at the ``k`` nearest merged points, so it saturates
-    near k / (points one image puts within ``radius``). xyz: [N, 3], view: [N]. Returns [N] int."""
-    from scipy.spatial import cKDTree
-
-    xyz = np.asarray(xyz, np.float64)
-    if len(xyz) == 0:
-        return np.zeros(0, np.int64)
-    view = np.asarray(view, np.int64)
+def _merge_per_view(xyz: np.ndarray, view: np.ndarray, voxel: float, normal: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Points merged per (voxel, image): (centres [M, 3], image [M], row of each point [N], unit
+    normal of the first point of each [M, 3] or None)."""
     keys = np.floor(xyz / voxel).astype(np.int64)
     keys -= keys.min(axis=0)
     span = keys.max(axis=0) + 1
@@ -128,13 +121,79 @@ def multiview_support(xyz: np.ndarray, view: np.ndarray, radius: float, voxel: f
     inv = inv.ravel()
     cnt = np.bincount(inv).astype(np.float64)
     cen = np.stack([np.bincount(inv, weights=xyz[:, j]) for j in range(3)], axis=1) / cnt[:, None]
-    cview = uk % nv  # [M] image of each merged point
+    cn = None
+    if normal is not None:
+        first = np.zeros(len(uk), np.int64)
+        first[inv[::-1]] = np.arange(len(inv))[::-1]
+        cn = np.asarray(normal, np.float64)[first]
+        cn /= np.maximum(np.linalg.norm(cn, axis=1, keepdims=True), 1e-12)
+    return cen, uk % nv, inv, cn
+
+
+def _distinct(views: np.ndarray) -> np.ndarray:
+    """Number of distinct values >= 0 in each row of views [M, k]."""
+    views = np.sort(views, axis=1)
+    return (views[:, :1] >= 0).astype(np.int64).ravel() + np.sum(
+        (views[:, 1:] != views[:, :-1]) & (views[:, 1:] >= 0), axis=1)
+
+
+def multiview_support(xyz: np.ndarray, view: np.ndarray, radius: float, voxel: float, k: int = 32,
+                      normal: np.ndarray | None = None, max_angle_deg: float = 180.0) -> np.ndarray:
+    """Number of images that put a plane point within ``radius`` of each point (its own included),
+    with a plane normal within ``max_angle_deg`` of the point's own (when ``normal`` [N, 3] is given).
+
+    Planes found independently in several images agree where they are right; a wrong plane (a bad
+    anchor, a region straddling two surfaces) is rarely repeated by other images. Position alone is
+    a weak test: the planes of different images that cut a curved surface, or that are tilted
+    through a wall and an object in front of it, cross each other near the surface, and every
+    crossing band would count as support. Two planes of one surface agree in orientation too.
+    Points are first merged per (voxel, image), with the normal of the first point there; the count
+    looks at the ``k`` nearest merged points, so it saturates near k / (points one image puts within
+    ``radius``). xyz: [N, 3], view: [N]. Returns [N] int."""
+    from scipy.spatial import cKDTree
+
+    xyz = np.asarray(xyz, np.float64)
+    if len(xyz) == 0:
+        return np.zeros(0, np.int64)
+    if normal is not None and np.shape(normal) != xyz.shape:
+        raise ValueError(f"normal must be {xyz.shape}, got {np.shape(normal)}")
+    cen, cview, inv, cn = _merge_per_view(xyz, np.asarray(view, np.int64), voxel, normal)
     kk = min(k, len(cen))
     dist, nn = cKDTree(cen).query(cen, k=kk, distance_upper_bound=radius)
-    nn = nn.reshape(len(cen), kk)
+    nn = np.minimum(nn.reshape(len(cen), kk), len(cen) - 1)
     valid = np.isfinite(dist.reshape(len(cen), kk))
-    views = np.where(valid, cview[np.minimum(nn, len(cen) - 1)], -1)  # [M, kk]
-    views.sort(axis=1)
-    distinct = (views[:, :1] >= 0).astype(np.int64).ravel() + np.sum(
-        (views[:, 1:] != views[:, :-1]) & (views[:, 1:] >= 0), axis=1)
-    return distinct[inv]
+    if cn is not None and max_angle_deg < 180.0:
+        valid &= np.abs(np.einsum("mj,mkj->mk", cn, cn[nn])) >= np.cos(np.radians(max_angle_deg))
+    return _distinct(np.where(valid, cview[nn], -1))[inv]
+
+
+def multiview_conflict(xyz: np.ndarray, view: np.ndarray, normal: np.ndarray, radius: float,
+                       offset: float, max_angle_deg: float, voxel: float, k: int = 64
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Images whose planes agree / disagree with each point (a majority vote of the images).
+
+    Within ``radius`` of a point X with normal n, another image's plane point Y agrees when it lies
+    on the same plane -- angle(n, n_Y) <= ``max_angle_deg`` and |n·(Y − X)| <= ``offset`` -- and
+    disagrees otherwise. Agreement alone can be had by a wrong plane that several images repeat
+    (they share an anchor off the surface); images whose planes put the surface elsewhere there
+    are evidence against it. Points are merged per (voxel, image) first; the vote is over the
+    images among the ``k`` nearest merged points (a sample of the images when more are near).
+    xyz, normal: [N, 3]; view: [N]. Returns (agreeing images [N], disagreeing images [N]); the
+    point's own image agrees."""
+    from scipy.spatial import cKDTree
+
+    xyz = np.asarray(xyz, np.float64)
+    if len(xyz) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if np.shape(normal) != xyz.shape:
+        raise ValueError(f"normal must be {xyz.shape}, got {np.shape(normal)}")
+    cen, cview, inv, cn = _merge_per_view(xyz, np.asarray(view, np.int64), voxel, normal)
+    kk = min(k, len(cen))
+    dist, nn = cKDTree(cen).query(cen, k=kk, distance_upper_bound=radius)
+    nn = np.minimum(nn.reshape(len(cen), kk), len(cen) - 1)
+    valid = np.isfinite(dist.reshape(len(cen), kk))
+    same = (np.abs(np.einsum("mj,mkj->mk", cn, cn[nn])) >= np.cos(np.radians(max_angle_deg))) \
+        & (np.abs(np.einsum("mj,mkj->mk", cn, cen[nn] - cen[:, None])) <= offset)
+    agree = _distinct(np.where(valid & same, cview[nn], -1))
+    disagree = _distinct(np.where(valid & ~same, cview[nn], -1))
+    return agree[inv], disagree[inv]

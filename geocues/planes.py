@@ -9,11 +9,13 @@ Two modes per image (details and the reasons for each choice in docs/geocues.md)
   pixels' rays with it;
 * **prior-free** (:func:`plane_cues_prior_free`): fit the plane of the line / SfM cues that border
   or project into the region (group-weighted RANSAC, then the same anchored fit) and intersect the
-  region's pixel rays with it (:func:`~geocues.plane_fit.ray_plane_depth`).
+  region's pixel rays with it (:func:`~geocues.plane_fit.ray_plane_depth`); anchor groups that
+  the plane of the others does not predict are dropped first (leave-one-group-out test,
+  :func:`~geocues.plane_fit.loo_group_residuals`).
 
 Both keep a pixel only where the anchors pin the plane down (offset std and anchor hull). Regions
 can first be cut along projected 3D lines (:func:`split_regions_by_lines`). Merging across images
-(multi-view support, voxel grid) is in ``geocues.plane_merge``. Every rejected region or plane is
+(multi-view support and conflict votes, voxel grid) is in ``geocues.plane_merge``. Every rejected region or plane is
 counted under a reason.
 """
 
@@ -24,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights, ray_plane_depth,
-                               weighted_median)
+from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights,
+                               loo_group_residuals, ray_plane_depth, weighted_median)
 from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids, on_occluder, region_pixels
 from geocues.scene import Camera
 
@@ -98,6 +100,11 @@ class PlaneConfig:
     """Prior-free: RANSAC inlier distance (metres) of the plane fitted to the anchors."""
     free_min_inlier_ratio: float = 0.3
     """Prior-free: the plane must hold at least this (group-weighted) share of the region's anchors."""
+    free_loo_dist: float = 0.02
+    """Prior-free: the plane fitted to the other inlier lines / SfM points must pass within this
+    distance (metres) of each one (leave-one-group-out test; 0 = off)."""
+    free_loo_drop: bool = True
+    """Prior-free: drop the anchor groups that fail that test, worst first (False: reject the plane)."""
     free_local_k: int = 8
     """Prior-free: keep a pixel if most of its k nearest anchors in the image are plane inliers (0 = off)."""
     free_local_ratio: float = 0.6
@@ -115,6 +122,11 @@ class PlaneConfig:
     """Keep plane points that at least this many images (itself included) put within support_radius."""
     support_radius: float = 0.02
     """Radius (metres) of that multi-view agreement test."""
+    support_angle_deg: float = 5.0
+    """... and whose plane normals differ from the point's by at most this angle (degrees; 180 = off)."""
+    conflict_radius: float = 0.05
+    """Drop plane points for which fewer images agree (same plane: support_angle_deg, support_radius
+    along the normal) than disagree, among the images with plane points this close (metres; 0 = off)."""
 
 
 @dataclass
@@ -258,6 +270,42 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     return out.result(n_regions, accepted, rej)
 
 
+def _lacks_evidence(a_c: np.ndarray, grp: np.ndarray, inl: np.ndarray, cfg: PlaneConfig) -> str | None:
+    """Why the inlier anchors ``inl`` [a] (camera frame a_c [a, 3], groups grp [a]) cannot fix a
+    plane, or None when they can (prior-free plane cues)."""
+    w = group_weights(grp)
+    if w[inl].sum() < cfg.free_min_inlier_ratio * w.sum() or inl.sum() < cfg.free_min_anchors:
+        return "anchors_not_coplanar"
+    groups = np.unique(grp[inl])  # >= 0: line index, < 0: SfM point
+    n_lines, n_points = int(np.sum(groups >= 0)), int(np.sum(groups < 0))
+    if len(groups) < cfg.free_min_groups or (n_lines <= 1 and n_points < cfg.free_min_off_line):
+        return "single_line"  # one line (plus a stray point) does not fix a plane
+    if n_points < cfg.free_min_off_line and not lines_confirm_plane(a_c[inl], grp[inl]):
+        return "only_parallel_lines"  # two parallel lines are always coplanar: no evidence
+    return None
+
+
+def _held_out_inliers(a_c: np.ndarray, grp: np.ndarray, inl: np.ndarray, n0: np.ndarray,
+                      cfg: PlaneConfig) -> tuple[np.ndarray, str | None]:
+    """Leave-one-group-out test of the inlier anchors (:func:`loo_group_residuals`): while the plane
+    of the other inlier groups misses some group by more than ``free_loo_dist``, drop the worst
+    one (``free_loo_drop``; otherwise reject the plane) and re-check that the rest still fixes a
+    plane. Returns (inlier mask, None) or (mask, rejection reason)."""
+    inl = inl.copy()
+    while True:
+        ug, r = loo_group_residuals(a_c[inl], grp[inl], n0, cfg.anchor_sigma, cfg.max_plane_std)
+        r = np.nan_to_num(r, nan=0.0)  # groups the others cannot pin down are not tested
+        k = int(np.argmax(r)) if len(r) else 0
+        if len(r) == 0 or r[k] <= cfg.free_loo_dist:
+            return inl, None
+        if not cfg.free_loo_drop:
+            return inl, "anchors_fail_held_out_test"
+        inl &= grp != ug[k]
+        why = _lacks_evidence(a_c, grp, inl, cfg)
+        if why is not None:
+            return inl, "anchors_fail_held_out_test"
+
+
 def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           anchors_xyz: np.ndarray, anchors_group: np.ndarray, cfg: PlaneConfig,
                           seed: int = 0, inside_only: np.ndarray | None = None) -> PlanePoints:
@@ -296,21 +344,15 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
             continue
         a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3] camera frame
         grp = anchors_group[a_ids]
-        n_c, d_c, inl, frac = fit_plane_groups(a_c, grp, cfg.free_ransac_dist, rng)
+        n_c, d_c, inl, _ = fit_plane_groups(a_c, grp, cfg.free_ransac_dist, rng)
         _, ginv = np.unique(grp, return_inverse=True)
         share = np.bincount(ginv, weights=inl) / np.bincount(ginv)  # inlier share of each group
         inl &= share[ginv] >= 0.6  # a line supports the plane only if it lies in it, not if it crosses it
-        frac = float(group_weights(grp)[inl].sum() / max(group_weights(grp).sum(), 1e-12))
-        if frac < cfg.free_min_inlier_ratio or inl.sum() < cfg.free_min_anchors:
-            _bump(rej, "anchors_not_coplanar")
-            continue
-        groups = np.unique(grp[inl])  # >= 0: line index, < 0: SfM point
-        n_lines, n_points = int(np.sum(groups >= 0)), int(np.sum(groups < 0))
-        if len(groups) < cfg.free_min_groups or (n_lines <= 1 and n_points < cfg.free_min_off_line):
-            _bump(rej, "single_line")  # one line (plus a stray point) does not fix a plane
-            continue
-        if n_points < cfg.free_min_off_line and not lines_confirm_plane(a_c[inl], grp[inl]):
-            _bump(rej, "only_parallel_lines")  # two parallel lines are always coplanar: no evidence
+        why = _lacks_evidence(a_c, grp, inl, cfg)
+        if why is None and cfg.free_loo_dist > 0:
+            inl, why = _held_out_inliers(a_c, grp, inl, n_c, cfg)
+        if why is not None:
+            _bump(rej, why)
             continue
         ap = AnchoredPlane(a_c[inl], group_weights(grp[inl]), n_c, cfg.anchor_sigma)
         n_c, d_c = ap.n, ap.d

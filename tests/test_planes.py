@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from geocues.depth_align import Anchors
-from geocues.plane_fit import AnchoredPlane, fit_plane_groups, fit_plane_ransac, ray_plane_depth
-from geocues.plane_merge import consolidate_planes, multiview_support, voxel_downsample
+from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, loo_group_residuals,
+                               ray_plane_depth)
+from geocues.plane_merge import consolidate_planes, multiview_conflict, multiview_support, voxel_downsample
 from geocues.plane_regions import split_regions_by_lines
-from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
+from geocues.planes import PlaneConfig, _held_out_inliers, plane_cues_prior_free, plane_cues_with_prior
 from geocues.scene import Scene
 from geocues.texture import TextureConfig, weak_texture_regions
 
@@ -125,6 +126,46 @@ class TestGeometry:
         assert np.all(nv == 2) and np.abs(out[:, 1]).max() < 1e-9
         assert np.all(nrm[:, 1] < -0.99)  # facing the cameras at y = -3
 
+    def test_multiview_support_needs_the_same_orientation(self):
+        """Regression (ICL, issue 3): planes of different images tilted through a wall and a chair
+        in front of it cross the wall, and near the crossing every image 'supported' the others."""
+        rng = np.random.default_rng(2)
+        pts, views, nrms = [], [], []
+        for v, tilt in enumerate(np.radians([-12.0, 0.0, 12.0])):  # three planes crossing at x = 1
+            n = np.array([np.sin(tilt), -np.cos(tilt), 0.0])
+            x = rng.random(20000) * 2
+            z = rng.random(20000) * 2
+            pts.append(np.column_stack([x, np.tan(tilt) * (x - 1.0), z]))
+            views.append(np.full(20000, v))
+            nrms.append(np.broadcast_to(n, (20000, 3)))
+        X, V, N = np.concatenate(pts), np.concatenate(views), np.concatenate(nrms)
+        near = np.abs(X[:, 0] - 1.0) < 0.02
+        plain = multiview_support(X, V, radius=0.03, voxel=0.02)
+        oriented = multiview_support(X, V, radius=0.03, voxel=0.02, normal=N, max_angle_deg=5.0)
+        assert np.mean(plain[near] >= 3) > 0.9  # position alone: the crossing is 'seen by 3 images'
+        assert np.all(oriented == 1)  # no two of them are the same plane
+        with pytest.raises(ValueError, match="normal must be"):
+            multiview_support(X, V, 0.03, 0.02, normal=N[:5], max_angle_deg=5.0)
+
+    def test_multiview_conflict_outvotes_a_repeated_wrong_plane(self):
+        """Two images repeat a wrong plane 3 cm in front of a wall that four images put at y = 0:
+        the wrong plane has support (2 images) but is outvoted; the wall is kept."""
+        rng = np.random.default_rng(3)
+        m = 8000
+        wall = [np.column_stack([rng.random(m), np.zeros(m), rng.random(m)]) for _ in range(4)]
+        ghost = [np.column_stack([rng.random(m), np.full(m, -0.03), rng.random(m)]) for _ in range(2)]
+        X = np.concatenate(wall + ghost)
+        V = np.repeat(np.arange(6), m)
+        N = np.broadcast_to([0.0, -1.0, 0.0], X.shape)
+        agree, disagree = multiview_conflict(X, V, N, radius=0.05, offset=0.02, max_angle_deg=5.0, voxel=0.02)
+        inner = (X[:, 0] > 0.1) & (X[:, 0] < 0.9) & (X[:, 2] > 0.1) & (X[:, 2] < 0.9)
+        is_wall = V < 4
+        assert np.all(agree[is_wall & inner] > disagree[is_wall & inner])
+        assert np.all(agree[~is_wall & inner] < disagree[~is_wall & inner])
+        assert np.all(agree[~is_wall] <= 2)
+        a0, d0 = multiview_conflict(np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 3)), 0.05, 0.02, 5.0, 0.02)
+        assert len(a0) == len(d0) == 0
+
     def test_voxel_downsample_counts_views(self):
         xyz = np.array([[0.001, 0.001, 0.001], [0.004, 0.002, 0.003], [0.5, 0.5, 0.5], [0.003, 0.0, 0.0]])
         nrm = np.array([[0, 0, 1.0], [0, 0, -1.0], [1, 0, 0], [0, 0, 1.0]])
@@ -225,6 +266,44 @@ class TestPriorFree:
                                    lines.point_line[sel], PlaneConfig())
         assert len(pp.xyz) == 0
         assert set(pp.rejected) & {"single_line", "degenerate_anchors", "too_few_anchors"}
+
+    def test_held_out_residuals(self):
+        """Each group is predicted by the plane of the others: SfM points on a wall z = 2 and a line
+        on the wall agree; a line 6 cm in front of the wall (the edge of an object) does not, although
+        a plane fitted to all of them passes within 2 cm of every group."""
+        rng = np.random.default_rng(4)
+        wall = np.column_stack([rng.uniform(-0.5, 0.5, 6), rng.uniform(-0.5, 0.5, 6), np.full(6, 2.0)])
+        t = np.linspace(-0.5, 0.5, 30)[:, None]
+        on_wall = np.array([0.0, 0.6, 2.0]) + t * [1.0, 0.0, 0.0]
+        in_front = np.array([0.0, 0.6, 1.94]) + t * [1.0, 0.0, 0.0]
+        g = np.r_[-1 - np.arange(6), np.zeros(30, int)]
+        n0 = np.array([0.0, 0.0, 1.0])
+        _, r = loo_group_residuals(np.concatenate([wall, on_wall]), g, n0, 0.01, max_std=0.015)
+        assert np.nanmax(r) < 1e-9
+        ug, r = loo_group_residuals(np.concatenate([wall, in_front]), g, n0, 0.01, max_std=0.015)
+        assert r[ug == 0][0] > 0.05 and ug[np.nanargmax(r)] == 0  # the line is the worst-predicted group
+        fit = AnchoredPlane(np.concatenate([wall, in_front]), np.r_[np.ones(6), np.full(30, 1 / 30)], n0, 0.01)
+        assert abs(fit.residual[6:].mean()) < 0.5 * r[ug == 0][0]  # in-sample, the line half hides
+        # a group the others cannot pin down (the only anchor far off their span) is not tested
+        _, r = loo_group_residuals(np.concatenate([wall[:3], in_front + [0, 3.0, 0]]),
+                                   np.r_[-1 - np.arange(3), np.zeros(30, int)], n0, 0.01, max_std=0.015)
+        assert np.isnan(r[-1])
+        assert np.all(np.isnan(loo_group_residuals(wall[:2], g[:2], n0, 0.01, 0.015)[1]))  # < 3 groups
+
+    def test_held_out_test_drops_an_off_surface_line(self):
+        rng = np.random.default_rng(5)
+        wall = np.column_stack([rng.uniform(-0.5, 0.5, 8), rng.uniform(-0.5, 0.5, 8), np.full(8, 2.0)])
+        t = np.linspace(-0.5, 0.5, 30)[:, None]
+        lines = [np.array([0.0, y, z]) + t * [1.0, 0.0, 0.0] for y, z in ((0.6, 1.94), (-0.6, 2.0))]
+        lines.append(np.array([-0.6, 0.0, 2.0]) + t * [0.0, 1.0, 0.0])
+        P = np.concatenate([wall, *lines])
+        g = np.r_[-1 - np.arange(8), np.repeat([0, 1, 2], 30)]
+        cfg = PlaneConfig()
+        inl, why = _held_out_inliers(P, g, np.ones(len(P), bool), np.array([0.0, 0.0, 1.0]), cfg)
+        assert why is None and not inl[g == 0].any() and inl[g != 0].all()
+        cfg.free_loo_drop = False
+        _, why = _held_out_inliers(P, g, np.ones(len(P), bool), np.array([0.0, 0.0, 1.0]), cfg)
+        assert why == "anchors_fail_held_out_test"
 
     def test_parallel_lines_are_no_evidence(self, room):
         """Two parallel lines on different surfaces (a wall corner and a box edge 1 m in front)
