@@ -2,7 +2,8 @@
 
 Each test renders float32 Gaussians with one troublesome property and backpropagates a loss on
 rgb + depth + median depth + normal + alpha. The "cpu" backend is tested when splat.composite_cpu
-builds here (skipped otherwise), so the C++ backend meets the same cases.
+builds here (skipped otherwise), so the C++ backend meets the same cases; "cuda" is the torch backend
+on a CUDA device (skipped where there is none).
 """
 
 from __future__ import annotations
@@ -20,10 +21,12 @@ from splat.rasterize import render
 WIDTH, HEIGHT = 32, 24
 
 
-@pytest.fixture(params=["torch", "cpu"])
+@pytest.fixture(params=["torch", "cpu", "cuda"])
 def backend(request) -> str:
     if request.param == "cpu" and not cpu_backend_available():
         pytest.skip("C++ compositing backend (splat.composite_cpu) not available")
+    if request.param == "cuda" and not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
     return request.param
 
 
@@ -46,9 +49,14 @@ def make_params(n: int, seed: int = 0, spread: float = 0.5, depth: float = 2.0, 
 
 
 def render_and_check(params: dict, camera: Camera, backend: str) -> dict:
-    """Render, check finite outputs and alpha in [0, 1], backprop, check finite gradients."""
-    leaves = {k: v.detach().clone().requires_grad_() for k, v in params.items()}
-    out = render(leaves, camera, backend=backend, background=torch.tensor([0.2, 0.3, 0.4]))
+    """Render, check finite outputs and alpha in [0, 1], backprop, check finite gradients.
+
+    ``backend="cuda"`` renders with the torch backend on the GPU; the outputs come back on the CPU.
+    """
+    device = "cuda" if backend == "cuda" else "cpu"
+    leaves = {k: v.detach().to(device).clone().requires_grad_() for k, v in params.items()}
+    out = render(leaves, camera.to(device), backend="torch" if backend == "cuda" else backend,
+                 background=torch.tensor([0.2, 0.3, 0.4], device=device))
     for key in ("rgb", "depth", "median_depth", "normal", "alpha", "means2d"):
         assert torch.isfinite(out[key]).all(), f"non-finite {key}"
     alpha = out["alpha"].detach()
@@ -59,7 +67,7 @@ def render_and_check(params: dict, camera: Camera, backend: str) -> dict:
         loss.backward()
         for key, leaf in leaves.items():
             assert leaf.grad is None or torch.isfinite(leaf.grad).all(), f"non-finite grad of {key}"
-    return out
+    return {k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in out.items()}
 
 
 def test_behind_camera_and_straddling_near_plane(backend):
