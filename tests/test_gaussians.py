@@ -1,0 +1,124 @@
+"""Typed Gaussian initialisation from cues and the 3DGS PLY format (splat/gaussians.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from geocues.cue_io import CueCloud
+from geocues.types import CueType
+from splat.camera import Camera
+from splat.gaussians import InitConfig, init_from_cues, load_ply, save_ply, scene_scale, tangent_scales
+from splat.projection import quat_to_rotmat
+from splat.rasterize import render
+from splat.sh import sh_to_rgb
+
+
+def grid_plane(n_side: int, step: float, z: float) -> np.ndarray:
+    u, v = np.meshgrid(np.arange(n_side) * step, np.arange(n_side) * step)
+    return np.stack([u.ravel() - 0.5 * step * n_side, v.ravel() - 0.5 * step * n_side,
+                     np.full(u.size, z)], 1)
+
+
+def mixed_cloud() -> CueCloud:
+    rng = np.random.default_rng(0)
+    plane = grid_plane(20, 0.05, 2.0)
+    normal = np.tile([0.0, 0.0, -1.0], (len(plane), 1))
+    sfm = rng.normal(size=(30, 3)) * 0.3 + [0.0, 0.0, 2.5]
+    line = np.stack([np.linspace(-0.5, 0.5, 25), np.zeros(25), np.full(25, 1.9)], 1)
+    return CueCloud.concat([
+        CueCloud.make(plane, np.full((len(plane), 3), 200, np.uint8), CueType.PLANE, normal=normal),
+        CueCloud.make(sfm, rng.integers(0, 255, (30, 3)).astype(np.uint8), CueType.SFM),
+        CueCloud.make(line, np.full((25, 3), 0.25), CueType.LINE),
+    ])
+
+
+def test_init_types_scales_frames_and_colours():
+    cues = mixed_cloud()
+    params, cue_type = init_from_cues(cues, sh_degree=2, scale=3.0, cfg=InitConfig(flat_ratio=0.1))
+    n = len(cues)
+    assert params["means"].shape == (n, 3) and params["shN"].shape == (n, 8, 3)
+    assert cue_type.dtype == torch.int64 and cue_type.tolist() == cues.cue_type.tolist()
+    plane = cue_type == CueType.PLANE
+    # plane cues on a 5 cm grid: 3 nearest neighbours are at 5 cm; flat along the normal (z)
+    s = params["scales"].exp()
+    inner = plane & (params["means"][:, 0].abs() < 0.4) & (params["means"][:, 1].abs() < 0.4)
+    torch.testing.assert_close(s[inner, 0], torch.full((int(inner.sum()),), 0.05), rtol=1e-4, atol=0)
+    torch.testing.assert_close(s[plane, 2], 0.1 * s[plane, 0], rtol=1e-5, atol=0)
+    third_axis = quat_to_rotmat(params["quats"][plane])[:, :, 2]
+    torch.testing.assert_close(third_axis, torch.tensor([0.0, 0.0, -1.0]).expand_as(third_axis), rtol=0, atol=1e-6)
+    # no normal: isotropic, identity rotation
+    sfm = cue_type == CueType.SFM
+    assert torch.allclose(s[sfm, 0], s[sfm, 2]) and torch.allclose(params["quats"][sfm, 0], torch.ones(30))
+    # colour: the DC term reproduces the cue colour in any direction
+    rgb = sh_to_rgb(params["sh0"], params["shN"], torch.randn(n, 3), 2)
+    torch.testing.assert_close(rgb, torch.as_tensor(cues.rgb / 255.0, dtype=torch.float32), rtol=0, atol=1e-6)
+    assert torch.allclose(torch.sigmoid(params["opacities"]), torch.tensor(0.1))
+
+
+def test_init_bounds_duplicates_and_isolated_points():
+    xyz = np.array([[0.0, 0.0, 1.0]] * 4 + [[50.0, 0.0, 1.0]])
+    cues = CueCloud.make(xyz, np.zeros((5, 3), np.uint8), CueType.SFM)
+    params, _ = init_from_cues(cues, 0, scale=2.0, cfg=InitConfig(min_scale=1e-4, max_scale_frac=0.01))
+    s = params["scales"].exp()
+    assert torch.isfinite(params["scales"]).all()
+    assert float(s.min()) == pytest.approx(1e-4, rel=1e-5) and float(s.max()) == pytest.approx(0.02, rel=1e-5)
+
+
+def test_init_rejects_bad_input():
+    with pytest.raises(ValueError, match="empty"):
+        init_from_cues(CueCloud.empty(), 3, 1.0)
+    with pytest.raises(ValueError, match="sh_degree"):
+        init_from_cues(mixed_cloud(), 4, 1.0)
+
+
+def test_tangent_scales_and_scene_scale():
+    pts = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 2.0, 0]])
+    np.testing.assert_allclose(tangent_scales(pts, knn=1), [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(tangent_scales(pts, knn=5), np.sqrt([(1 + 4) / 2, (1 + 5) / 2, (4 + 5) / 2]))
+    assert scene_scale(np.array([[0.0, 0, 0], [2.0, 0, 0]])) == pytest.approx(1.1)
+    assert scene_scale(np.zeros((1, 3))) == 1.0
+
+
+def test_initialised_plane_cues_render_their_plane():
+    """Plane cues at z = 2 m seen head-on: the initial Gaussians already render depth 2 and normal -z."""
+    cues = CueCloud.make(grid_plane(60, 0.02, 2.0), np.full((3600, 3), 128, np.uint8), CueType.PLANE,
+                         normal=np.tile([0.0, 0.0, -1.0], (3600, 1)))
+    # thin discs (flat_ratio 1e-3): at the default 0.1 the RaDe-GS normal here tilts by up to 3e-3 off-axis
+    params, _ = init_from_cues(cues, 0, scale=1.0, cfg=InitConfig(flat_ratio=1e-3, min_scale=1e-6))
+    params["opacities"][:] = 4.0  # opaque, so that the centre pixels are covered
+    K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
+    out = render(params, Camera.from_Rt(K, np.eye(3), np.zeros(3), 32, 24), backend="torch")
+    centre = out["alpha"] > 0.99
+    assert int(centre.sum()) > 300
+    torch.testing.assert_close(out["depth"][centre], torch.full((int(centre.sum()),), 2.0), rtol=0, atol=1e-4)
+    assert float((out["normal"][centre] - torch.tensor([0.0, 0.0, -1.0])).abs().max()) < 1e-4
+
+
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_ply_round_trip_and_3dgs_layout(tmp_path, sh_degree):
+    params, cue_type = init_from_cues(mixed_cloud(), sh_degree, scale=3.0)
+    params["shN"] = torch.randn_like(params["shN"])
+    path = save_ply(tmp_path / "g.ply", params, cue_type)
+    loaded, loaded_type = load_ply(path)
+    for k in params:
+        torch.testing.assert_close(loaded[k], params[k], rtol=0, atol=0, msg=k)
+    assert loaded_type.tolist() == cue_type.tolist()
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    k = params["shN"].shape[1]
+    assert f"element vertex {len(cue_type)}" in header and header.count("f_rest_") == 3 * k
+    if k:  # channel-major like 3DGS: f_rest_0 .. f_rest_{K-1} are the red channel's coefficients
+        from geocues.cue_io import _read_ply_vertices
+        v = _read_ply_vertices(path)
+        np.testing.assert_array_equal(v[f"f_rest_{k - 1}"], params["shN"][:, k - 1, 0].numpy())
+        np.testing.assert_array_equal(v[f"f_rest_{k}"], params["shN"][:, 0, 1].numpy())
+
+
+def test_load_ply_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no Gaussian PLY"):
+        load_ply(tmp_path / "missing.ply")
+    from geocues.cue_io import write_cues_ply
+    write_cues_ply(tmp_path / "cues.ply", mixed_cloud())
+    with pytest.raises(ValueError, match="not a 3DGS Gaussian PLY"):
+        load_ply(tmp_path / "cues.ply")
