@@ -1,0 +1,276 @@
+"""Training losses of IndoorGS (§4.3): L = L_rgb + λ_d L_d + λ_n L_n + λ_s L_s + λ_nc L_nc.
+
+One function per term, named in its docstring; ``total_loss`` combines them for the trainer.
+Inputs follow the renderer (splat/rasterize.py ``render``): rgb [H, W, 3] in [0, 1], depth [H, W]
+z-depth in metres (0 = not covered), normal [H, W, 3] unit camera-frame normals facing the camera
+(OpenCV axes, zeros = undefined), alpha [H, W]. Priors: depth [H, W] metres (0 = invalid), normals
+[H, W, 3] unit camera frame (zeros = invalid). Intrinsics K [3, 3] use COLMAP pixel centres.
+
+Every masked mean divides by max(count, 1), so an empty mask gives a 0 that is still connected to
+the graph (zero gradients, never NaN).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from evaluation.image_metrics import ssim_map
+
+log = logging.getLogger(__name__)
+
+_NORM2_EPS = 1e-20  # squared length below which a (cross-product) normal counts as undefined
+
+
+def _check_shape(name: str, x: Tensor, shape: tuple) -> None:
+    """Raise ValueError unless ``x`` has ``shape`` (entries None match any size)."""
+    if not isinstance(x, Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    ok = x.ndim == len(shape) and all(s is None or s == d for s, d in zip(shape, x.shape))
+    if not ok:
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"{name}: expected shape {want}, got {list(x.shape)}")
+
+
+def _masked_mean(values: Tensor, mask: Tensor) -> Tensor:
+    """Mean of ``values`` where ``mask``; 0 (graph-connected) when the mask is empty."""
+    picked = torch.where(mask, values, torch.zeros_like(values))
+    return picked.sum() / mask.sum().clamp(min=1).to(values.dtype)
+
+
+def rgb_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2) -> Tensor:
+    """L_rgb (IndoorGS §4.3, 3DGS Eq. 7): (1 − λ) L1 + λ (1 − SSIM).
+
+    pred, gt: [H, W, 3] colours in [0, 1]. L1 is the mean over pixels and channels; SSIM is the
+    3DGS one (11 × 11 Gaussian window, σ = 1.5, zero padding) from ``evaluation.image_metrics``.
+    Returns a 0-dim tensor.
+    """
+    _check_shape("pred", pred, (None, None, 3))
+    _check_shape("gt", gt, tuple(pred.shape))
+    l1 = (pred - gt).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_map(pred, gt.to(pred.dtype)).mean())
+
+
+def sample_patch_grid(height: int, width: int, patch_size: int, n_patches: int,
+                      generator: torch.Generator | None = None, device: torch.device | str = "cpu"
+                      ) -> tuple[Tensor, int, int]:
+    """Top-left corners of ``n_patches`` distinct cells of a grid of patch_size² cells.
+
+    The grid origin is shifted by a random offset in [0, H mod S] × [0, W mod S] (the same for all
+    cells, so cells never overlap); then min(n_patches, number of cells) cells are drawn without
+    replacement. An image side shorter than S gives patches of that side's length (an image
+    smaller than one patch is one patch: the whole image). ``generator`` is a CPU generator.
+    Returns (corners [M, 2] int64 (row, col), patch height, patch width).
+    """
+    if patch_size < 1 or n_patches < 1:
+        raise ValueError(f"patch_size and n_patches must be >= 1, got {patch_size}, {n_patches}")
+    ph, pw = min(patch_size, height), min(patch_size, width)
+    rows, cols = height // ph, width // pw
+    off = torch.randint(0, 10**9, (2,), generator=generator)
+    oy, ox = int(off[0]) % (height - rows * ph + 1), int(off[1]) % (width - cols * pw + 1)
+    cells = torch.randperm(rows * cols, generator=generator)[:n_patches]
+    corners = torch.stack([oy + (cells // cols) * ph, ox + (cells % cols) * pw], -1)
+    return corners.to(device), ph, pw
+
+
+def _gather_patches(img: Tensor, corners: Tensor, ph: int, pw: int) -> Tensor:
+    """[M, ph, pw] patches of ``img`` [H, W] at ``corners`` [M, 2]."""
+    r = corners[:, :1] + torch.arange(ph, device=img.device)  # [M, ph]
+    c = corners[:, 1:] + torch.arange(pw, device=img.device)  # [M, pw]
+    return img[r[:, :, None], c[:, None, :]]
+
+
+def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int, n_patches: int,
+                   generator: torch.Generator | None = None, rel_std_eps: float = 1e-5) -> Tensor:
+    """L_d (IndoorGS §4.3): (1/N) Σ_i (1 − PCC(P̂_i, P_mono,i)) over random non-overlapping patches.
+
+    depth: [H, W] rendered z-depth (m); prior: [H, W] monocular depth (any positive scale/shift);
+    valid: [H, W] bool, pixels to use (the caller's prior > 0 and alpha test). Patches are S × S
+    cells of a grid (``sample_patch_grid``); the PCC uses only the valid pixels of a patch.
+    A patch is skipped when fewer than half of its pixels are valid or when either side's std is
+    below ``rel_std_eps`` × its mean |value| (flat, PCC undefined); the mean runs over the kept
+    patches. Skipped patches go through ``torch.where`` with safe denominators, so values and
+    gradients stay finite; with no kept patch the result is a graph-connected 0.
+    The loss is in [0, 2]: 0 for prior = a·depth + b with a > 0, 2 for a < 0.
+    """
+    _check_shape("depth", depth, (None, None))
+    _check_shape("prior", prior, tuple(depth.shape))
+    _check_shape("valid", valid, tuple(depth.shape))
+    h, w = depth.shape
+    corners, ph, pw = sample_patch_grid(h, w, patch_size, n_patches, generator, depth.device)
+    m = _gather_patches(valid, corners, ph, pw).to(depth.dtype).flatten(1)  # [M, P]
+    x = _gather_patches(depth, corners, ph, pw).flatten(1)
+    y = _gather_patches(prior.to(depth.dtype), corners, ph, pw).flatten(1)
+    n = m.sum(1)  # [M]
+    n_safe = n.clamp(min=1)
+    mx, my = (x * m).sum(1) / n_safe, (y * m).sum(1) / n_safe
+    dx, dy = (x - mx[:, None]) * m, (y - my[:, None]) * m
+    vx, vy, cov = (dx * dx).sum(1), (dy * dy).sum(1), (dx * dy).sum(1)
+    # std > eps |mean|  <=>  var / n > eps² mean²  (tiny absolute floor for all-zero patches)
+    flat_x = vx <= n_safe * (rel_std_eps * mx) ** 2 + 1e-30
+    flat_y = vy <= n_safe * (rel_std_eps * my) ** 2 + 1e-30
+    keep = (n >= 0.5 * ph * pw) & ~flat_x & ~flat_y  # [M] bool
+    denom = torch.sqrt(torch.where(keep, vx * vy, torch.ones_like(vx)))  # sqrt'(0) never reached
+    pcc = cov / denom
+    loss = _masked_mean(1.0 - pcc, keep)
+    log.debug("depth PCC: %d of %d patches kept", int(keep.sum()), keep.numel())
+    return loss
+
+
+def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
+    """L_n (IndoorGS §4.3): mean |N̂ − N_mono|₁ over the valid pixels.
+
+    normal, prior: [H, W, 3] unit camera-frame normals; valid: [H, W] bool. The L1 norm is summed
+    over the 3 components and averaged over pixels (range [0, 2√3]); pixels where either normal is
+    all zero (undefined) are dropped as well. Empty mask: graph-connected 0.
+    """
+    _check_shape("normal", normal, (None, None, 3))
+    _check_shape("prior", prior, tuple(normal.shape))
+    _check_shape("valid", valid, tuple(normal.shape[:2]))
+    mask = valid & (normal.detach().abs().sum(-1) > 0) & (prior.abs().sum(-1) > 0)
+    return _masked_mean((normal - prior.to(normal.dtype)).abs().sum(-1), mask)
+
+
+def flatten_loss(log_scales: Tensor, mask: Tensor) -> Tensor:
+    """L_s (IndoorGS §4.3): mean over the masked Gaussians (G_L) of their smallest scale (m).
+
+    log_scales: [N, 3] log-scales (log metres); mask: [N] bool. Returns mean_i exp(min_k s_ik)
+    over masked i, a graph-connected 0 when the mask is empty.
+    """
+    _check_shape("log_scales", log_scales, (None, 3))
+    _check_shape("mask", mask, (log_scales.shape[0],))
+    smallest = log_scales[mask].min(dim=1).values.exp()  # [M] metres
+    return smallest.sum() / max(int(smallest.numel()), 1)
+
+
+def depth_to_normal(depth: Tensor, K: Tensor) -> Tensor:
+    """N_depth of L_nc (IndoorGS §4.3): camera-frame normals [H, W, 3] from a z-depth map.
+
+    depth: [H, W] z-depth (m, 0 = none); K: [3, 3] intrinsics, COLMAP pixel centres (pixel (i, j) at
+    (j + 0.5, i + 0.5)). Pixel centres are back-projected, X = d ((u − cx)/fx, (v − cy)/fy, 1); the
+    normal is the normalised cross product of the central differences X[i, j+1] − X[i, j−1] and
+    X[i+1, j] − X[i−1, j], flipped to face the camera (n · X < 0). Exact for a plane. Zero at the
+    border pixels, where any of the 5 depths used is 0, and where the cross product vanishes.
+    """
+    _check_shape("depth", depth, (None, None))
+    _check_shape("K", K, (3, 3))
+    h, w = depth.shape
+    out = torch.zeros(h, w, 3, dtype=depth.dtype, device=depth.device)
+    if h < 3 or w < 3:
+        return out + 0.0 * depth[..., None]
+    K = K.to(depth)
+    v = torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5  # COLMAP pixel centres
+    u = torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5
+    x = ((u[None, :] - K[0, 2]) / K[0, 0]) * depth
+    y = ((v[:, None] - K[1, 2]) / K[1, 1]) * depth
+    pts = torch.stack([x, y, depth], -1)  # [H, W, 3] camera-frame points (m)
+    dx = pts[1:-1, 2:] - pts[1:-1, :-2]  # [H-2, W-2, 3]
+    dy = pts[2:, 1:-1] - pts[:-2, 1:-1]
+    n = torch.linalg.cross(dx, dy, dim=-1)
+    centre = pts[1:-1, 1:-1]
+    n = torch.where((n * centre).sum(-1, keepdim=True) > 0, -n, n)
+    norm2 = (n * n).sum(-1, keepdim=True)
+    d = depth
+    has = (d[1:-1, 2:] > 0) & (d[1:-1, :-2] > 0) & (d[2:, 1:-1] > 0) & (d[:-2, 1:-1] > 0) & (d[1:-1, 1:-1] > 0)
+    has = has[..., None] & (norm2 > _NORM2_EPS)
+    inner = torch.where(has, n * torch.rsqrt(torch.clamp(norm2, min=_NORM2_EPS)), torch.zeros_like(n))
+    return torch.nn.functional.pad(inner.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+
+
+def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, valid: Tensor,
+                                  detach_depth_normal: bool = False) -> Tensor:
+    """L_nc (IndoorGS §4.3): mean over pixels of (1 − N̂ · N_depth), N_depth = ``depth_to_normal``.
+
+    normal: [H, W, 3] rendered normals; depth: [H, W] rendered z-depth (m; the trainer passes the
+    alpha-normalised expected depth ``out["depth"]``); K: [3, 3]; valid: [H, W] bool. Pixels count
+    where valid and both normals are defined. The paper writes a sum; the mean keeps λ_nc = 0.1
+    independent of the image size (as in PGSR / RaDe-GS). By default the gradient flows into both
+    the normals and the depth (2DGS / RaDe-GS / PGSR); ``detach_depth_normal`` stops it at N_depth.
+    """
+    _check_shape("normal", normal, (None, None, 3))
+    _check_shape("depth", depth, tuple(normal.shape[:2]))
+    _check_shape("valid", valid, tuple(normal.shape[:2]))
+    n_depth = depth_to_normal(depth, K)
+    if detach_depth_normal:
+        n_depth = n_depth.detach()
+    mask = valid & (n_depth.detach().abs().sum(-1) > 0) & (normal.detach().abs().sum(-1) > 0)
+    return _masked_mean(1.0 - (normal * n_depth).sum(-1), mask)
+
+
+@dataclass
+class LossConfig:
+    """Weights and switches of the IndoorGS loss (§4.3)."""
+
+    lambda_dssim: float = 0.2
+    """Weight of the D-SSIM part of L_rgb (3DGS)."""
+    lambda_depth: float = 0.1
+    """λ_d, weight of the patch-PCC depth-prior loss L_d."""
+    lambda_normal: float = 0.5
+    """λ_n, weight of the normal-prior loss L_n."""
+    lambda_flat: float = 100.0
+    """λ_s, weight of the flattening loss L_s on line Gaussians."""
+    lambda_nc: float = 0.1
+    """λ_nc, weight of the depth-normal consistency loss L_nc."""
+    patch_size: int = 32
+    """Side S of the L_d patches in pixels, for 640x480 images (the trainer may scale it with the resolution)."""
+    n_patches: int = 16
+    """Number N of random non-overlapping L_d patches per view."""
+    min_alpha_valid: float = 0.5
+    """Pixels with rendered alpha at or below this are left out of L_d, L_n and L_nc."""
+    use_depth: bool = True
+    """Use L_d (needs depth priors)."""
+    use_normal: bool = True
+    """Use L_n (needs normal priors)."""
+    use_flat: bool = True
+    """Use L_s."""
+    use_nc: bool = True
+    """Use L_nc (from nc_from_iter on)."""
+    nc_from_iter: int = 7000
+    """First iteration of L_nc (7000, as PGSR / RaDe-GS start their geometric regularisers)."""
+    flat_types: tuple[int, ...] = (1,)
+    """Cue types flattened by L_s (geocues.types.CueType: SFM=0, LINE=1, PLANE=2); the paper: LINE."""
+    nc_detach_depth: bool = False
+    """Stop the L_nc gradient at the depth-derived normal (default: it flows into both)."""
+
+
+def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params: dict[str, Tensor],
+               cue_type: Tensor, cfg: LossConfig, step: int, depth_prior: Tensor | None = None,
+               normal_prior: Tensor | None = None, generator: torch.Generator | None = None
+               ) -> tuple[Tensor, dict[str, float]]:
+    """L = L_rgb + λ_d L_d + λ_n L_n + λ_s L_s + λ_nc L_nc (IndoorGS §4.3) for one view.
+
+    out: ``render`` output (rgb, depth, normal, alpha); gt_rgb: [H, W, 3]; camera_K: [3, 3];
+    params["scales"]: [N, 3] log-scales; cue_type: [N] int (SFM=0, LINE=1, PLANE=2); step: the
+    iteration; depth_prior [H, W] m (0 = invalid), normal_prior [H, W, 3] (0 = invalid).
+    A term is skipped when its switch is off, its prior is None, or (L_nc) step < nc_from_iter.
+    L_s flattens the Gaussians whose type is in ``cfg.flat_types`` (LINE only by default, as the
+    paper's G_L; PLANE Gaussians are not flattened unless 2 is added).
+    Returns (total, {"rgb", "depth", "normal", "flat", "nc" (the computed ones), "total"}) with the
+    unweighted term values as floats.
+    """
+    for key in ("rgb", "depth", "normal", "alpha"):
+        if key not in out:
+            raise ValueError(f"out: missing key {key!r} (expected a splat.rasterize.render output)")
+    h, w = out["depth"].shape
+    _check_shape("cue_type", cue_type, (params["scales"].shape[0],))
+    covered = out["alpha"] > cfg.min_alpha_valid
+    terms: dict[str, tuple[float, Tensor]] = {"rgb": (1.0, rgb_loss(out["rgb"], gt_rgb, cfg.lambda_dssim))}
+    if cfg.use_depth and depth_prior is not None:
+        _check_shape("depth_prior", depth_prior, (h, w))
+        valid = covered & (depth_prior > 0) & (out["depth"] > 0)
+        terms["depth"] = (cfg.lambda_depth, depth_pcc_loss(out["depth"], depth_prior, valid, cfg.patch_size,
+                                                           cfg.n_patches, generator))
+    if cfg.use_normal and normal_prior is not None:
+        terms["normal"] = (cfg.lambda_normal, normal_prior_loss(out["normal"], normal_prior, covered))
+    if cfg.use_flat:
+        mask = torch.isin(cue_type, torch.tensor(cfg.flat_types, dtype=cue_type.dtype, device=cue_type.device))
+        terms["flat"] = (cfg.lambda_flat, flatten_loss(params["scales"], mask))
+    if cfg.use_nc and step >= cfg.nc_from_iter:
+        terms["nc"] = (cfg.lambda_nc, depth_normal_consistency_loss(out["normal"], out["depth"], camera_K, covered,
+                                                                    cfg.nc_detach_depth))
+    total = sum(wt * t for wt, t in terms.values())
+    values = torch.stack([t.detach() for _, t in terms.values()] + [total.detach()]).tolist()  # one sync
+    return total, dict(zip(list(terms) + ["total"], values))
