@@ -1,0 +1,276 @@
+"""IndoorGS per-Gaussian-type adaptive density control (paper §4.2; 3DGS defaults otherwise).
+
+gsplat's pattern: ``IndoorStrategyConfig`` holds thresholds only; the running state is a plain dict
+from ``initialize_state()`` handed back each step; the row operations are the free functions of
+splat/densify_ops.py. The trainer calls, per iteration,
+
+    strategy.step_pre_backward(params, optimizers, state, step, info)
+    loss.backward()
+    counts = strategy.step_post_backward(params, optimizers, state, step, info)
+
+Per type (``state["cue_type"]``, geocues.types.CueType):
+  SFM (G_M)   3DGS clone / split in (start, sfm_pause] and (sfm_resume, stop); none in between.
+  LINE (G_L)  tangent-space clone / split on every refine step in (start, stop).
+  PLANE (G_S) never cloned or split.
+Every type is pruned (low opacity; too large in world after the first opacity reset) and has its
+opacity reset. "G_L takes precedence over G_M": on a refine step the LINE candidates are chosen
+first; an SFM candidate within ``precedence_sigmas`` largest-scales of a LINE candidate is left to
+the LINE rule (not densified) on that step. docs/density_control.md has the reasoning.
+
+All iteration counts are the paper's for 30,000 iterations and scale with ``total_iters / 30000``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from geocues.types import CueType
+from splat.densify_ops import (duplicate, flat_normal, free_split_offsets, near_any, remove,
+                               reset_opacities, split, tangent_clone_means, tangent_split_offsets)
+
+log = logging.getLogger(__name__)
+
+PAPER_ITERS = 30_000
+REQUIRED_KEYS = ("means", "quats", "scales", "opacities")
+TYPE_NAMES = {int(t): t.name.lower() for t in CueType}  # 0 -> "sfm", 1 -> "line", 2 -> "plane"
+
+
+@dataclass
+class IndoorStrategyConfig:
+    """Thresholds and schedule of the per-type density control (iterations for a 30k run)."""
+
+    total_iters: int = PAPER_ITERS
+    """Length of the run; every iteration count below is scaled by total_iters / 30000."""
+    refine_start: int = 500
+    """Densify / prune only after this iteration (3DGS)."""
+    refine_stop: int = 12_000
+    """No density control (nor opacity reset) from this iteration on (IndoorGS: 12k)."""
+    refine_every: int = 100
+    """Densify and prune every this many iterations (3DGS)."""
+    reset_every: int = 3000
+    """Reset opacities every this many iterations (3DGS)."""
+    sfm_pause: int = 700
+    """SFM Gaussians stop densifying after this iteration (IndoorGS: free in 500-700)."""
+    sfm_resume: int = 3500
+    """SFM Gaussians densify again after this iteration (IndoorGS: none in 700-3500)."""
+    grow_grad2d: float = 0.0002
+    """Mean 2D-mean gradient norm (NDC units, as 3DGS) above which a Gaussian is cloned or split."""
+    grow_scale3d: float = 0.01
+    """Largest scale, times the scene scale, at or below which a Gaussian is cloned, else split."""
+    prune_opa: float = 0.005
+    """Gaussians with opacity below this are pruned (every type)."""
+    prune_scale3d: float = 0.1
+    """After the first opacity reset, Gaussians larger than this times the scene scale are pruned."""
+    reset_opacity: float = 0.01
+    """Opacities are clamped to this value at each reset (3DGS)."""
+    line_clone_step: float = 1.0
+    """LINE clone offset along the tangent mean gradient, in parent's largest scales (0 = in place)."""
+    line_clone_literal: bool = False
+    """Place LINE clones at mu + grad - (n.grad)n with the raw mean gradient (paper verbatim)."""
+    precedence_sigmas: float = 2.0
+    """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The config's iteration counts scaled to the run length (all >= 1 where they are periods)."""
+
+    start: int
+    stop: int
+    every: int
+    reset_every: int
+    sfm_pause: int
+    sfm_resume: int
+
+    @classmethod
+    def from_config(cls, cfg: IndoorStrategyConfig) -> "Schedule":
+        f = cfg.total_iters / PAPER_ITERS
+        return cls(start=round(cfg.refine_start * f), stop=round(cfg.refine_stop * f),
+                   every=max(1, round(cfg.refine_every * f)), reset_every=max(1, round(cfg.reset_every * f)),
+                   sfm_pause=round(cfg.sfm_pause * f), sfm_resume=round(cfg.sfm_resume * f))
+
+    def is_refine(self, step: int) -> bool:
+        return self.start < step < self.stop and step % self.every == 0
+
+    def sfm_active(self, step: int) -> bool:
+        """IndoorGS §4.2: SFM densifies in (start, sfm_pause] and (sfm_resume, stop)."""
+        return self.is_refine(step) and (step <= self.sfm_pause or step > self.sfm_resume)
+
+    def is_reset(self, step: int) -> bool:
+        return 0 < step < self.stop and step % self.reset_every == 0
+
+
+class IndoorStrategy:
+    """Per-Gaussian-type adaptive density control of IndoorGS (§4.2). See the module docstring."""
+
+    def __init__(self, cfg: IndoorStrategyConfig | None = None) -> None:
+        self.cfg = cfg or IndoorStrategyConfig()
+        if self.cfg.total_iters <= 0:
+            raise ValueError(f"total_iters must be positive, got {self.cfg.total_iters}")
+        self.schedule = Schedule.from_config(self.cfg)
+
+    # -- state and checks ------------------------------------------------------------------------
+    def initialize_state(self, scene_scale: float) -> dict[str, Any]:
+        """Running state: per-Gaussian tensors (created lazily on the params' device) + the scale.
+
+        grad2d [N]  sum over views of |d loss / d means2d| in NDC units (pixel grad * (W/2, H/2))
+        grad3d [N, 3] sum over the same views of d loss / d means (world units)
+        count [N]   number of views in which the Gaussian was visible since the last refine step
+        cue_type [N] int64 CueType, set by the trainer after this call.
+        """
+        if not scene_scale > 0:
+            raise ValueError(f"scene_scale must be positive, got {scene_scale}")
+        return {"grad2d": None, "grad3d": None, "count": None, "cue_type": None,
+                "scene_scale": float(scene_scale)}
+
+    def check_sanity(self, params, optimizers: dict) -> None:
+        """Raise ValueError unless params and optimizers have the same keys, each optimizer one group
+        holding exactly its parameter, and the required keys share one N."""
+        if set(params.keys()) != set(optimizers.keys()):
+            raise ValueError(f"params and optimizers must have the same keys, got {sorted(params.keys())} "
+                             f"and {sorted(optimizers.keys())}")
+        missing = [k for k in REQUIRED_KEYS if k not in params]
+        if missing:
+            raise ValueError(f"params miss {missing}; the strategy needs {list(REQUIRED_KEYS)}")
+        n = params["means"].shape[0]
+        for key, opt in optimizers.items():
+            groups = opt.param_groups
+            if len(groups) != 1 or len(groups[0]["params"]) != 1 or groups[0]["params"][0] is not params[key]:
+                raise ValueError(f"optimizers[{key!r}] must have one param group holding exactly params[{key!r}]")
+            if params[key].shape[0] != n:
+                raise ValueError(f"params[{key!r}] has {params[key].shape[0]} rows, means has {n}")
+
+    def _check_state(self, params, state: dict) -> Tensor:
+        n = params["means"].shape[0]
+        cue_type = state.get("cue_type")
+        if not isinstance(cue_type, Tensor) or tuple(cue_type.shape) != (n,):
+            got = None if not isinstance(cue_type, Tensor) else tuple(cue_type.shape)
+            raise ValueError(f"state['cue_type'] must be a tensor of shape ({n},) (set it after "
+                             f"initialize_state), got {got}")
+        return cue_type
+
+    # -- per-step hooks --------------------------------------------------------------------------
+    def step_pre_backward(self, params, optimizers: dict, state: dict, step: int, info: dict) -> None:
+        """Keep the 2D means' gradient (render() already calls retain_grad; harmless twice)."""
+        if "means2d" not in info:
+            raise ValueError("info must hold 'means2d' (the renderer's projected means)")
+        if info["means2d"].requires_grad:
+            info["means2d"].retain_grad()
+
+    def step_post_backward(self, params, optimizers: dict, state: dict, step: int,
+                           info: dict) -> dict[str, int]:
+        """Accumulate gradients; on refine steps densify per type and prune; reset opacities.
+
+        Returns the counts of what was done at this step ({} when nothing was scheduled):
+        cloned_<type>, split_<type>, pruned_<type> (type = sfm, line, plane), deferred_sfm (SFM
+        candidates left to a LINE neighbour), opacity_reset (0/1), n (Gaussians after the step).
+        """
+        sched = self.schedule
+        if step >= sched.stop:
+            return {}
+        self._check_state(params, state)
+        self._update_state(params, state, info)
+        counts: dict[str, int] = {}
+        if sched.is_refine(step):
+            counts.update(self._grow(params, optimizers, state, step, info))
+            counts.update(self._prune(params, optimizers, state, step))
+            for key in ("grad2d", "grad3d", "count"):
+                state[key].zero_()
+        if sched.is_reset(step):
+            reset_opacities(params, optimizers, self.cfg.reset_opacity)
+            counts["opacity_reset"] = 1
+        if counts:
+            counts["n"] = int(params["means"].shape[0])
+            log.debug("step %d density control: %s", step, counts)
+        return counts
+
+    def _update_state(self, params, state: dict, info: dict) -> None:
+        for key in ("means2d", "radii", "width", "height"):
+            if key not in info:
+                raise ValueError(f"info must hold {key!r} for density control")
+        means2d = info["means2d"]
+        n = params["means"].shape[0]
+        device = params["means"].device
+        if state["count"] is None or state["count"].shape[0] != n:
+            if state["count"] is not None:
+                raise ValueError(f"state rows ({state['count'].shape[0]}) do not match the {n} Gaussians")
+            state["grad2d"] = torch.zeros(n, device=device)
+            state["grad3d"] = torch.zeros(n, 3, device=device)
+            state["count"] = torch.zeros(n, device=device)
+        if means2d.grad is None:
+            return  # nothing rendered with gradients (e.g. an evaluation step)
+        if tuple(means2d.shape) != (n, 2):
+            raise ValueError(f"info['means2d'] must have shape ({n}, 2), got {tuple(means2d.shape)}")
+        visible = info["radii"] > 0  # [N]
+        grad = means2d.grad.detach()[visible].float()  # [V, 2] pixel units
+        grad = grad * torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=grad.device)
+        state["grad2d"][visible] += grad.norm(dim=-1)
+        means_grad = params["means"].grad
+        if means_grad is not None:
+            state["grad3d"][visible] += means_grad.detach()[visible].float()
+        state["count"][visible] += 1.0
+
+    # -- refine ----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def _grow(self, params, optimizers: dict, state: dict, step: int, info: dict) -> dict[str, int]:
+        cfg, sched = self.cfg, self.schedule
+        cue_type = state["cue_type"]
+        count = state["count"].clamp_min(1.0)
+        high = state["grad2d"] / count > cfg.grow_grad2d  # [N]
+        max_scale = torch.exp(params["scales"]).amax(-1)  # [N]
+        small = max_scale <= cfg.grow_scale3d * state["scene_scale"]
+        is_line = (cue_type == CueType.LINE) & high
+        is_sfm = (cue_type == CueType.SFM) & high if sched.sfm_active(step) else torch.zeros_like(high)
+        # G_L takes precedence over G_M: SFM candidates near a LINE candidate are left to it
+        deferred = torch.zeros_like(high)
+        if cfg.precedence_sigmas > 0 and is_sfm.any() and is_line.any():
+            means = params["means"]
+            near = near_any(means[is_sfm], means[is_line], cfg.precedence_sigmas * max_scale[is_line])
+            deferred[torch.where(is_sfm)[0][near]] = True
+            is_sfm &= ~deferred
+        clone, splt = (is_line | is_sfm) & small, (is_line | is_sfm) & ~small
+
+        # clone positions: LINE tangent clone (§4.2), SFM in place (3DGS)
+        clone_means = params["means"][clone].clone()
+        line_rows = (cue_type[clone] == CueType.LINE)
+        if line_rows.any():
+            sel = torch.where(clone)[0][line_rows]
+            grad3d = state["grad3d"][sel] / count[sel, None]
+            normals = flat_normal(params["quats"][sel], params["scales"][sel], params["means"][sel],
+                                  info.get("camera_center"))
+            step_len = None if cfg.line_clone_literal else cfg.line_clone_step * max_scale[sel]
+            clone_means[line_rows] = tangent_clone_means(params["means"][sel], grad3d.to(normals), normals,
+                                                         step_len)
+        # split offsets: LINE tangent split (§4.2), SFM free split (3DGS)
+        sel = torch.where(splt)[0]
+        offsets = free_split_offsets(params["quats"][sel], params["scales"][sel])
+        line_rows = cue_type[sel] == CueType.LINE
+        if line_rows.any():
+            offsets[:, line_rows] = tangent_split_offsets(params["quats"][sel[line_rows]],
+                                                          params["scales"][sel[line_rows]])
+
+        counts = {}
+        for t, name in TYPE_NAMES.items():
+            counts[f"cloned_{name}"] = int((clone & (cue_type == t)).sum())
+            counts[f"split_{name}"] = int((splt & (cue_type == t)).sum())
+        counts["deferred_sfm"] = int(deferred.sum())
+        n_clone = duplicate(params, optimizers, state, clone, clone_means)
+        split_mask = torch.cat([splt, torch.zeros(n_clone, dtype=torch.bool, device=splt.device)])
+        split(params, optimizers, state, split_mask, offsets)  # clones are not split again (3DGS)
+        return counts
+
+    @torch.no_grad()
+    def _prune(self, params, optimizers: dict, state: dict, step: int) -> dict[str, int]:
+        cfg = self.cfg
+        prune = torch.sigmoid(params["opacities"]) < cfg.prune_opa
+        if step > self.schedule.reset_every:
+            prune |= torch.exp(params["scales"]).amax(-1) > cfg.prune_scale3d * state["scene_scale"]
+        cue_type = state["cue_type"]
+        counts = {f"pruned_{name}": int((prune & (cue_type == t)).sum()) for t, name in TYPE_NAMES.items()}
+        remove(params, optimizers, state, prune)
+        return counts
