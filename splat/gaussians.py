@@ -47,22 +47,27 @@ class InitConfig:
     """Thickness along a known cue normal, as a fraction of the tangent scale."""
     init_opacity: float = 0.1
     """Initial opacity of every Gaussian (3DGS: 0.1)."""
-    max_scale_frac: float = 0.05
-    """Upper bound of the tangent scale as a fraction of the scene scale (isolated cues)."""
+    max_scale_mult: float = 10.0
+    """Upper bound of the tangent scale as a multiple of the median one (isolated cues)."""
     min_scale: float = 1e-4
     """Lower bound of every scale in metres (duplicate cue points have zero neighbour distance)."""
 
 
-def scene_scale(camera_centers: np.ndarray) -> float:
-    """3DGS's scene extent: 1.1 x the largest distance of a camera centre from their mean (m).
+def scene_scale(camera_centers: np.ndarray, points: np.ndarray | None = None) -> float:
+    """Scene extent in metres: 3DGS's camera extent (1.1 x the largest distance of a camera centre
+    from their mean), but at least half the 90th-percentile distance of ``points`` from their median.
 
-    camera_centers: [C, 3]. A single camera (or coincident ones) gives 1.0 so that learning rates
-    and thresholds scaled by it stay usable.
+    3DGS's extent suits cameras around an object; indoors the cameras may stand close together in
+    the middle of a room (a turn on the spot has extent 0), while learning rates and the prune size
+    must follow the room. camera_centers: [C, 3]; points: [N, 3] (the cues) or None.
     """
     c = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
     if len(c) == 0:
         raise ValueError("scene_scale needs at least one camera centre")
     radius = float(np.linalg.norm(c - c.mean(0), axis=1).max()) * 1.1
+    if points is not None and len(points):
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        radius = max(radius, 0.5 * float(np.percentile(np.linalg.norm(p - np.median(p, 0), axis=1), 90)))
     return radius if radius > 1e-6 else 1.0
 
 
@@ -87,12 +92,12 @@ def frames_from_normals(normals: np.ndarray) -> np.ndarray:
     return xyzw[:, [3, 0, 1, 2]]  # scipy xyzw -> project wxyz
 
 
-def init_from_cues(cues: CueCloud, sh_degree: int, scale: float, cfg: InitConfig = InitConfig()
+def init_from_cues(cues: CueCloud, sh_degree: int, cfg: InitConfig = InitConfig()
                    ) -> tuple[dict[str, Tensor], Tensor]:
     """Gaussians seeded from every cue point (IndoorGS §4.2: G_L, G_M, G_S from the three cue types).
 
-    cues: the cue cloud (geocues extract's cues.ply); sh_degree: 0..3; scale: the scene scale (m,
-    :func:`scene_scale`). Returns (params as float32 tensors on the CPU, cue_type [N] int64).
+    cues: the cue cloud (geocues extract's cues.ply); sh_degree: 0..3.
+    Returns (params as float32 tensors on the CPU, cue_type [N] int64).
     """
     if len(cues) == 0:
         raise ValueError("the cue cloud is empty: no Gaussians to initialise (run geocues extract, "
@@ -102,7 +107,8 @@ def init_from_cues(cues: CueCloud, sh_degree: int, scale: float, cfg: InitConfig
     if not np.all(np.isfinite(cues.xyz)):
         raise ValueError("the cue cloud holds non-finite positions")
     n = len(cues)
-    s = tangent_scales(cues.xyz, cfg.knn).clip(cfg.min_scale, max(cfg.min_scale, cfg.max_scale_frac * scale))
+    s = tangent_scales(cues.xyz, cfg.knn)
+    s = s.clip(cfg.min_scale, max(cfg.min_scale, cfg.max_scale_mult * float(np.median(s))))
     scales = np.repeat(s[:, None], 3, axis=1)
     quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
     has_normal = np.linalg.norm(cues.normal, axis=1) > 0.5

@@ -72,6 +72,8 @@ class IndoorStrategyConfig:
     """LINE clone offset along the tangent mean gradient, in parent's largest scales (0 = in place)."""
     line_clone_literal: bool = False
     """Place LINE clones at mu + grad - (n.grad)n with the raw mean gradient (paper verbatim)."""
+    max_gaussians: int = 0
+    """Budget: growth stops at this many Gaussians, highest mean gradients first (0 = no limit)."""
     precedence_sigmas: float = 2.0
     """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
 
@@ -103,6 +105,18 @@ class Schedule:
 
     def is_reset(self, step: int) -> bool:
         return 0 < step < self.stop and step % self.reset_every == 0
+
+
+def budget_mask(candidates: torch.Tensor, score: torch.Tensor, room: int | None) -> torch.Tensor:
+    """The candidates [N] bool to grow when only ``room`` more Gaussians fit (None: all of them):
+    the ``room`` highest-scoring ones (a clone or a split adds one Gaussian each)."""
+    if room is None or int(candidates.sum()) <= room:
+        return candidates
+    keep = torch.zeros_like(candidates)
+    if room > 0:
+        idx = torch.where(candidates)[0]
+        keep[idx[torch.topk(score[idx], room).indices]] = True
+    return keep
 
 
 class IndoorStrategy:
@@ -233,7 +247,9 @@ class IndoorStrategy:
             near = near_any(means[is_sfm], means[is_line], cfg.precedence_sigmas * max_scale[is_line])
             deferred[torch.where(is_sfm)[0][near]] = True
             is_sfm &= ~deferred
-        clone, splt = (is_line | is_sfm) & small, (is_line | is_sfm) & ~small
+        grow = budget_mask(is_line | is_sfm, state["grad2d"] / count,
+                           cfg.max_gaussians - params["means"].shape[0] if cfg.max_gaussians > 0 else None)
+        clone, splt = grow & small, grow & ~small
 
         # clone positions: LINE tangent clone (§4.2), SFM in place (3DGS)
         clone_means = params["means"][clone].clone()

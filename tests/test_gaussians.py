@@ -36,7 +36,7 @@ def mixed_cloud() -> CueCloud:
 
 def test_init_types_scales_frames_and_colours():
     cues = mixed_cloud()
-    params, cue_type = init_from_cues(cues, sh_degree=2, scale=3.0, cfg=InitConfig(flat_ratio=0.1))
+    params, cue_type = init_from_cues(cues, sh_degree=2, cfg=InitConfig(flat_ratio=0.1))
     n = len(cues)
     assert params["means"].shape == (n, 3) and params["shN"].shape == (n, 8, 3)
     assert cue_type.dtype == torch.int64 and cue_type.tolist() == cues.cue_type.tolist()
@@ -60,17 +60,19 @@ def test_init_types_scales_frames_and_colours():
 def test_init_bounds_duplicates_and_isolated_points():
     xyz = np.array([[0.0, 0.0, 1.0]] * 4 + [[50.0, 0.0, 1.0]])
     cues = CueCloud.make(xyz, np.zeros((5, 3), np.uint8), CueType.SFM)
-    params, _ = init_from_cues(cues, 0, scale=2.0, cfg=InitConfig(min_scale=1e-4, max_scale_frac=0.01))
+    xyz = np.concatenate([xyz, grid_plane(10, 0.01, 1.0)])  # median neighbour distance 1 cm
+    cues = CueCloud.make(xyz, np.zeros((len(xyz), 3), np.uint8), CueType.SFM)
+    params, _ = init_from_cues(cues, 0, cfg=InitConfig(min_scale=1e-4, max_scale_mult=10.0))
     s = params["scales"].exp()
     assert torch.isfinite(params["scales"]).all()
-    assert float(s.min()) == pytest.approx(1e-4, rel=1e-5) and float(s.max()) == pytest.approx(0.02, rel=1e-5)
+    assert float(s.min()) == pytest.approx(1e-4, rel=1e-5) and float(s.max()) == pytest.approx(0.1, rel=1e-5)
 
 
 def test_init_rejects_bad_input():
     with pytest.raises(ValueError, match="empty"):
-        init_from_cues(CueCloud.empty(), 3, 1.0)
+        init_from_cues(CueCloud.empty(), 3)
     with pytest.raises(ValueError, match="sh_degree"):
-        init_from_cues(mixed_cloud(), 4, 1.0)
+        init_from_cues(mixed_cloud(), 4)
 
 
 def test_tangent_scales_and_scene_scale():
@@ -79,6 +81,9 @@ def test_tangent_scales_and_scene_scale():
     np.testing.assert_allclose(tangent_scales(pts, knn=5), np.sqrt([(1 + 4) / 2, (1 + 5) / 2, (4 + 5) / 2]))
     assert scene_scale(np.array([[0.0, 0, 0], [2.0, 0, 0]])) == pytest.approx(1.1)
     assert scene_scale(np.zeros((1, 3))) == 1.0
+    # cameras turning on the spot in a 10 m wide room: the room sets the scale
+    room = np.random.default_rng(0).uniform(-5, 5, (1000, 3))
+    assert 2.0 < scene_scale(np.zeros((3, 3)), room) < 4.5
 
 
 def test_initialised_plane_cues_render_their_plane():
@@ -86,7 +91,7 @@ def test_initialised_plane_cues_render_their_plane():
     cues = CueCloud.make(grid_plane(60, 0.02, 2.0), np.full((3600, 3), 128, np.uint8), CueType.PLANE,
                          normal=np.tile([0.0, 0.0, -1.0], (3600, 1)))
     # thin discs (flat_ratio 1e-3): at the default 0.1 the RaDe-GS normal here tilts by up to 3e-3 off-axis
-    params, _ = init_from_cues(cues, 0, scale=1.0, cfg=InitConfig(flat_ratio=1e-3, min_scale=1e-6))
+    params, _ = init_from_cues(cues, 0, cfg=InitConfig(flat_ratio=1e-3, min_scale=1e-6))
     params["opacities"][:] = 4.0  # opaque, so that the centre pixels are covered
     K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
     out = render(params, Camera.from_Rt(K, np.eye(3), np.zeros(3), 32, 24), backend="torch")
@@ -98,7 +103,7 @@ def test_initialised_plane_cues_render_their_plane():
 
 @pytest.mark.parametrize("sh_degree", [0, 3])
 def test_ply_round_trip_and_3dgs_layout(tmp_path, sh_degree):
-    params, cue_type = init_from_cues(mixed_cloud(), sh_degree, scale=3.0)
+    params, cue_type = init_from_cues(mixed_cloud(), sh_degree)
     params["shN"] = torch.randn_like(params["shN"])
     path = save_ply(tmp_path / "g.ply", params, cue_type)
     loaded, loaded_type = load_ply(path)

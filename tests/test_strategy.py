@@ -11,7 +11,7 @@ from geocues.types import CueType
 from splat.densify_ops import (duplicate, flat_normal, free_split_offsets, near_any, remove,
                                reset_opacities, split, tangent_clone_means, tangent_split_offsets)
 from splat.projection import quat_to_rotmat
-from splat.strategy import IndoorStrategy, IndoorStrategyConfig, Schedule
+from splat.strategy import IndoorStrategy, IndoorStrategyConfig, Schedule, budget_mask
 
 SFM, LINE, PLANE = int(CueType.SFM), int(CueType.LINE), int(CueType.PLANE)
 
@@ -305,6 +305,21 @@ class TestSchedule:
         torch.testing.assert_close(state["grad2d"], torch.full((2,), 2 * math.hypot(0.32, 0.24)))
         torch.testing.assert_close(state["grad3d"], torch.tensor([[2e-4, 4e-4, 6e-4]] * 2))
         assert state["count"].tolist() == [2.0, 2.0]
+
+    def test_budget_keeps_the_highest_gradients(self):
+        strategy, params, optimizers, state = setup((SFM, LINE, SFM, LINE), max_gaussians=6)
+        n = 4
+        means2d = torch.zeros(n, 2, requires_grad=True)
+        means2d.grad = torch.tensor([[0.01, 0.0], [0.04, 0.0], [0.03, 0.0], [0.02, 0.0]])
+        params["means"].grad = torch.zeros(n, 3)
+        info = {"means2d": means2d, "radii": torch.full((n,), 3, dtype=torch.int32), "width": 64,
+                "height": 48, "camera_center": torch.zeros(3), "viewmat": torch.eye(4)}
+        counts = strategy.step_post_backward(params, optimizers, state, 4000, info)
+        assert counts["n"] == 6 and counts["cloned_sfm"] == 1 and counts["cloned_line"] == 1
+        # the two highest gradients (rows 1 and 2) were cloned: their copies are appended
+        torch.testing.assert_close(params["means"][4:, 0], torch.tensor([1.0, 2.0]), rtol=0, atol=0.05)
+        full = budget_mask(torch.ones(3, dtype=torch.bool), torch.rand(3), 0)
+        assert not full.any() and budget_mask(torch.ones(3, dtype=torch.bool), torch.rand(3), None).all()
 
     def test_low_gradient_is_not_densified(self):
         strategy, params, optimizers, state = setup((SFM, LINE))

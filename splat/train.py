@@ -1,0 +1,270 @@
+"""`splat train`: typed Gaussians from the cues, optimised with the IndoorGS losses, then a TSDF mesh.
+
+One stage, one entry: ``run(cfg, scene_dir, cues, out_dir) -> Path`` (hloc style). The loop is the
+3DGS loop (Adam per parameter, exponentially decaying position learning rate, one random training
+view per iteration, SH degree raised step by step); what is IndoorGS's lives in other modules:
+initialisation from typed cues (splat/gaussians.py, §4.2), the per-type density control
+(splat/strategy.py, §4.2), the losses (splat/losses.py, §4.3) and RaDe-GS depth and normals
+(splat/rasterize.py, §3.2). Meshing is splat/mesh.py (TSDF fusion of rendered median depth).
+
+Every iteration count of the paper's 30k-iteration schedule scales with ``iters`` (the strategy's
+``total_iters``, the SH degree steps), so a short CPU run keeps the schedule's shape.
+
+Outputs in OUT: ``point_cloud.ply`` (3DGS format + cue_type), ``mesh.ply``, ``test_renders/*.png``,
+``train_log.jsonl`` (loss terms, Gaussian counts per type, seconds), ``report.json`` (config, counts,
+timings per stage, test-view PSNR/SSIM at each checkpoint against training seconds).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from geocues.atomic import atomic_path
+from geocues.cue_io import read_cues_ply
+from geocues.scene import Scene
+from geocues.types import CueType
+from splat.gaussians import InitConfig, init_from_cues, save_ply, scene_scale
+from splat.losses import LossConfig, total_loss
+from splat.mesh import TSDFConfig, clean_mesh, fuse_views, write_mesh
+from splat.rasterize import render
+from splat.strategy import IndoorStrategy, IndoorStrategyConfig
+from splat.views import View, ViewSet
+
+log = logging.getLogger(__name__)
+
+PAPER_ITERS = 30_000
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates per parameter (3DGS defaults; positions scale with the scene)."""
+
+    means: float = 1.6e-4
+    """Initial position learning rate, times the scene scale."""
+    means_final: float = 1.6e-6
+    """Final position learning rate (exponential decay over the run), times the scene scale."""
+    scales: float = 5e-3
+    """Log-scale learning rate."""
+    quats: float = 1e-3
+    """Rotation learning rate."""
+    opacities: float = 5e-2
+    """Opacity-logit learning rate."""
+    sh0: float = 2.5e-3
+    """SH DC learning rate."""
+    shN: float = 2.5e-3 / 20
+    """Higher SH bands' learning rate."""
+
+
+@dataclass
+class TrainConfig:
+    """Options of `splat train`."""
+
+    iters: int = 30_000
+    """Training iterations (the paper's 30k; every schedule of the paper scales with this)."""
+    downscale: float = 1.0
+    """Divide image size and intrinsics by this (2 = half resolution)."""
+    test_every: int = 8
+    """Every n-th image (name order) is a held-out test view (3DGS); 0 = none."""
+    sh_degree: int = 3
+    """Final SH degree of the colours (raised by one every iters/30 iterations, 3DGS: 1000 of 30k)."""
+    cue_types: tuple[str, ...] = ("SFM", "LINE", "PLANE")
+    """Cue types that seed Gaussians (the paper's ablations drop some)."""
+    device: str = "auto"
+    """"cpu", "cuda" or "auto" (CUDA when available)."""
+    backend: str = "auto"
+    """Rasterizer backend: "auto" (C++ on the CPU, torch on CUDA), "cpu", "torch"."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Background colour behind the Gaussians."""
+    checkpoints: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
+    """Fractions of the run after which test views are evaluated (accuracy against time)."""
+    log_every: int = 50
+    """Write a train_log.jsonl line every this many iterations."""
+    mesh: bool = True
+    """Fuse a TSDF mesh from the rendered median depth of the training views at the end."""
+    mesh_every: int = 1
+    """Use every n-th training view for the TSDF fusion."""
+    seed: int = 0
+    """Seed of the view order, the loss patches and the density control."""
+    lr: LearningRates = field(default_factory=LearningRates)
+    init: InitConfig = field(default_factory=InitConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    strategy: IndoorStrategyConfig = field(default_factory=IndoorStrategyConfig)
+    tsdf: TSDFConfig = field(default_factory=TSDFConfig)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} asked for, but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def make_optimizers(params: torch.nn.ParameterDict, lr: LearningRates, scale: float) -> dict[str, torch.optim.Adam]:
+    """One Adam per parameter (gsplat layout), eps 1e-15 as 3DGS."""
+    rates = {"means": lr.means * scale, "scales": lr.scales, "quats": lr.quats,
+             "opacities": lr.opacities, "sh0": lr.sh0, "shN": lr.shN}
+    return {k: torch.optim.Adam([{"params": [params[k]], "lr": rates[k], "name": k}], eps=1e-15)
+            for k in params}
+
+
+def means_lr(step: int, total: int, lr: LearningRates, scale: float) -> float:
+    """Log-linear decay from lr.means to lr.means_final over the run (3DGS expon_lr_func)."""
+    t = min(max(step / max(total, 1), 0.0), 1.0)
+    return scale * math.exp((1 - t) * math.log(lr.means) + t * math.log(lr.means_final))
+
+
+def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[str, Tensor]:
+    bg = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
+    return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=bg)
+
+
+@torch.no_grad()
+def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out_dir: Path | None = None) -> dict:
+    """Mean PSNR / SSIM of the renders of ``views``; PNGs to ``out_dir`` when given."""
+    from evaluation.image_metrics import psnr, ssim
+
+    rows = []
+    for k in range(len(views)):
+        view = views[k]
+        rgb = render_view(params, view, sh_degree, cfg)["rgb"].clamp(0, 1)
+        rows.append({"name": view.name, "psnr": psnr(rgb.cpu(), view.rgb.cpu()), "ssim": ssim(rgb.cpu(), view.rgb.cpu())})
+        if out_dir is not None:
+            import cv2
+            out_dir.mkdir(parents=True, exist_ok=True)
+            img = (rgb.cpu().numpy()[:, :, ::-1] * 255.0 + 0.5).astype(np.uint8)
+            cv2.imwrite(str(out_dir / (Path(view.name).stem + ".png")), img)
+    if not rows:
+        return {"psnr": None, "ssim": None, "n_views": 0}
+    return {"psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": float(np.mean([r["ssim"] for r in rows])),
+            "n_views": len(rows), "per_view": rows}
+
+
+@torch.no_grad()
+def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig):
+    """TSDF fusion of the rendered median depth (alpha > 0.5) and colour of every mesh_every-th view."""
+    def gen():
+        for k in range(0, len(views), max(cfg.mesh_every, 1)):
+            view = views[k]
+            out = render_view(params, view, sh_degree, cfg)
+            depth = torch.where(out["alpha"] > 0.5, out["median_depth"], torch.zeros_like(out["median_depth"]))
+            cam = views.scene.cameras[view.index]
+            yield (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32),
+                   cam.K, cam.world_to_camera)
+    return clean_mesh(fuse_views(gen(), cfg.tsdf), cfg.tsdf)
+
+
+def _type_counts(cue_type: Tensor) -> dict[str, int]:
+    return {t.name: int((cue_type == t.value).sum()) for t in CueType}
+
+
+def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path) -> Path:
+    """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
+    holding it); write the outputs (module docstring) to ``out_dir``; return ``out_dir``."""
+    out_dir, cues = Path(out_dir), Path(cues)
+    cues_ply = cues / "cues.ply" if cues.is_dir() else cues
+    if not cues_ply.is_file():
+        raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
+    if cfg.iters <= 0:
+        raise ValueError(f"iters must be positive, got {cfg.iters}")
+    bad = [t for t in cfg.cue_types if t not in CueType.__members__]
+    if bad:
+        raise ValueError(f"unknown cue types {bad}; choose from {list(CueType.__members__)}")
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)  # CPU: the loss patches are drawn on the CPU
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+
+    scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
+    train_views = ViewSet(scene, scene.train_indices, device, desc="training views")
+    test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
+    if len(train_views) == 0:
+        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
+    cloud = read_cues_ply(cues_ply)
+    cloud = cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
+    scale = scene_scale(train_views.camera_centers(), cloud.xyz)
+    init_params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
+    optimizers = make_optimizers(params, cfg.lr, scale)
+    strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters))
+    loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS))
+    state = strategy.initialize_state(scale)
+    state["cue_type"] = cue_type.to(device)
+    strategy.check_sanity(params, optimizers)
+    timings["load_and_init_s"] = time.perf_counter() - t_start
+    log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, device %s",
+             cfg.iters, len(train_views), len(test_views), len(cue_type), _type_counts(cue_type), scale, device)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
+    sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
+    curve, order, train_s = [], [], 0.0
+    log_path = out_dir / "train_log.jsonl"
+    with open(log_path, "w") as log_file, tqdm(total=cfg.iters, desc="splat train", unit="it") as bar:
+        for step in range(cfg.iters):
+            t0 = time.perf_counter()
+            for group in optimizers["means"].param_groups:
+                group["lr"] = means_lr(step, cfg.iters, cfg.lr, scale)
+            if not order:
+                order = list(rng.permutation(len(train_views)))
+            view = train_views[order.pop()]
+            sh_degree = min(cfg.sh_degree, step // sh_every)
+            out = render_view(params, view, sh_degree, cfg)
+            loss, terms = total_loss(out, view.rgb, view.camera.K, params, state["cue_type"], loss_cfg, step,
+                                     depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=gen)
+            info = {**out, "width": view.camera.width, "height": view.camera.height,
+                    "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
+            strategy.step_pre_backward(params, optimizers, state, step, info)
+            loss.backward()
+            for opt in optimizers.values():
+                opt.step()
+            density = strategy.step_post_backward(params, optimizers, state, step, info)
+            for opt in optimizers.values():
+                opt.zero_grad(set_to_none=True)
+            train_s += time.perf_counter() - t0
+            bar.update(1)
+            if step % cfg.log_every == 0 or step == cfg.iters - 1 or density:
+                row = {"step": step, "train_s": round(train_s, 3), "loss": float(loss.detach()), **terms,
+                       "n": len(state["cue_type"]), **_type_counts(state["cue_type"])}
+                if density:
+                    row["density"] = density
+                log_file.write(json.dumps(row) + "\n")
+                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", n=len(state["cue_type"]))
+            if step + 1 in checkpoints:
+                metrics = evaluate_views(params, test_views, sh_degree, cfg)
+                curve.append({"step": step + 1, "train_s": round(train_s, 2), "psnr": metrics["psnr"],
+                              "ssim": metrics["ssim"], "n_gaussians": len(state["cue_type"])})
+                log.info("checkpoint %d: %.1f s training, test PSNR %s", step + 1, train_s, metrics["psnr"])
+    timings["train_s"] = train_s
+
+    t0 = time.perf_counter()
+    final = evaluate_views(params, test_views, cfg.sh_degree, cfg, out_dir / "test_renders")
+    save_ply(out_dir / "point_cloud.ply", params, state["cue_type"])
+    timings["eval_and_save_s"] = time.perf_counter() - t0
+    if cfg.mesh:
+        t0 = time.perf_counter()
+        write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg), out_dir / "mesh.ply")
+        timings["mesh_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),
+              "scene_scale": scale, "n_train_views": len(train_views), "n_test_views": len(test_views),
+              "gaussians_init": _type_counts(cue_type), "gaussians_final": _type_counts(state["cue_type"]),
+              "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
+              "test_per_view": final.get("per_view", []), "accuracy_vs_time": curve, "timings": timings}
+    with atomic_path(out_dir / "report.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
+    log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
+             final["psnr"], len(state["cue_type"]), out_dir)
+    return out_dir

@@ -1,0 +1,105 @@
+"""`splat train` end to end on the tiny synthetic room: init from typed cues, train, evaluate, mesh.
+
+The cues are exact (surface samples with their normals as PLANE, room edges as LINE, the scene's
+noisy SfM points as SFM), so the test measures the trainer, not the cue stage.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cues_synth import distance_to_surface, make_room_scene, room_edges, room_mesh
+from geocues.cue_io import CueCloud, write_cues_ply
+from geocues.scene import Scene
+from geocues.types import CueType
+from splat.gaussians import load_ply
+
+
+def surface_cues(root, n_plane: int = 3000, seed: int = 0) -> CueCloud:
+    rng = np.random.default_rng(seed)
+    V, T, _ = room_mesh()
+    tri = V[T]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(nrm, axis=1)
+    face = rng.choice(len(T), n_plane, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(n_plane)), rng.random(n_plane)
+    w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], 1)
+    plane = (w[:, :, None] * tri[face]).sum(1)
+    segs = room_edges()
+    line = np.concatenate([a + np.linspace(0, 1, 40)[:, None] * (b - a) for a, b in segs])
+    sfm = Scene.load(root).points.xyz
+    return CueCloud.concat([
+        CueCloud.make(plane, np.full((n_plane, 3), 0.7), CueType.PLANE, normal=nrm[face] / (2 * area[face, None])),
+        CueCloud.make(line, np.full((len(line), 3), 0.5), CueType.LINE),
+        CueCloud.make(sfm, np.full((len(sfm), 3), 0.5), CueType.SFM),
+    ])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from splat.mesh import TSDFConfig
+    from splat.strategy import IndoorStrategyConfig
+    from splat.train import TrainConfig, run
+
+    base = tmp_path_factory.mktemp("train")
+    root = make_room_scene(base / "room", n_views=16, w=80, h=60, priors="all")
+    cloud = surface_cues(root)
+    write_cues_ply(base / "cues" / "cues.ply", cloud)
+    cfg = TrainConfig(iters=200, checkpoints=(0.1, 1.0), log_every=10, sh_degree=1,
+                      strategy=IndoorStrategyConfig(max_gaussians=20_000), tsdf=TSDFConfig(voxel_size=0.05))
+    out = run(cfg, root, base / "cues", base / "out")
+    return out, cloud
+
+
+def test_train_writes_every_output(trained):
+    out, cloud = trained
+    for name in ("point_cloud.ply", "mesh.ply", "report.json", "train_log.jsonl"):
+        assert (out / name).is_file(), name
+    assert len(list((out / "test_renders").glob("*.png"))) == 2  # 16 views, every 8th is a test view
+    report = json.loads((out / "report.json").read_text())
+    assert report["gaussians_init"] == cloud.counts()
+    params, cue_type = load_ply(out / "point_cloud.ply")
+    assert len(cue_type) == sum(report["gaussians_final"].values()) == len(params["means"])
+    assert np.isfinite(params["means"].numpy()).all()
+    # G_S (plane) Gaussians are never cloned or split: only pruning changes their number
+    assert report["gaussians_final"]["PLANE"] <= report["gaussians_init"]["PLANE"]
+    assert len(cue_type) <= 20_000  # the budget holds
+    assert set(report["timings"]) >= {"load_and_init_s", "train_s", "mesh_s", "total_s"}
+
+
+def test_training_reduces_the_loss_and_improves_test_views(trained):
+    out, _ = trained
+    rows = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+    losses = [r["loss"] for r in rows]
+    assert all(np.isfinite(losses))
+    assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:3])
+    curve = json.loads((out / "report.json").read_text())["accuracy_vs_time"]
+    assert [c["step"] for c in curve] == [20, 200]
+    assert curve[1]["psnr"] > curve[0]["psnr"] + 1.0
+    assert curve[1]["train_s"] > curve[0]["train_s"] > 0
+
+
+def test_mesh_lies_on_the_room_surface(trained):
+    import open3d as o3d
+
+    out, _ = trained
+    mesh = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
+    v = np.asarray(mesh.vertices)
+    assert len(v) > 500
+    d = distance_to_surface(v)
+    # 200 iterations at 80x60, 5 cm voxels: half the vertices within a voxel, 90% within two
+    assert np.median(d) < 0.05 and np.mean(d < 0.1) > 0.9
+
+
+def test_bad_inputs_name_the_problem(tmp_path):
+    from splat.train import TrainConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=40, h=30, priors="none", n_sfm=20)
+    with pytest.raises(FileNotFoundError, match="geocues extract"):
+        run(TrainConfig(iters=2), root, tmp_path / "nocues", tmp_path / "out")
+    write_cues_ply(tmp_path / "cues.ply", surface_cues(root, n_plane=50))
+    with pytest.raises(ValueError, match="unknown cue types"):
+        run(TrainConfig(iters=2, cue_types=("WALL",)), root, tmp_path / "cues.ply", tmp_path / "out")
