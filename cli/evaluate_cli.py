@@ -18,19 +18,43 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
          gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
          scene: Annotated[Path | None, tyro.conf.arg(metavar="SCENE")] = None,
          json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
+         renders: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
+         test_every: int = 8,
+         lpips: Annotated[Path | None, tyro.conf.arg(metavar="WEIGHTS")] = None,
          cfg: Annotated[MeshMetricsConfig, tyro.conf.arg(name="")] = MeshMetricsConfig()) -> int:
-    """Mesh metrics (accuracy, completeness, Chamfer-L1, F-score, normal consistency) of a mesh.
+    """Mesh metrics (accuracy, completeness, Chamfer-L1, F-score, normal consistency) of a mesh,
+    and with --renders the PSNR / SSIM of rendered held-out views.
 
     Args:
         pred_mesh: the predicted mesh (PLY/OBJ/OFF).
         gt: the ground-truth mesh (default: SCENE/gt/mesh.ply when --scene is given).
         scene: a scene folder; its cameras (train and test) cull both meshes to what they saw.
         json: write the metrics and the protocol used to this JSON file.
+        renders: a folder of rendered test views named like their images (splat train's
+            OUT/test_renders); needs --scene.
+        test_every: the held-out split the renders were made for (every n-th image).
+        lpips: a TorchScript LPIPS network you made (no weights are downloaded); adds LPIPS.
     """
+    import json as _json
+
+    if renders is not None and scene is None:
+        raise SystemExit("--renders needs --scene (the test images are the scene's)")
     result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
     print(format_table(result))
+    images = None
+    if renders is not None:
+        from evaluation.image_metrics import evaluate_renders
+
+        images = evaluate_renders(renders, scene, test_every, lpips)
+        lp = f", LPIPS {images['lpips']:.4f}" if images["lpips"] is not None else ""
+        print(f"held-out views: {images['n_images']}, PSNR {images['psnr']:.2f} dB, SSIM {images['ssim']:.4f}{lp}")
     if json is not None:
-        print(f"wrote {save_json(result, json)}")
+        save_json(result, json)
+        if images is not None:
+            data = _json.loads(json.read_text())
+            data["images"] = images
+            json.write_text(_json.dumps(data, indent=2) + "\n")
+        print(f"wrote {json}")
     return 0
 
 

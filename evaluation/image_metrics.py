@@ -192,3 +192,42 @@ def evaluate_images(imgs: Sequence[torch.Tensor | str | Path], refs: Sequence[to
     return {"psnr": mean("psnr"), "ssim": mean("ssim"),
             "lpips": mean("lpips") if model is not None else None,
             "n_images": len(rows), "ssim_padding": padding, "per_image": rows}
+
+
+def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every: int = 8,
+                     lpips_weights: str | Path | None = None) -> dict:
+    """PSNR / SSIM (LPIPS with weights) of rendered held-out views against the scene's test images.
+
+    ``renders_dir`` holds one image per test view named like its source image (``splat train``
+    writes OUT/test_renders/STEM.png); the references are the scene's test views (every
+    ``test_every``-th image, as in training), read at the renders' size (a downscaled training run
+    renders smaller images; the scene's images are resized with area averaging, as training did).
+    """
+    from geocues.scene import Scene
+
+    renders_dir = Path(renders_dir)
+    if not renders_dir.is_dir():
+        raise FileNotFoundError(f"no renders folder at {renders_dir}")
+    files = {p.stem: p for p in sorted(renders_dir.iterdir()) if p.suffix.lower() in (".png", ".jpg", ".jpeg")}
+    if not files:
+        raise ValueError(f"{renders_dir} holds no PNG/JPEG renders")
+    scene = Scene.load(scene_dir, test_every=test_every, check_priors=False)
+    first = load_image(next(iter(files.values())))
+    cam0 = scene.cameras[0]
+    downscale = cam0.width / first.shape[1]
+    if abs(cam0.height / downscale - first.shape[0]) > 1:
+        raise ValueError(f"render size {first.shape[1]}x{first.shape[0]} is not a downscale of the "
+                         f"scene's {cam0.width}x{cam0.height}")
+    scene = Scene.load(scene_dir, downscale=downscale, test_every=test_every, check_priors=False)
+    tests = {scene.cameras[i].stem: i for i in scene.test_indices}
+    missing = sorted(set(tests) - set(files))
+    extra = sorted(set(files) - set(tests))
+    if extra:
+        raise ValueError(f"renders {extra[:5]} are not test views of {scene_dir} (test_every={test_every})")
+    if missing:
+        log.warning("%d test views have no render (e.g. %s); they are left out", len(missing), missing[:3])
+    stems = [s for s in tests if s in files]
+    refs = [torch.from_numpy(scene.load_image(tests[s])) for s in stems]
+    result = evaluate_images([files[s] for s in stems], refs, lpips_weights)
+    result["renders"], result["scene"], result["downscale"] = str(renders_dir), str(scene_dir), downscale
+    return result

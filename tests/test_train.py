@@ -103,3 +103,27 @@ def test_bad_inputs_name_the_problem(tmp_path):
     write_cues_ply(tmp_path / "cues.ply", surface_cues(root, n_plane=50))
     with pytest.raises(ValueError, match="unknown cue types"):
         run(TrainConfig(iters=2, cue_types=("WALL",)), root, tmp_path / "cues.ply", tmp_path / "out")
+
+
+def test_evaluate_cli_reports_mesh_and_held_out_views(trained, tmp_path, capsys):
+    """`evaluate MESH --scene SCENE --renders OUT/test_renders` gives the trainer's test PSNR (PNG-rounded)."""
+    from cli.evaluate_cli import main
+
+    import open3d as o3d
+
+    out, _ = trained
+    scene = out.parent / "room"
+    V, T, _ = room_mesh()
+    gt = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
+    o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), gt)
+    assert main([str(out / "mesh.ply"), "--gt", str(tmp_path / "gt.ply"), "--scene", str(scene),
+                 "--renders", str(out / "test_renders"),
+                 "--json", str(tmp_path / "m.json"), "--n-samples", "20000"]) == 0
+    data = json.loads((tmp_path / "m.json").read_text())
+    report = json.loads((out / "report.json").read_text())
+    assert data["images"]["n_images"] == 2
+    assert abs(data["images"]["psnr"] - report["test_metrics"]["psnr"]) < 0.1
+    assert 0 < data["f_score"] <= 1 and "held-out views: 2" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="not test views"):
+        from evaluation.image_metrics import evaluate_renders
+        evaluate_renders(out / "test_renders", scene, test_every=5)
