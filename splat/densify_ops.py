@@ -195,11 +195,16 @@ def tangent_clone_means(means: Tensor, grads: Tensor, normals: Tensor,
     length along the same tangent direction, sign kept (mu + step * t / |t|); zero where the
     tangent gradient vanishes. Either way the displacement has no normal component.
     """
-    tangent = grads - (grads * normals).sum(-1, keepdim=True) * normals
+    # Normals from float32 rotations are unit only to ~1e-6; renormalising keeps the removed
+    # normal component exact, and the second projection stops normalisation from amplifying
+    # the rounding left in a tangent that is short next to the gradient.
+    n = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    tangent = grads - (grads * n).sum(-1, keepdim=True) * n
     if step is None:
         return means + tangent
     length = tangent.norm(dim=-1, keepdim=True)
     direction = torch.where(length > 0, tangent / length.clamp_min(1e-30), torch.zeros_like(tangent))
+    direction = direction - (direction * n).sum(-1, keepdim=True) * n
     return means + step[:, None].to(means) * direction
 
 

@@ -72,6 +72,11 @@ class IndoorStrategyConfig:
     """LINE clone offset along the tangent mean gradient, in parent's largest scales (0 = in place)."""
     line_clone_literal: bool = False
     """Place LINE clones at mu + grad - (n.grad)n with the raw mean gradient (paper verbatim)."""
+    min_refine_every: int = 20
+    """Floor of the scaled refine period: a refine step averages the gradients of this many views at least."""
+    min_reset_every: int = 1000
+    """Opacity resets only when the scaled reset period is at least this long (opacities need
+    hundreds of steps to recover at the 3DGS learning rate); shorter runs never reset."""
     max_gaussians: int = 0
     """Budget: growth stops at this many Gaussians, highest mean gradients first (0 = no limit)."""
     precedence_sigmas: float = 2.0
@@ -85,7 +90,8 @@ class Schedule:
     start: int
     stop: int
     every: int
-    reset_every: int
+    reset_every: int  # 0 = no opacity reset
+    big_prune_from: int  # too-large Gaussians are pruned after this step (3DGS: the first reset)
     sfm_pause: int
     sfm_resume: int
 
@@ -93,7 +99,9 @@ class Schedule:
     def from_config(cls, cfg: IndoorStrategyConfig) -> "Schedule":
         f = cfg.total_iters / PAPER_ITERS
         return cls(start=round(cfg.refine_start * f), stop=round(cfg.refine_stop * f),
-                   every=max(1, round(cfg.refine_every * f)), reset_every=max(1, round(cfg.reset_every * f)),
+                   every=max(1, cfg.min_refine_every, round(cfg.refine_every * f)),
+                   reset_every=reset if (reset := round(cfg.reset_every * f)) >= max(1, cfg.min_reset_every) else 0,
+                   big_prune_from=round(cfg.reset_every * f),
                    sfm_pause=round(cfg.sfm_pause * f), sfm_resume=round(cfg.sfm_resume * f))
 
     def is_refine(self, step: int) -> bool:
@@ -104,7 +112,7 @@ class Schedule:
         return self.is_refine(step) and (step <= self.sfm_pause or step > self.sfm_resume)
 
     def is_reset(self, step: int) -> bool:
-        return 0 < step < self.stop and step % self.reset_every == 0
+        return self.reset_every > 0 and 0 < step < self.stop and step % self.reset_every == 0
 
 
 def budget_mask(candidates: torch.Tensor, score: torch.Tensor, room: int | None) -> torch.Tensor:
@@ -284,7 +292,7 @@ class IndoorStrategy:
     def _prune(self, params, optimizers: dict, state: dict, step: int) -> dict[str, int]:
         cfg = self.cfg
         prune = torch.sigmoid(params["opacities"]) < cfg.prune_opa
-        if step > self.schedule.reset_every:
+        if step > self.schedule.big_prune_from:
             prune |= torch.exp(params["scales"]).amax(-1) > cfg.prune_scale3d * state["scene_scale"]
         cue_type = state["cue_type"]
         counts = {f"pruned_{name}": int((prune & (cue_type == t)).sum()) for t, name in TYPE_NAMES.items()}

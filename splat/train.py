@@ -91,6 +91,8 @@ class TrainConfig:
     """Write a train_log.jsonl line every this many iterations."""
     mesh: bool = True
     """Fuse a TSDF mesh from the rendered median depth of the training views at the end."""
+    mesh_at_checkpoints: bool = False
+    """Also fuse a mesh at every checkpoint (OUT/checkpoints/mesh_STEP.ply), for accuracy against time."""
     mesh_every: int = 1
     """Use every n-th training view for the TSDF fusion."""
     seed: int = 0
@@ -246,6 +248,9 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 metrics = evaluate_views(params, test_views, sh_degree, cfg)
                 curve.append({"step": step + 1, "train_s": round(train_s, 2), "psnr": metrics["psnr"],
                               "ssim": metrics["ssim"], "n_gaussians": len(state["cue_type"])})
+                if cfg.mesh and cfg.mesh_at_checkpoints:
+                    path = out_dir / "checkpoints" / f"mesh_{step + 1:06d}.ply"
+                    curve[-1]["mesh"] = str(write_mesh(fuse_mesh(params, train_views, sh_degree, cfg), path))
                 log.info("checkpoint %d: %.1f s training, test PSNR %s", step + 1, train_s, metrics["psnr"])
     timings["train_s"] = train_s
 

@@ -168,7 +168,9 @@ class TestRules:
         torch.testing.assert_close(n.norm(dim=-1), torch.ones(64))
 
     @pytest.mark.parametrize("literal", [True, False])
-    def test_tangent_clone_is_orthogonal_to_normal(self, literal):
+    @pytest.mark.parametrize("seed", [0, 8, 48])  # 8, 48: float32 normals 1e-6 off unit length
+    def test_tangent_clone_is_orthogonal_to_normal(self, literal, seed):
+        torch.manual_seed(seed)
         quats, log_s = rotation(3, 32), torch.randn(32, 3) - 3
         means, grads = torch.randn(32, 3), torch.randn(32, 3) * 1e-3
         n = flat_normal(quats, log_s)
@@ -268,8 +270,14 @@ class TestSchedule:
             assert (counts["cloned_sfm"], counts["cloned_line"]) == (sfm, line)
 
     def test_schedule_values(self):
-        s = Schedule.from_config(IndoorStrategyConfig(total_iters=3000))
+        s = Schedule.from_config(IndoorStrategyConfig(total_iters=3000, min_refine_every=1, min_reset_every=1))
         assert (s.start, s.stop, s.every, s.reset_every, s.sfm_pause, s.sfm_resume) == (50, 1200, 10, 300, 70, 350)
+        # floors of the short run: refine steps average >= 20 views, no opacity reset shorter than 1000
+        s = Schedule.from_config(IndoorStrategyConfig(total_iters=3000))
+        assert (s.every, s.reset_every, s.big_prune_from) == (20, 0, 300)
+        assert not any(s.is_reset(k) for k in range(3000)) and s.is_refine(60) and not s.is_refine(70)
+        s = Schedule.from_config(IndoorStrategyConfig())
+        assert (s.every, s.reset_every, s.big_prune_from) == (100, 3000, 3000)
 
     def test_large_gaussians_split_in_their_plane(self):
         counts, params, state = run_at(4000, types=(SFM, LINE, PLANE), scale=0.5, precedence_sigmas=0.0)
