@@ -145,11 +145,14 @@ def surface_gaussians(n: int, sh_degree: int = 3, seed: int = 0) -> dict[str, to
     }
 
 
-def bench_camera(width: int, height: int):
-    """A camera inside the room looking at the far corner's walls and furniture (70 deg wide)."""
+BENCH_EYE = (1.8, 0.9, 1.6)
+
+
+def bench_camera(width: int, height: int, eye: tuple[float, float, float] = BENCH_EYE):
+    """A camera at ``eye`` inside the room looking at the far corner's walls and furniture (70 deg wide)."""
     from splat.camera import Camera
 
-    eye, target = np.array([1.8, 0.9, 1.6]), np.array([5.0, 4.2, 0.9])
+    eye, target = np.asarray(eye, dtype=np.float64), np.array([5.0, 4.2, 0.9])
     fwd = (target - eye) / np.linalg.norm(target - eye)
     right = np.cross(fwd, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
@@ -158,6 +161,31 @@ def bench_camera(width: int, height: int):
     f = 0.5 * width / math.tan(math.radians(35.0))
     K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
     return Camera.from_Rt(K, R, -R @ eye, width, height)
+
+
+TRAIN_EYES = (BENCH_EYE, (2.4, 1.2, 1.4), (1.5, 1.6, 1.8), (2.0, 0.7, 1.2))
+
+
+@torch.no_grad()
+def target_views(truth: dict[str, torch.Tensor], width: int, height: int, device: str | torch.device = "cpu",
+                 sh_degree: int | None = None, eyes=TRAIN_EYES) -> list:
+    """Views (splat.views.View) whose image, depth prior (median depth where alpha > 0.5) and normal
+    prior are renders of the Gaussians ``truth`` from ``eyes``: a training problem with exact
+    targets and no files (train-step tests, `bench/train_step_bench.py`)."""
+    from splat.rasterize import render
+    from splat.views import View
+
+    params = {k: v.to(device) for k, v in truth.items()}
+    views = []
+    for k, eye in enumerate(eyes):
+        cam = bench_camera(width, height, eye).to(device)
+        out = render(params, cam, sh_degree=sh_degree)
+        covered = out["alpha"] > 0.5
+        depth = torch.where(covered, out["median_depth"], torch.zeros_like(out["median_depth"]))
+        normal = torch.where(covered[..., None], out["normal"], torch.zeros_like(out["normal"]))
+        views.append(View(index=k, name=f"view{k}.png", camera=cam, rgb=out["rgb"].clamp(0, 1),
+                          depth_prior=depth, normal_prior=normal))
+    return views
 
 
 # ----------------------------------------------------------------------------------------------

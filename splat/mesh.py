@@ -38,11 +38,13 @@ import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
-import open3d as o3d
 from tqdm import tqdm
+
+if TYPE_CHECKING:  # Open3D is imported where it is used: splat.train imports this module on
+    import open3d as o3d  # machines that train without meshing (no Open3D there)
 
 log = logging.getLogger(__name__)
 
@@ -165,6 +167,7 @@ class TSDFFuser:
     """
 
     def __init__(self, cfg: TSDFConfig | None = None) -> None:
+        import open3d as o3d
         self.cfg = cfg or TSDFConfig()
         self.cfg.validate()
         self.device = o3d.core.Device(self.cfg.device)
@@ -192,6 +195,7 @@ class TSDFFuser:
         K: [3, 3] intrinsics, COLMAP pixel convention (pixel (i, j) centre at (j + 0.5, i + 0.5)).
         world_to_cam: [4, 4] world-to-camera transform, OpenCV axes (x right, y down, z forward).
         """
+        import open3d as o3d
         where = f"view {self.n_views}"
         depth = _as_depth(depth, where)
         K, T = _check_camera(K, world_to_cam, where)
@@ -254,6 +258,7 @@ class TSDFFuser:
         """Marching cubes on the fused TSDF: a legacy Open3D mesh with vertex normals (from the
         TSDF gradient, facing the free space) and, when views had colour, vertex colours in [0, 1].
         Empty (with a warning) when nothing valid was fused."""
+        import open3d as o3d
         if self.n_blocks == 0:
             log.warning("TSDF: no valid depth in %d view(s); the mesh is empty", self.n_views)
             return o3d.geometry.TriangleMesh()
@@ -295,6 +300,7 @@ def clean_mesh(mesh: o3d.geometry.TriangleMesh, cfg: TSDFConfig | None = None) -
     """Remove duplicate vertices and faces, zero-area faces, connected components whose bounding
     box diagonal is below ``cfg.min_component_diag`` of the whole mesh's, and unreferenced
     vertices (pymeshlab). Keeps vertex normals and colours. An empty mesh is returned as is."""
+    import open3d as o3d
     import pymeshlab  # lazy: only the meshing stage needs it
 
     cfg = cfg or TSDFConfig()
@@ -342,6 +348,7 @@ _EMPTY_PLY = ("ply\nformat ascii 1.0\ncomment empty TSDF mesh (splat.mesh)\nelem
 def write_mesh(mesh: o3d.geometry.TriangleMesh, path: str | Path) -> Path:
     """Write ``mesh`` as a binary PLY (vertices, triangles, normals, colours) atomically; an empty
     mesh becomes a valid PLY with no elements (Open3D refuses to write one), with a warning."""
+    import open3d as o3d
     from geocues.atomic import atomic_path
 
     path = Path(path)

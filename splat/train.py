@@ -37,12 +37,10 @@ from splat.gaussians import InitConfig, init_from_cues, save_ply, scene_scale
 from splat.losses import LossConfig, total_loss
 from splat.mesh import TSDFConfig, clean_mesh, fuse_views, write_mesh
 from splat.rasterize import render
-from splat.strategy import IndoorStrategy, IndoorStrategyConfig
+from splat.strategy import PAPER_ITERS, IndoorStrategy, IndoorStrategyConfig
 from splat.views import View, ViewSet
 
 log = logging.getLogger(__name__)
-
-PAPER_ITERS = 30_000
 
 
 @dataclass
@@ -129,6 +127,29 @@ def means_lr(step: int, total: int, lr: LearningRates, scale: float) -> float:
 def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[str, Tensor]:
     bg = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
     return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=bg)
+
+
+def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, view: View, step: int,
+               sh_degree: int, cfg: TrainConfig, loss_cfg: LossConfig,
+               generator: torch.Generator | None = None) -> tuple[Tensor, dict, dict]:
+    """One iteration on one view: render, IndoorGS loss, backward, Adam, per-type density control.
+
+    ``loss_cfg`` is the run's loss config with its iteration counts already scaled (see run()).
+    Returns the loss, its terms and what the density control did at this step (empty if nothing).
+    """
+    out = render_view(params, view, sh_degree, cfg)
+    loss, terms = total_loss(out, view.rgb, view.camera.K, params, state["cue_type"], loss_cfg, step,
+                             depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=generator)
+    info = {**out, "width": view.camera.width, "height": view.camera.height,
+            "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
+    strategy.step_pre_backward(params, optimizers, state, step, info)
+    loss.backward()
+    for opt in optimizers.values():
+        opt.step()
+    density = strategy.step_post_backward(params, optimizers, state, step, info)
+    for opt in optimizers.values():
+        opt.zero_grad(set_to_none=True)
+    return loss.detach(), terms, density
 
 
 @torch.no_grad()
@@ -223,18 +244,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 order = list(rng.permutation(len(train_views)))
             view = train_views[order.pop()]
             sh_degree = min(cfg.sh_degree, step // sh_every)
-            out = render_view(params, view, sh_degree, cfg)
-            loss, terms = total_loss(out, view.rgb, view.camera.K, params, state["cue_type"], loss_cfg, step,
-                                     depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=gen)
-            info = {**out, "width": view.camera.width, "height": view.camera.height,
-                    "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
-            strategy.step_pre_backward(params, optimizers, state, step, info)
-            loss.backward()
-            for opt in optimizers.values():
-                opt.step()
-            density = strategy.step_post_backward(params, optimizers, state, step, info)
-            for opt in optimizers.values():
-                opt.zero_grad(set_to_none=True)
+            loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
+                                              cfg, loss_cfg, gen)
             train_s += time.perf_counter() - t0
             bar.update(1)
             if step % cfg.log_every == 0 or step == cfg.iters - 1 or density:

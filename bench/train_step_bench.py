@@ -1,0 +1,109 @@
+"""Seconds per training iteration: the whole `splat train` step, not the rasterizer alone.
+
+    python bench/train_step_bench.py --name cpu2 [--device cpu|cuda] [--sizes 320x240 640x480] \
+        [--counts 50000 100000 300000] [--iters 20]
+
+One iteration is ``splat.train.train_step``: render, every IndoorGS loss term (L_rgb, L_d, L_n,
+L_s and L_nc, all on), backward, Adam on every parameter, and the density control's gradient
+bookkeeping (no refine step falls inside the timed window; refine steps are rare and their cost
+is in the trainer's own report). The problem has no files: flat Gaussians on a benchmark room's
+surfaces (``splat.bench.surface_gaussians``) rendered from four cameras give the targets and the
+depth/normal priors, and training starts from a perturbed copy. Median seconds of ``--iters``
+steps after 3 warm-up steps (CUDA synchronised). Writes ``bench/results/train_step_<name>.json``.
+Not part of the default tests.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import torch  # noqa: E402
+
+from geocues.atomic import atomic_path  # noqa: E402
+from splat.bench import surface_gaussians, target_views  # noqa: E402
+from splat.losses import LossConfig  # noqa: E402
+from splat.strategy import IndoorStrategy, IndoorStrategyConfig  # noqa: E402
+from splat.train import LearningRates, TrainConfig, make_optimizers, train_step  # noqa: E402
+
+
+@dataclass
+class StepBench:
+    name: str
+    """Result name: bench/results/train_step_NAME.json."""
+    device: str = "cpu"
+    sizes: tuple[str, ...] = ("320x240", "640x480")
+    counts: tuple[int, ...] = (50_000, 100_000, 300_000)
+    iters: int = 20
+    sh_degree: int = 3
+    backend: str = "auto"
+
+
+def time_config(width: int, height: int, n: int, cfg: StepBench) -> dict:
+    truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
+    views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
+    g = torch.Generator().manual_seed(0)
+    start = {k: v.clone() for k, v in truth.items()}
+    start["sh0"] += 0.3 * torch.randn(start["sh0"].shape, generator=g)
+    start["means"] += 0.005 * torch.randn(start["means"].shape, generator=g)
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(cfg.device)) for k, v in start.items()})
+    optimizers = make_optimizers(params, LearningRates(), 3.0)
+    strategy = IndoorStrategy(IndoorStrategyConfig())  # 30k schedule: steps 1..N are before refining
+    state = strategy.initialize_state(3.0)
+    state["cue_type"] = (torch.arange(n) % 3).to(cfg.device)
+    tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree)
+    loss_cfg = replace(LossConfig(), nc_from_iter=0)  # every term on
+    sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
+    times = []
+    for step in range(1, cfg.iters + 4):
+        sync()
+        t0 = time.perf_counter()
+        loss, _, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step,
+                                cfg.sh_degree, tcfg, loss_cfg, g)
+        sync()
+        if step > 3:
+            times.append(time.perf_counter() - t0)
+        if not math.isfinite(float(loss)):
+            raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
+    row = {"width": width, "height": height, "n": n, "median_s": statistics.median(times),
+           "min_s": min(times), "max_s": max(times)}
+    if cfg.device.startswith("cuda"):
+        row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
+        torch.cuda.reset_peak_memory_stats()
+    return row
+
+
+def main(cfg: StepBench) -> dict:
+    rows = []
+    for size in cfg.sizes:
+        w, h = (int(v) for v in size.split("x"))
+        for n in cfg.counts:
+            row = time_config(w, h, n, cfg)
+            rows.append(row)
+            print(f"{w}x{h} {n:>7d} Gaussians: {row['median_s']:.3f} s/iter", flush=True)
+    result = {"config": asdict(cfg), "torch": torch.__version__, "threads": torch.get_num_threads(),
+              "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+              "load_avg": os.getloadavg(), "rows": rows,
+              "device_name": torch.cuda.get_device_name(0) if cfg.device.startswith("cuda") else "cpu"}
+    path = REPO / "bench" / "results" / f"train_step_{cfg.name}.json"
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    print(f"wrote {path}")
+    return result
+
+
+if __name__ == "__main__":
+    import tyro
+
+    main(tyro.cli(StepBench))
