@@ -14,7 +14,9 @@ skipped with the reason; every per-image result carries residuals (metres) for `
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+import json
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -80,15 +82,20 @@ class DepthAlignment:
 
     def apply(self, depth: np.ndarray, warp_max: float = 0.1) -> np.ndarray:
         """Aligned depth (s·d + b)·(1 + w(u, v)), keeping 0 (invalid) where the prior is invalid or
-        the result is <= 0. w is the warp correction (zero without one)."""
+        the result is <= 0. w is the warp correction (zero without one). ``depth`` may be the prior
+        resized to another resolution (a downscaled training run): w is then evaluated at the
+        centres of its pixels mapped into the image the fit was made on."""
         if not self.ok:
             raise ValueError(f"image {self.index}: no alignment ({self.reason})")
+        if depth.ndim != 2:
+            raise ValueError(f"depth must be [H, W], got shape {depth.shape}")
         out = self.scale * depth + self.shift
         if self.warp_degree > 0:
-            if depth.shape != (self.height, self.width):
-                raise ValueError(f"depth has shape {depth.shape}, the alignment was fit on "
-                                 f"({self.height}, {self.width})")
-            j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+            h, w = depth.shape
+            if self.width <= 0 or self.height <= 0 or abs(w / self.width - h / self.height) > 0.02 * w / self.width:
+                raise ValueError(f"depth has shape {depth.shape}, not a resize of the "
+                                 f"({self.height}, {self.width}) image the alignment was fit on")
+            j, i = np.meshgrid((np.arange(w) + 0.5) * self.width / w, (np.arange(h) + 0.5) * self.height / h)
             A = _monomials(*_norm_uv(np.stack([j.ravel(), i.ravel()], 1), self.width, self.height),
                            self.warp_degree)
             w = np.clip(A @ np.asarray(self.warp_coeffs), -warp_max, warp_max).reshape(depth.shape)
@@ -98,6 +105,30 @@ class DepthAlignment:
     def to_dict(self) -> dict:
         d = asdict(self)
         return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DepthAlignment":
+        """Inverse of :meth:`to_dict` (None back to NaN; unknown keys ignored)."""
+        names = {f.name: f for f in fields(cls)}
+        kw = {k: (float("nan") if v is None and names[k].type == "float" else v) for k, v in d.items() if k in names}
+        return cls(**kw)
+
+
+def load_alignments(report: str | Path) -> dict[str, DepthAlignment]:
+    """The successful per-image alignments recorded by ``geocues extract`` in CUES/report.json
+    (``report`` is that file or its folder), keyed by image name. Empty when the extract ran
+    without priors or its depth-alignment stage was off."""
+    path = Path(report)
+    path = path / "report.json" if path.is_dir() else path
+    if not path.is_file():
+        raise FileNotFoundError(f"no cue report at {path} (run `geocues extract SCENE -o CUES` first)")
+    rows = json.loads(path.read_text()).get("per_image", [])
+    out = {}
+    for row in rows:
+        al = row.get("alignment")
+        if al and al.get("ok") and "name" in row:
+            out[row["name"]] = DepthAlignment.from_dict(al)
+    return out
 
 
 @dataclass

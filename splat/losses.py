@@ -13,6 +13,7 @@ the graph (zero gradients, never NaN).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -200,6 +201,25 @@ def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, vali
     return _masked_mean(1.0 - (normal * n_depth).sum(-1), mask)
 
 
+def anchored_depth_loss(depth: Tensor, anchor: Tensor, valid: Tensor, tolerance: float) -> Tensor:
+    """L_a (an extension, not in the paper): mean over ``valid`` pixels of max(0, |depth − anchor| − τ).
+
+    depth: [H, W] rendered z-depth (m); anchor: [H, W] the depth prior aligned to the cues by
+    ``geocues extract`` (metric; 0 = invalid); τ (m): the tolerance, at least the alignment's own
+    residual. L_d (patch PCC) is blind to a surface that moved along the view direction — a wall
+    rebuilt 10 cm in front of itself has the same depth pattern — and in regions without cues
+    nothing else holds it; L_a pulls back only depths farther than τ from the anchor, so it does not
+    fight the finer geometry the other terms recover inside τ. Returns a 0-dim tensor (metres).
+    """
+    _check_shape("depth", depth, (None, None))
+    _check_shape("anchor", anchor, tuple(depth.shape))
+    _check_shape("valid", valid, tuple(depth.shape))
+    if not tolerance >= 0.0:
+        raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+    excess = torch.relu((depth - anchor.to(depth.dtype)).abs() - tolerance)
+    return _masked_mean(excess, valid & (anchor > 0))
+
+
 @dataclass
 class LossConfig:
     """Weights and switches of the IndoorGS loss (§4.3)."""
@@ -234,21 +254,33 @@ class LossConfig:
     """Cue types flattened by L_s (geocues.types.CueType: SFM=0, LINE=1, PLANE=2); the paper: LINE."""
     nc_detach_depth: bool = False
     """Stop the L_nc gradient at the depth-derived normal (default: it flows into both)."""
+    lambda_anchor: float = 5.0
+    """λ_a, weight of the anchored-depth term L_a (not in the paper; 0 = the paper's loss): rendered
+    depth against the depth prior aligned to the cues, beyond a tolerance. Active only for views
+    whose prior the cue report aligned (docs/training_losses.md)."""
+    anchor_tol_min: float = 0.03
+    """Smallest tolerance τ of L_a in metres."""
+    anchor_tol_p90: float = 0.5
+    """τ = max(anchor_tol_min, this × the view's alignment 90th-percentile residual); 0.5 measured
+    better than 1.0 at λ_a = 1 and 5 (docs/training_losses.md)."""
 
 
 def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params: dict[str, Tensor],
                cue_type: Tensor, cfg: LossConfig, step: int, depth_prior: Tensor | None = None,
-               normal_prior: Tensor | None = None, generator: torch.Generator | None = None
+               normal_prior: Tensor | None = None, generator: torch.Generator | None = None,
+               depth_anchor: Tensor | None = None, anchor_p90: float = float("nan")
                ) -> tuple[Tensor, dict[str, float]]:
     """L = L_rgb + λ_d L_d + λ_n L_n + λ_s L_s + λ_nc L_nc (IndoorGS §4.3) for one view.
 
     out: ``render`` output (rgb, depth, normal, alpha); gt_rgb: [H, W, 3]; camera_K: [3, 3];
     params["scales"]: [N, 3] log-scales; cue_type: [N] int (SFM=0, LINE=1, PLANE=2); step: the
-    iteration; depth_prior [H, W] m (0 = invalid), normal_prior [H, W, 3] (0 = invalid).
+    iteration; depth_prior [H, W] m (0 = invalid), normal_prior [H, W, 3] (0 = invalid);
+    depth_anchor [H, W] m and anchor_p90 (m): the cue-aligned prior and its residual for L_a
+    (used when cfg.lambda_anchor > 0; a NaN anchor_p90 leaves τ = cfg.anchor_tol_min).
     A term is skipped when its switch is off, its prior is None, or (L_nc) step < nc_from_iter.
     L_s flattens the Gaussians whose type is in ``cfg.flat_types`` (LINE only by default, as the
     paper's G_L; PLANE Gaussians are not flattened unless 2 is added).
-    Returns (total, {"rgb", "depth", "normal", "flat", "nc" (the computed ones), "total"}) with the
+    Returns (total, {"rgb", "depth", "anchor", "normal", "flat", "nc" (the computed ones), "total"}) with the
     unweighted term values as floats.
     """
     for key in ("rgb", "depth", "normal", "alpha"):
@@ -263,6 +295,11 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
         valid = covered & (depth_prior > 0) & (out["depth"] > 0)
         terms["depth"] = (cfg.lambda_depth, depth_pcc_loss(out["depth"], depth_prior, valid, cfg.patch_size,
                                                            cfg.n_patches, generator))
+    if cfg.lambda_anchor > 0 and depth_anchor is not None:
+        _check_shape("depth_anchor", depth_anchor, (h, w))
+        tol = cfg.anchor_tol_min if math.isnan(anchor_p90) else max(cfg.anchor_tol_min, cfg.anchor_tol_p90 * anchor_p90)
+        terms["anchor"] = (cfg.lambda_anchor, anchored_depth_loss(out["depth"], depth_anchor,
+                                                                  covered & (out["depth"] > 0), tol))
     if cfg.use_normal and normal_prior is not None:
         terms["normal"] = (cfg.lambda_normal, normal_prior_loss(out["normal"], normal_prior, covered))
     if cfg.use_flat:

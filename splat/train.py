@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from geocues.atomic import atomic_path
 from geocues.cue_io import read_cues_ply
+from geocues.depth_align import load_alignments
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat.gaussians import InitConfig, init_from_cues, save_ply, scene_scale
@@ -139,7 +140,8 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
     """
     out = render_view(params, view, sh_degree, cfg)
     loss, terms = total_loss(out, view.rgb, view.camera.K, params, state["cue_type"], loss_cfg, step,
-                             depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=generator)
+                             depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=generator,
+                             depth_anchor=view.depth_anchor, anchor_p90=view.anchor_p90)
     info = {**out, "width": view.camera.width, "height": view.camera.height,
             "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
     strategy.step_pre_backward(params, optimizers, state, step, info)
@@ -211,7 +213,14 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     timings: dict[str, float] = {}
 
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
-    train_views = ViewSet(scene, scene.train_indices, device, desc="training views")
+    alignments = {}
+    if cfg.loss.lambda_anchor > 0:  # L_a needs the cue-aligned priors recorded by geocues extract
+        report = cues_ply.parent / "report.json"
+        alignments = load_alignments(report) if report.is_file() else {}
+        if not alignments and scene.has_depth_priors:
+            log.warning("%s records no depth alignments (the extract ran without priors?): the "
+                        "anchored-depth term L_a is off", report)
+    train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")

@@ -3,6 +3,11 @@
 Images are read once (scene scale, RGB) and kept as uint8 tensors (640x480: 0.9 MB a view); depth
 and normal priors, when the scene has them (``SCENE/priors/{depth,normal}/``), are kept as float16
 (metres for depth: 1 mm steps up to 2 m, 2 mm to 4 m, enough for a monocular prior's accuracy).
+
+With the per-image alignments of ``geocues extract`` (``geocues.depth_align.load_alignments``), a
+view also carries its depth prior *aligned to the cues* (metric, scale/shift/warp fitted to the line
+and SfM cues it sees) and that fit's 90th-percentile residual: the anchor of the trainer's
+anchored-depth term (splat/losses.py ``anchored_depth_loss``).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from geocues.depth_align import DepthAlignment
 from geocues.scene import Scene
 from splat.camera import Camera
 
@@ -31,17 +37,22 @@ class View:
     rgb: Tensor  # [H, W, 3] float32 in [0, 1]
     depth_prior: Tensor | None  # [H, W] float32 metres, 0 = invalid
     normal_prior: Tensor | None  # [H, W, 3] float32 unit camera frame, 0 = invalid
+    depth_anchor: Tensor | None = None  # [H, W] float32 metres: the prior aligned to the cues, 0 = invalid
+    anchor_p90: float = float("nan")  # 90th-percentile |residual| (m) of that alignment at the cues
 
 
 class ViewSet:
     """The views of ``scene`` with indices ``indices`` (train or test split), loaded once."""
 
     def __init__(self, scene: Scene, indices: list[int], device: torch.device | str = "cpu",
-                 load_priors: bool = True, desc: str = "views"):
+                 load_priors: bool = True, desc: str = "views",
+                 alignments: dict[str, DepthAlignment] | None = None):
         self.scene, self.indices, self.device = scene, list(indices), torch.device(device)
         self._rgb: list[Tensor] = []
         self._depth: list[Tensor | None] = []
         self._normal: list[Tensor | None] = []
+        self._anchor: list[Tensor | None] = []
+        self._anchor_p90: list[float] = []
         self.cameras: list[Camera] = []
         for i in tqdm(self.indices, desc=f"loading {desc}", leave=False):
             cam = scene.cameras[i]
@@ -52,9 +63,14 @@ class ViewSet:
             n = scene.normal_prior(i) if load_priors else None
             self._depth.append(None if d is None else torch.from_numpy(d).half())
             self._normal.append(None if n is None else torch.from_numpy(n).half())
+            al = (alignments or {}).get(cam.name) if d is not None else None
+            self._anchor.append(None if al is None else torch.from_numpy(al.apply(d)).half())
+            self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)
-        log.info("%s: %d views, %d with a depth prior, %d with a normal prior", desc, len(self), n_depth, n_normal)
+        n_anchor = sum(a is not None for a in self._anchor)
+        log.info("%s: %d views, %d with a depth prior (%d aligned to the cues), %d with a normal prior",
+                 desc, len(self), n_depth, n_anchor, n_normal)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -73,8 +89,9 @@ class ViewSet:
 
     def __getitem__(self, k: int) -> View:
         dev = self.device
-        d, n = self._depth[k], self._normal[k]
+        d, n, a = self._depth[k], self._normal[k], self._anchor[k]
         return View(index=self.indices[k], name=self.scene.cameras[self.indices[k]].name, camera=self.cameras[k],
                     rgb=self._rgb[k].to(dev).float() / 255.0,
                     depth_prior=None if d is None else d.to(dev).float(),
-                    normal_prior=None if n is None else n.to(dev).float())
+                    normal_prior=None if n is None else n.to(dev).float(),
+                    depth_anchor=None if a is None else a.to(dev).float(), anchor_p90=self._anchor_p90[k])

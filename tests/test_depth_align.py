@@ -103,6 +103,43 @@ class TestAlignDepthPrior:
         err_off = np.median(np.abs(off.apply(prior)[m] - depths[1][m]))
         assert err_on < 0.3 * err_off
 
+    def test_apply_on_a_resized_prior_and_round_trip(self, room, tmp_path):
+        """The warp of a fit made at full size, applied to the prior resized to half size, matches
+        the full-size result at the same points; to_dict / from_dict / load_alignments keep it."""
+        import json
+
+        import cv2
+
+        from geocues.depth_align import DepthAlignment, load_alignments
+
+        scene, depths = room
+        cam = scene.cameras[1]
+        j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        x, y = (j - cam.width / 2) / (cam.width / 2), (i - cam.height / 2) / (cam.width / 2)
+        prior = np.where(depths[1] > 0, 0.7 * depths[1] * (1 + 0.03 * (x * x - 0.5 * y)) + 0.2, 0).astype(np.float32)
+        al = align_depth_prior(cam, prior, _surface_points(scene, depths, 1, n=600), DepthAlignConfig(warp_degree=2))
+        assert al.ok and al.warp_degree == 2
+        full = al.apply(prior)
+        half_prior = cv2.resize(prior, (cam.width // 2, cam.height // 2), interpolation=cv2.INTER_AREA)
+        half = al.apply(half_prior)
+        ref = cv2.resize(full, (cam.width // 2, cam.height // 2), interpolation=cv2.INTER_AREA)
+        inner = (half_prior > 0) & (cv2.resize((prior > 0).astype(np.float32), half.shape[::-1],
+                                               interpolation=cv2.INTER_AREA) == 1)
+        assert half.shape == (cam.height // 2, cam.width // 2)
+        assert np.abs(half - ref)[inner].max() < 1e-3
+        with pytest.raises(ValueError, match="not a resize"):
+            al.apply(np.ones((cam.height, cam.width // 3), np.float32))
+        back = DepthAlignment.from_dict(json.loads(json.dumps(al.to_dict())))
+        assert np.array_equal(back.apply(prior), full)
+        report = {"per_image": [{"index": 1, "name": cam.name, "alignment": al.to_dict()},
+                                {"index": 0, "name": "skipped.png", "alignment": {"ok": False, "scale": None}},
+                                {"index": 2, "name": "no_prior.png"}]}
+        (tmp_path / "report.json").write_text(json.dumps(report))
+        loaded = load_alignments(tmp_path)
+        assert list(loaded) == [cam.name] and np.array_equal(loaded[cam.name].apply(prior), full)
+        with pytest.raises(FileNotFoundError, match="no cue report"):
+            load_alignments(tmp_path / "missing")
+
     def test_too_few_anchors_is_skipped_with_reason(self, room):
         scene, depths = room
         cam = scene.cameras[0]

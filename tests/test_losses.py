@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from evaluation.image_metrics import ssim
-from splat.losses import (LossConfig, depth_normal_consistency_loss, depth_pcc_loss, depth_to_normal,
-                          flatten_loss, normal_prior_loss, rgb_loss, sample_patch_grid, total_loss)
+from splat.losses import (LossConfig, anchored_depth_loss, depth_normal_consistency_loss, depth_pcc_loss,
+                          depth_to_normal, flatten_loss, normal_prior_loss, rgb_loss, sample_patch_grid, total_loss)
 
 DT = torch.float64
 
@@ -153,6 +153,48 @@ class TestDepthPcc:
     def test_bad_shape(self):
         with pytest.raises(ValueError, match=r"prior: expected shape \[4, 5\], got \[5, 4\]"):
             depth_pcc_loss(torch.rand(4, 5), torch.rand(5, 4), torch.ones(4, 5, dtype=torch.bool), 2, 2)
+
+
+class TestAnchoredDepth:
+    def test_hinge_values(self):
+        """Only the part of |depth - anchor| beyond the tolerance counts; invalid anchors (0) and
+        masked pixels are left out of the mean."""
+        anchor = torch.tensor([[2.0, 2.0, 2.0, 0.0]], dtype=DT)
+        depth = torch.tensor([[2.01, 1.8, 2.5, 9.0]], dtype=DT)
+        valid = torch.tensor([[True, True, True, True]])
+        loss = anchored_depth_loss(depth, anchor, valid, tolerance=0.05)
+        assert float(loss) == pytest.approx((0.0 + 0.15 + 0.45) / 3)
+        masked = anchored_depth_loss(depth, anchor, torch.tensor([[True, True, False, True]]), 0.05)
+        assert float(masked) == pytest.approx(0.15 / 2)
+
+    def test_offset_surface_is_penalised_where_pcc_is_not(self):
+        """A surface moved 10 cm along the view has the prior's depth pattern (L_d = 0) but not its
+        depth: L_a sees it; within the tolerance it is 0."""
+        d = smooth_depth(32, 32)
+        valid = torch.ones(32, 32, dtype=torch.bool)
+        moved = d - 0.10
+        assert float(depth_pcc_loss(moved, d, valid, 8, 8, gen())) == pytest.approx(0.0, abs=1e-9)
+        assert float(anchored_depth_loss(moved, d, valid, 0.05)) == pytest.approx(0.05, rel=1e-9)
+        assert float(anchored_depth_loss(moved, d, valid, 0.12)) == 0.0
+
+    def test_gradient_pulls_towards_the_anchor_and_is_finite(self):
+        anchor = smooth_depth(16, 16)
+        depth = (anchor + torch.linspace(-0.3, 0.3, 256, dtype=DT).reshape(16, 16)).requires_grad_()
+        valid = torch.ones(16, 16, dtype=torch.bool)
+        anchored_depth_loss(depth, anchor, valid, 0.05).backward()
+        g, r = depth.grad, (depth - anchor).detach()
+        assert torch.isfinite(g).all()
+        assert (g[r > 0.06] > 0).all() and (g[r < -0.06] < 0).all() and (g[r.abs() < 0.04] == 0).all()
+
+    def test_empty_and_bad(self):
+        depth = torch.ones(4, 4, dtype=DT, requires_grad=True)
+        loss = anchored_depth_loss(depth, torch.zeros(4, 4, dtype=DT), torch.ones(4, 4, dtype=torch.bool), 0.0)
+        loss.backward()
+        assert float(loss.detach()) == 0.0 and torch.isfinite(depth.grad).all()
+        with pytest.raises(ValueError, match=r"anchor: expected shape \[4, 4\]"):
+            anchored_depth_loss(depth, torch.zeros(3, 4, dtype=DT), torch.ones(4, 4, dtype=torch.bool), 0.0)
+        with pytest.raises(ValueError, match="tolerance"):
+            anchored_depth_loss(depth, depth.detach(), torch.ones(4, 4, dtype=torch.bool), float("nan"))
 
 
 class TestNormalPrior:
@@ -344,6 +386,21 @@ class TestTotalLoss:
         assert key not in terms and set(terms) == set(full_terms) - {key}
         weight = {"depth": 0.1, "normal": 0.5, "flat": 100.0, "nc": 0.1}[key]
         assert float(total.detach()) == pytest.approx(float(full.detach()) - weight * full_terms[key], rel=1e-5)
+
+    def test_anchor_term_weight_switch_and_alignment_residual(self):
+        out, gt, K, params, cue_type, extra = fake_view()
+        anchor = (out["depth"].detach() - 0.2).clamp(min=0)
+        kw = dict(depth_anchor=anchor, **extra)  # a fresh generator per call: the same PCC patches
+        _, off = total_loss(out, gt, K, params, cue_type, LossConfig(lambda_anchor=0.0, **self.CFG), 10_000,
+                            generator=gen(), **kw)
+        assert "anchor" not in off  # λ_a = 0: the paper's loss
+        _, no_anchor = total_loss(out, gt, K, params, cue_type, LossConfig(**self.CFG), 10_000, generator=gen(), **extra)
+        assert "anchor" not in no_anchor and no_anchor["total"] == pytest.approx(off["total"], rel=1e-6)
+        cfg = LossConfig(lambda_anchor=2.0, **self.CFG)
+        _, small = total_loss(out, gt, K, params, cue_type, cfg, 10_000, generator=gen(), anchor_p90=0.01, **kw)
+        _, large = total_loss(out, gt, K, params, cue_type, cfg, 10_000, generator=gen(), anchor_p90=0.15, **kw)
+        assert small["anchor"] > large["anchor"] > 0  # tolerance max(0.03, 0.5 p90): 0.03 vs 0.075
+        assert small["total"] == pytest.approx(off["total"] + 2.0 * small["anchor"], rel=1e-5)
 
     def test_missing_priors_and_nc_schedule(self):
         _, terms, _, _ = self.run(with_priors=False)

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from cues_synth import distance_to_surface, make_room_scene, room_edges, room_mesh
+from cues_synth import ROOM, distance_to_surface, make_room_scene, room_edges, room_mesh
 from geocues.cue_io import CueCloud, write_cues_ply
 from geocues.scene import Scene
 from geocues.types import CueType
@@ -127,3 +127,39 @@ def test_evaluate_cli_reports_mesh_and_held_out_views(trained, tmp_path, capsys)
     with pytest.raises(ValueError, match="not test views"):
         from evaluation.image_metrics import evaluate_renders
         evaluate_renders(out / "test_renders", scene, test_every=5)
+
+
+def test_anchored_depth_pulls_an_offset_surface_back(tmp_path):
+    """Cues 8 cm inside the room: photometrically that is almost as good as the true surface and
+    L_d (patch PCC) cannot see it. With the cue report's alignment of the priors (here exact:
+    prior = 0.5 z + 0.3) L_a pulls the Gaussians back; without it they stay off the surface."""
+    from splat.losses import LossConfig
+    from splat.train import LearningRates, TrainConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=12, w=64, h=48, priors="all")
+    cloud = surface_cues(root, n_plane=2000)
+    centre = np.asarray(ROOM, float) / 2
+    inward = (centre - cloud.xyz) / np.linalg.norm(centre - cloud.xyz, axis=1, keepdims=True)
+    cloud.xyz = cloud.xyz + 0.08 * inward
+    cues = tmp_path / "cues"
+    write_cues_ply(cues / "cues.ply", cloud)
+    scene = Scene.load(root)
+    rows = [{"index": c.index, "name": c.name,
+             "alignment": {"index": c.index, "ok": True, "scale": 2.0, "shift": -0.6, "width": c.width,
+                           "height": c.height, "residual_p90_m": 0.005}} for c in scene.cameras]
+    (cues / "report.json").write_text(json.dumps({"per_image": rows}))
+
+    def surface_distance(lambda_anchor: float) -> float:
+        cfg = TrainConfig(iters=300, checkpoints=(1.0,), sh_degree=0, mesh=False, test_every=0,
+                          lr=LearningRates(means=1.6e-3, means_final=1.6e-4),  # both runs: room to move
+                          loss=LossConfig(lambda_anchor=lambda_anchor))
+        out = run(cfg, root, cues, tmp_path / f"out_{lambda_anchor}")
+        params, cue_type = load_ply(out / "point_cloud.ply")
+        keep = (cue_type == CueType.PLANE.value).numpy()
+        w = 1.0 / (1.0 + np.exp(-params["opacities"].numpy()[keep]))
+        return float(np.average(distance_to_surface(params["means"].numpy()[keep]), weights=w))
+
+    without, with_anchor = surface_distance(0.0), surface_distance(5.0)
+    msg = f"PLANE Gaussians to the surface: {without:.4f} m without L_a, {with_anchor:.4f} m with"
+    assert without > 0.06, msg  # the offset survives training without L_a (measured 0.073)
+    assert with_anchor < 0.5 * without, msg  # measured 0.027
