@@ -110,7 +110,8 @@ class DepthAlignment:
     def from_dict(cls, d: dict) -> "DepthAlignment":
         """Inverse of :meth:`to_dict` (None back to NaN; unknown keys ignored)."""
         names = {f.name: f for f in fields(cls)}
-        kw = {k: (float("nan") if v is None and names[k].type == "float" else v) for k, v in d.items() if k in names}
+        kw = {k: (float("nan") if v is None and isinstance(names[k].default, float) else v)
+              for k, v in d.items() if k in names}
         return cls(**kw)
 
 
