@@ -1,7 +1,8 @@
 """Accuracy against time: `splat train` with meshes at checkpoints, each measured against the GT mesh.
 
     python bench/train_bench.py --scene outputs/demo/room --cues outputs/demo/cues --name textured_s0 \
-        --iters 3000 --downscale 2 [--gt GT_MESH] [train options as in `splat train`, e.g. --strategy.max-gaussians 100000]
+        --train.iters 3000 --train.downscale 2 [--gt GT_MESH] [train options as in `splat train`, prefixed
+        with --train., e.g. --train.strategy.max-gaussians 100000]
 
 One training run; at each checkpoint (fractions of the run) it records the training seconds so
 far, the test-view PSNR / SSIM and the Gaussian count (splat/train.py), and fuses a TSDF mesh from

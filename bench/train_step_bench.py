@@ -3,8 +3,9 @@
     python bench/train_step_bench.py --name cpu2 [--device cpu|cuda] [--sizes 320x240 640x480] \
         [--counts 50000 100000 300000] [--iters 20]
 
-One iteration is ``splat.train.train_step``: render, every IndoorGS loss term (L_rgb, L_d, L_n,
-L_s and L_nc, all on), backward, Adam on every parameter, and the density control's gradient
+One iteration is ``splat.train.train_step``: render, the IndoorGS loss terms (L_rgb, L_d, L_n,
+L_s and L_nc, all on; not the anchored-depth term L_a, which these views have no anchor for and
+which adds one element-wise pass over the image), backward, Adam on every parameter, and the density control's gradient
 bookkeeping (no refine step falls inside the timed window; refine steps are rare and their cost
 is in the trainer's own report). The problem has no files: flat Gaussians on a benchmark room's
 surfaces (``splat.bench.surface_gaussians``) rendered from four cameras give the targets and the

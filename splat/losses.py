@@ -205,8 +205,8 @@ def anchored_depth_loss(depth: Tensor, anchor: Tensor, valid: Tensor, tolerance:
     """L_a (an extension, not in the paper): mean over ``valid`` pixels of max(0, |depth − anchor| − τ).
 
     depth: [H, W] rendered z-depth (m); anchor: [H, W] the depth prior aligned to the cues by
-    ``geocues extract`` (metric; 0 = invalid); τ (m): the tolerance, at least the alignment's own
-    residual. L_d (patch PCC) is blind to a surface that moved along the view direction — a wall
+    ``geocues extract`` (metric; 0 = invalid); τ (m): the tolerance (``total_loss`` sets it from the
+    alignment's residual: max(anchor_tol_min, anchor_tol_p90 × p90)). L_d (patch PCC) is blind to a surface that moved along the view direction — a wall
     rebuilt 10 cm in front of itself has the same depth pattern — and in regions without cues
     nothing else holds it; L_a pulls back only depths farther than τ from the anchor, so it does not
     fight the finer geometry the other terms recover inside τ. Returns a 0-dim tensor (metres).
