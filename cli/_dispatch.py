@@ -71,7 +71,12 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
     setup_logging("--verbose" in rest or "-v" in rest)
     rest = [a for a in rest if a not in ("--verbose", "-v")]
     try:
-        result = tyro.cli(fn, args=rest, prog=sub_prog)
+        if hasattr(fn, "run_argv"):  # the command parses its own argv (e.g. passes options through)
+            result = fn.run_argv(rest)
+        else:
+            if hasattr(fn, "from_argv"):  # the command's defaults depend on an option (--preset)
+                fn = fn.from_argv(rest)
+            result = tyro.cli(fn, args=rest, prog=sub_prog)
     except (FileNotFoundError, ValueError) as exc:
         # Bad input: one clear line naming what is wrong, no traceback.
         print(f"{sub_prog}: error: {exc}", file=sys.stderr)

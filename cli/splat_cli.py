@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
 from cli._dispatch import dispatch
+from splat.ablate import AblateConfig
 from splat.bench import BenchConfig
+from splat.presets import PRESETS, preset_config
 from splat.train import TrainConfig
 
 
@@ -29,30 +31,104 @@ def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
     return 0
 
 
-def train(scene: tyro.conf.Positional[Path],
-          cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
-          out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
-          cfg: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()) -> int:
-    """Train typed Gaussians on SCENE from the cue cloud CUES, then fuse a TSDF mesh (IndoorGS §4).
+PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
-    Writes OUT/point_cloud.ply (3DGS format), OUT/mesh.ply, OUT/test_renders/, OUT/train_log.jsonl and
-    OUT/report.json (test PSNR/SSIM at checkpoints against training seconds, timings per stage).
+
+def _train_command(preset_name: str = "full"):
+    """`splat train` with the defaults of preset ``preset_name`` (options on the command line win)."""
+    base = preset_config(preset_name)
+
+    def train(scene: tyro.conf.Positional[Path],
+              cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
+              out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+              preset: PresetName = preset_name,
+              cfg: Annotated[TrainConfig, tyro.conf.arg(name="")] = base) -> int:
+        """Train typed Gaussians on SCENE from the cue cloud CUES, then fuse a TSDF mesh (IndoorGS §4).
+
+        Writes OUT/point_cloud.ply (3DGS format), OUT/mesh.ply, OUT/test_renders/, OUT/train_log.jsonl and
+        OUT/report.json (test PSNR/SSIM at checkpoints against training seconds, timings per stage).
+
+        Args:
+            scene: scene folder (COLMAP model, images/, optional priors/).
+            cues: cue folder from `geocues extract` (or its cues.ply).
+            out: output folder.
+            preset: start from this named configuration (splat/presets.py: `full` is IndoorGS, `no-cues`
+                the RaDe-GS-style baseline, the rest the paper's ablation rows); options given on the
+                command line override it. -v/--verbose: debug logging.
+            cfg: training options.
+        """
+        from splat.train import run
+
+        run(cfg, scene, cues, out)
+        print(f"wrote {out}/report.json")
+        return 0
+
+    return train
+
+
+def _preset_from_argv(argv: list[str]) -> str:
+    for k, a in enumerate(argv):
+        if a == "--preset" and k + 1 < len(argv):
+            return argv[k + 1]
+        if a.startswith("--preset="):
+            return a.split("=", 1)[1]
+    return "full"
+
+
+def train_command(argv: list[str]):
+    name = _preset_from_argv(argv)
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
+    return _train_command(name)
+
+
+train = _train_command()
+train.from_argv = train_command  # dispatch picks the preset's defaults before parsing
+
+
+def ablate(scene: tyro.conf.Positional[Path],
+           cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
+           out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+           cfg: Annotated[AblateConfig, tyro.conf.arg(name="")] = AblateConfig()) -> int:
+    """The paper's ablation (Tab. 3) on SCENE: one `splat train` per row, meshes scored at checkpoints.
+
+    Writes OUT/report.md (the table, deltas against `full`, the floor), OUT/accuracy_vs_time.png and
+    OUT/ablation.json; finished rows are skipped on a re-run. Any `splat train` option after these
+    applies to every row (e.g. --downscale 2 --strategy.max-gaussians 100000). -v/--verbose: debug logging.
 
     Args:
-        scene: scene folder (COLMAP model, images/, optional priors/).
-        cues: cue folder from `geocues extract` (or its cues.ply).
-        out: output folder.
-        cfg: training options.
+        scene: scene folder (COLMAP model, images/, optional priors/, gt/mesh.ply or --gt).
+        cues: cue folder from `geocues extract`.
+        out: output folder (rows/, floor/, reports).
+        cfg: ablation options.
     """
-    from splat.train import run
+    raise AssertionError("parsed by ablate_main")  # pragma: no cover
 
-    run(cfg, scene, cues, out)
-    print(f"wrote {out}/report.json")
+
+def ablate_main(argv: list[str]) -> int:
+    """Parse the ablation's own options; everything tyro does not know goes to `splat train`."""
+    from splat.ablate import run
+
+    args, train_args = tyro.cli(_ablate_args, args=argv, prog="splat ablate", return_unknown_args=True)
+    scene, cues, out, cfg = args
+    run(cfg, scene, cues, out, train_args)
+    print(f"wrote {out}/report.md, {out}/accuracy_vs_time.png, {out}/ablation.json")
     return 0
 
 
+def _ablate_args(scene: tyro.conf.Positional[Path],
+                 cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
+                 out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+                 cfg: Annotated[AblateConfig, tyro.conf.arg(name="")] = AblateConfig()):
+    return scene, cues, out, cfg
+
+
+_ablate_args.__doc__ = ablate.__doc__
+ablate.run_argv = ablate_main
+
+
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"bench": bench, "train": train}
+COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,7 @@ Per type (``state["cue_type"]``, geocues.types.CueType):
   SFM (G_M)   3DGS clone / split in (start, sfm_pause] and (sfm_resume, stop); none in between.
   LINE (G_L)  tangent-space clone / split on every refine step in (start, stop).
   PLANE (G_S) never cloned or split.
+A type left out of ``custom_types`` gets plain 3DGS density control instead (the ablation rows).
 Every type is pruned (low opacity; too large in world after the first opacity reset) and has its
 opacity reset. "G_L takes precedence over G_M": on a refine step the LINE candidates are chosen
 first; an SFM candidate within ``precedence_sigmas`` largest-scales of a LINE candidate is left to
@@ -81,6 +82,10 @@ class IndoorStrategyConfig:
     """Budget: growth stops at this many Gaussians, highest mean gradients first (0 = no limit)."""
     precedence_sigmas: float = 2.0
     """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
+    custom_types: tuple[str, ...] = ("SFM", "LINE", "PLANE")
+    """Types under IndoorGS's own rule (above). A type left out gets plain 3DGS density control:
+    clone in place / free split on every refine step in (start, stop) -- the paper's Tab. 3 rows
+    "w/o customised ADC" (none listed), "w/o line / SfM / plane ADC" (that one left out)."""
 
 
 @dataclass(frozen=True)
@@ -134,6 +139,10 @@ class IndoorStrategy:
         self.cfg = cfg or IndoorStrategyConfig()
         if self.cfg.total_iters <= 0:
             raise ValueError(f"total_iters must be positive, got {self.cfg.total_iters}")
+        bad = [t for t in self.cfg.custom_types if t not in CueType.__members__]
+        if bad:
+            raise ValueError(f"strategy.custom_types: unknown cue types {bad}; choose from {list(CueType.__members__)}")
+        self._plain = [CueType[t].value for t in CueType.__members__ if t not in self.cfg.custom_types]
         self.schedule = Schedule.from_config(self.cfg)
 
     # -- state and checks ------------------------------------------------------------------------
@@ -246,8 +255,13 @@ class IndoorStrategy:
         high = state["grad2d"] / count > cfg.grow_grad2d  # [N]
         max_scale = torch.exp(params["scales"]).amax(-1)  # [N]
         small = max_scale <= cfg.grow_scale3d * state["scene_scale"]
-        is_line = (cue_type == CueType.LINE) & high
-        is_sfm = (cue_type == CueType.SFM) & high if sched.sfm_active(step) else torch.zeros_like(high)
+        custom = self.cfg.custom_types
+        is_line = (cue_type == CueType.LINE) & high if "LINE" in custom else torch.zeros_like(high)
+        is_sfm = (cue_type == CueType.SFM) & high if ("SFM" in custom and sched.sfm_active(step)) \
+            else torch.zeros_like(high)
+        # types under plain 3DGS control: every refine step, clone in place / free split
+        is_plain = torch.isin(cue_type, torch.tensor(self._plain, device=cue_type.device)) & high \
+            if self._plain else torch.zeros_like(high)
         # G_L takes precedence over G_M: SFM candidates near a LINE candidate are left to it
         deferred = torch.zeros_like(high)
         if cfg.precedence_sigmas > 0 and is_sfm.any() and is_line.any():
@@ -255,13 +269,13 @@ class IndoorStrategy:
             near = near_any(means[is_sfm], means[is_line], cfg.precedence_sigmas * max_scale[is_line])
             deferred[torch.where(is_sfm)[0][near]] = True
             is_sfm &= ~deferred
-        grow = budget_mask(is_line | is_sfm, state["grad2d"] / count,
+        grow = budget_mask(is_line | is_sfm | is_plain, state["grad2d"] / count,
                            cfg.max_gaussians - params["means"].shape[0] if cfg.max_gaussians > 0 else None)
         clone, splt = grow & small, grow & ~small
 
         # clone positions: LINE tangent clone (§4.2), SFM in place (3DGS)
         clone_means = params["means"][clone].clone()
-        line_rows = (cue_type[clone] == CueType.LINE)
+        line_rows = (cue_type[clone] == CueType.LINE) & ~is_plain[clone]
         if line_rows.any():
             sel = torch.where(clone)[0][line_rows]
             grad3d = state["grad3d"][sel] / count[sel, None]
@@ -273,7 +287,7 @@ class IndoorStrategy:
         # split offsets: LINE tangent split (§4.2), SFM free split (3DGS)
         sel = torch.where(splt)[0]
         offsets = free_split_offsets(params["quats"][sel], params["scales"][sel])
-        line_rows = cue_type[sel] == CueType.LINE
+        line_rows = (cue_type[sel] == CueType.LINE) & ~is_plain[sel]
         if line_rows.any():
             offsets[:, line_rows] = tangent_split_offsets(params["quats"][sel[line_rows]],
                                                           params["scales"][sel[line_rows]])

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -30,7 +31,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from geocues.atomic import atomic_path
-from geocues.cue_io import read_cues_ply
+from geocues.cue_io import CueCloud, read_cues_ply
 from geocues.depth_align import load_alignments
 from geocues.scene import Scene
 from geocues.types import CueType
@@ -78,6 +79,9 @@ class TrainConfig:
     """Final SH degree of the colours (raised by one every iters/30 iterations, 3DGS: 1000 of 30k)."""
     cue_types: tuple[str, ...] = ("SFM", "LINE", "PLANE")
     """Cue types that seed Gaussians (the paper's ablations drop some)."""
+    init_from: str = "cues"
+    """Seed the Gaussians from "cues" (CUES/cues.ply, typed) or "sfm" (the scene's own COLMAP points,
+    all SFM-typed, no outlier removal: the 3DGS / RaDe-GS baseline)."""
     device: str = "auto"
     """"cpu", "cuda" or "auto" (CUDA when available)."""
     backend: str = "auto"
@@ -193,6 +197,20 @@ def _type_counts(cue_type: Tensor) -> dict[str, int]:
     return {t.name: int((cue_type == t.value).sum()) for t in CueType}
 
 
+def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
+    """The points that seed the Gaussians: the cue cloud's ``cfg.cue_types``, or with
+    ``init_from="sfm"`` the scene's SfM points as they are (3DGS init)."""
+    if cfg.init_from == "sfm":
+        if len(scene.points) == 0:
+            raise ValueError(f"--init-from sfm: the scene {scene.root} has no SfM points "
+                             "(run `geocues sfm SCENE` first)")
+        return CueCloud.make(scene.points.xyz, scene.points.rgb, CueType.SFM)
+    if cfg.init_from != "cues":
+        raise ValueError(f"init_from must be 'cues' or 'sfm', got {cfg.init_from!r}")
+    cloud = read_cues_ply(cues_ply)
+    return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
+
+
 def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
     holding it); write the outputs (module docstring) to ``out_dir``; return ``out_dir``."""
@@ -224,8 +242,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
-    cloud = read_cues_ply(cues_ply)
-    cloud = cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
+    cloud = load_init_cloud(cfg, scene, cues_ply)
     scale = scene_scale(train_views.camera_centers(), cloud.xyz)
     init_params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
@@ -280,7 +297,10 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()
-        write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg), out_dir / "mesh.ply")
+        if curve and curve[-1]["step"] == cfg.iters and "mesh" in curve[-1]:
+            shutil.copyfile(curve[-1]["mesh"], out_dir / "mesh.ply")  # the same model, fused already
+        else:
+            write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg), out_dir / "mesh.ply")
         timings["mesh_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),

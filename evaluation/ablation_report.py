@@ -1,0 +1,124 @@
+"""Reports of `splat ablate`: ``ablation.json``, ``report.md`` (laid out like the paper's Tab. 3)
+and ``accuracy_vs_time.png`` (Chamfer-L1, F-score, NC and test PSNR against training seconds, a
+curve per row, the floor as a line). Built from the summary dict splat/ablate.py assembles; the
+figure's data is the JSON's, nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from geocues.atomic import atomic_path
+
+PANELS = (("chamfer_l1", "Chamfer-L1 (cm)", 100.0), ("f_score", "F-score @ 5 cm", 1.0),
+          ("normal_consistency", "normal consistency", 1.0), ("psnr", "test PSNR (dB)", 1.0))
+
+
+def _fmt(value, scale: float = 1.0, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    return f"{value * scale:.{digits}f}"
+
+
+def _cell(row: dict, key: str, scale: float = 1.0, digits: int = 3) -> str:
+    mean, std = row["mean"].get(key), row["std"].get(key)
+    text = _fmt(mean, scale, digits)
+    if row.get("n_seeds", 1) > 1 and std is not None:
+        text += f" ± {_fmt(std, scale, digits)}"
+    return text
+
+
+def _delta(row: dict, full: dict | None, key: str, scale: float = 1.0, digits: int = 3) -> str:
+    if full is None or full.get("status") != "done" or row["row"] == "full":
+        return ""
+    a, b = row["mean"].get(key), full["mean"].get(key)
+    if a is None or b is None:
+        return ""
+    return f"{(a - b) * scale:+.{digits}f}"
+
+
+def ablation_markdown(summary: dict) -> str:
+    """The ablation table (paper's Tab. 3 layout), the floor, deltas against `full`, seconds."""
+    rows = summary["rows"]
+    full = next((r for r in rows if r["row"] == "full"), None)
+    cfg = summary["config"]
+    lines = [f"# Ablation on {summary['scene_label']}", "",
+             f"Scene `{summary['scene']}`, cues `{summary['cues']}`; {cfg['iters']} iterations per row "
+             f"(no-cues-long: 3x), {cfg['seeds']} seed(s) per row (mean ± std over seeds), "
+             f"train options `{' '.join(summary['train_args']) or '(defaults)'}`. Mesh metrics: the "
+             "`evaluate` protocol (MonoSDF sampling, culled to the scene's cameras, F-score at 5 cm). "
+             "Paper: IndoorGS Tab. 3 (ScanNet++, 30k iterations). Δ: against `full` (Chamfer in cm).", "",
+             "| row | paper C-L1 / F / NC | C-L1 (cm) | F@5cm | NC | ΔC-L1 | ΔF | ΔNC | test PSNR | train s |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    floor = summary.get("floor")
+    if floor and floor.get("status") == "done":
+        f = floor["final"]
+        lines.append(f"| **floor** (TSDF of exact GT depth, same views) | – | {_fmt(f['chamfer_l1'], 100, 2)} | "
+                     f"{_fmt(f['f_score'])} | {_fmt(f['normal_consistency'])} |  |  |  | – | – |")
+    for r in rows:
+        name = f"`{r['row']}` {r['label']}" + (" *(extension)*" if r.get("extension") else "")
+        paper = " / ".join(f"{v:.3f}" for v in r["paper"]) if r.get("paper") else "–"
+        if r["status"] == "n/a":
+            lines.append(f"| {name} | {paper} | n/a ({r['reason']}) |  |  |  |  |  |  |  |")
+        elif r["status"] == "pending":
+            lines.append(f"| {name} | {paper} | (not run yet) |  |  |  |  |  |  |  |")
+        else:
+            lines.append(f"| {name} | {paper} | {_cell(r, 'chamfer_l1', 100, 2)} | {_cell(r, 'f_score')} | "
+                         f"{_cell(r, 'normal_consistency')} | {_delta(r, full, 'chamfer_l1', 100, 2)} | "
+                         f"{_delta(r, full, 'f_score')} | {_delta(r, full, 'normal_consistency')} | "
+                         f"{_cell(r, 'psnr', 1, 2)} | {_cell(r, 'train_s', 1, 0)} |")
+    lines += ["", "![accuracy against training time](accuracy_vs_time.png)", "",
+              "Accuracy against time: every row's metrics at its checkpoints "
+              f"({', '.join(str(c) for c in cfg['checkpoints'])} of its run) against training seconds "
+              "(meshing and scoring not counted); the dashed line is the floor.", ""]
+    return "\n".join(lines)
+
+
+def plot_accuracy_vs_time(summary: dict, path: Path) -> Path:
+    """Four panels (C-L1, F, NC, PSNR) against training seconds, a curve per finished row (seed 0
+    drawn, other seeds thin), the floor as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8), constrained_layout=True)
+    floor = summary.get("floor") or {}
+    cmap = plt.get_cmap("tab20")
+    done = [r for r in summary["rows"] if r["status"] == "done"]
+    for ax, (key, title, scale) in zip(axes.flat, PANELS):
+        for k, r in enumerate(done):
+            for j, run in enumerate(r["runs"]):
+                pts = [(c["train_s"], c[key] * scale) for c in run["curve"] if c.get(key) is not None]
+                if not pts:
+                    continue
+                xs, ys = zip(*pts)
+                style = dict(lw=2.2 if r["row"] == "full" else 1.3, color=cmap(k % 20),
+                             ls="-" if not r["row"].startswith("no-cues") else "--")
+                ax.plot(xs, ys, marker="o", ms=3, label=r["row"] if j == 0 else None,
+                        alpha=1.0 if j == 0 else 0.4, **style)
+        if floor.get("status") == "done" and key in floor.get("final", {}):
+            ax.axhline(floor["final"][key] * scale, color="k", ls=":", lw=1.5, label="floor")
+        ax.set_xlabel("training seconds")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside right center", fontsize=8)
+    fig.suptitle(f"accuracy against time: {summary['scene_label']}")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return path
+
+
+def write_reports(summary: dict, out_dir: Path) -> None:
+    """OUT/ablation.json, OUT/report.md, OUT/accuracy_vs_time.png."""
+    out_dir = Path(out_dir)
+    with atomic_path(out_dir / "ablation.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1, default=str))
+    with atomic_path(out_dir / "report.md") as tmp:
+        tmp.write_text(ablation_markdown(summary))
+    plot_accuracy_vs_time(summary, out_dir / "accuracy_vs_time.png")

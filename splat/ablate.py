@@ -1,0 +1,314 @@
+"""`splat ablate`: the paper's ablation (Tab. 3) on a user's scene, with accuracy against time.
+
+One stage, one entry: ``run(cfg, scene_dir, cues, out_dir, train_args) -> Path``. Each row is a
+preset of splat/presets.py run as one `splat train` (meshes at checkpoints) in
+``OUT/rows/<row>_s<seed>/train``, and each checkpoint mesh is scored with the ``evaluate``
+protocol against the scene's GT mesh. A row is finished when its ``score.json`` exists (written
+atomically, last) with the same configuration key: a re-run skips it, so a killed ablation
+resumes. The ``floor`` row fuses the exact GT depth of the same training views
+(splat/floor.py). ``train_args`` are `splat train` options applied to every row, on top of its
+preset. Rows run one after another (``jobs=1``), in ``jobs`` processes, or as Ray tasks
+(``ray="auto"`` or a cluster address; every node must see OUT, SCENE and CUES at the same paths).
+
+Results: ``OUT/ablation.json`` and, through evaluation/ablation_report.py, ``OUT/report.md`` and
+``OUT/accuracy_vs_time.png``, rewritten after every finished row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from evaluation.mesh_metrics import MeshMetricsConfig
+from geocues.atomic import atomic_path
+from splat.presets import DEFAULT_ROWS, PRESETS, get_preset, missing_needs, preset_config
+
+log = logging.getLogger(__name__)
+
+METRICS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f_score", "normal_consistency")
+
+
+@dataclass
+class AblateConfig:
+    """Options of `splat ablate` (every other option goes to each row's `splat train`)."""
+
+    rows: tuple[str, ...] = DEFAULT_ROWS
+    """Presets to run (splat/presets.py; `splat train --preset` takes the same names)."""
+    iters: int = 3000
+    """Training iterations of a row (no-cues-long: 3x)."""
+    seeds: int = 1
+    """Repeat every row with seeds 0..K-1 (added to --seed); the report gives mean and spread."""
+    jobs: int = 1
+    """Rows run in this many processes at once (the cores are shared between them)."""
+    ray: str | None = None
+    """Send every row to a Ray cluster ("auto", "local" or an address); needs `pip install .[ray]`."""
+    gt: Path | None = None
+    """GT mesh (default: SCENE/gt/mesh.ply)."""
+    floor: bool = True
+    """Add the `floor` row where exact GT depth exists (SCENE/gt/depth or --gt-depth)."""
+    gt_depth: Path | None = None
+    """Folder of exact depth maps (<stem>.npy in metres or <stem>.png) for the floor row."""
+    gt_depth_png_scale: float = 1000.0
+    """PNG depth values per metre (1000: millimetres, as ICL-NUIM)."""
+    checkpoints: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
+    """Fractions of each run at which test views are scored and a mesh is fused and scored."""
+    scene_label: str = ""
+    """Name of the scene in the report (default: the scene folder's name); say "simulated" here
+    when its priors are."""
+    metrics: MeshMetricsConfig = field(default_factory=MeshMetricsConfig)
+
+
+def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, checkpoints) -> Any:
+    """The TrainConfig of ``row``: its preset, then ``train_args`` (tyro syntax of `splat train`),
+    then the ablation's iterations (times the preset's factor), seed offset and checkpoints."""
+    import tyro
+
+    from splat.train import TrainConfig
+
+    if any(a == "--iters" or a.startswith("--iters=") for a in train_args):
+        raise ValueError("give the iterations as `splat ablate --iters N` (rows scale it), not as a train option")
+    base = preset_config(row, TrainConfig())
+    cfg = tyro.cli(TrainConfig, args=list(train_args), default=base, prog="splat ablate (train options)")
+    preset = get_preset(row)
+    return dataclasses.replace(cfg, iters=max(1, round(iters * preset.iters_factor)), seed=cfg.seed + seed_offset,
+                               checkpoints=tuple(checkpoints), mesh=True, mesh_at_checkpoints=True)
+
+
+def config_key(payload: dict) -> str:
+    return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsConfig) -> dict:
+    from evaluation.mesh_metrics import evaluate_with_scene
+
+    result = evaluate_with_scene(mesh, gt, scene, metrics).to_dict()
+    return {k: result[k] for k in METRICS}
+
+
+def run_row(spec: dict) -> dict:
+    """Train and score one row (a plain function of a JSON-able spec: it runs in a worker process
+    or a Ray task as well as here). Writes ``spec["out"]/score.json`` last and returns it."""
+    threads = spec.get("threads")
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+    from splat.train import TrainConfig, run as train_run
+
+    out = Path(spec["out"])
+    if out.exists():  # an unfinished or outdated run of this row: start it again
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    cfg = _from_dict(TrainConfig, spec["train_config"])
+    t0 = time.perf_counter()
+    train_run(cfg, spec["scene"], spec["cues"], out / "train")
+    train_wall = time.perf_counter() - t0
+    report = json.loads((out / "train" / "report.json").read_text())
+    metrics = MeshMetricsConfig(**spec["metrics"])
+    gt = Path(spec["gt"]) if spec.get("gt") else None
+    curve = []
+    for point in report["accuracy_vs_time"]:
+        scores = _score_mesh(Path(point["mesh"]), gt, Path(spec["scene"]), metrics)
+        curve.append({k: point[k] for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")} | scores)
+    result = {"row": spec["row"], "seed": spec["seed"], "key": spec["key"], "curve": curve,
+              "final": curve[-1] if curve else {}, "train_s": report["timings"]["train_s"],
+              "wall_s": time.perf_counter() - t0, "train_wall_s": train_wall,
+              "gaussians_init": report["gaussians_init"], "gaussians_final": report["gaussians_final"]}
+    with atomic_path(out / "score.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def _from_dict(cls, data: dict):
+    """Rebuild a (nested) config dataclass from its asdict() form."""
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if isinstance(value, dict) and dataclasses.is_dataclass(sub):
+            value = _from_dict(type(sub), value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def _done(out: Path, key: str) -> dict | None:
+    path = out / "score.json"
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except ValueError:
+        return None
+    return data if data.get("key") == key else None
+
+
+def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> dict | None:
+    from splat.floor import fuse_floor, find_gt_depth_dir
+
+    if not cfg.floor:
+        return None
+    folder = find_gt_depth_dir(scene_dir, cfg.gt_depth)
+    if folder is None:
+        log.info("floor: %s has no gt/depth and no --gt-depth was given: no floor row", scene_dir)
+        return {"status": "n/a", "reason": "no GT depth"}
+    key = config_key({"views": [example.downscale, example.test_every, example.mesh_every],
+                      "tsdf": asdict(example.tsdf), "depth": str(folder), "png": cfg.gt_depth_png_scale,
+                      "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
+    out = out_dir / "floor"
+    done = _done(out, key)
+    if done is not None:
+        return done
+    t0 = time.perf_counter()
+    mesh = fuse_floor(scene_dir, out / "mesh.ply", gt_depth=folder, png_scale=cfg.gt_depth_png_scale,
+                      downscale=example.downscale, test_every=example.test_every,
+                      mesh_every=example.mesh_every, tsdf=example.tsdf)
+    result = {"row": "floor", "status": "done", "key": key, "depth_dir": str(folder),
+              "final": _score_mesh(mesh, cfg.gt, scene_dir, cfg.metrics), "wall_s": time.perf_counter() - t0}
+    with atomic_path(out / "score.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_args: list[str]
+         ) -> tuple[list[dict], dict[str, str]]:
+    """Row specs to run (one per row and seed) and the rows that are n/a on this scene (with why)."""
+    from geocues.scene import Scene
+
+    unknown = [r for r in cfg.rows if r not in PRESETS]
+    if unknown:
+        raise ValueError(f"unknown rows {unknown}; choose from {', '.join(PRESETS)}")
+    if cfg.seeds < 1 or cfg.jobs < 1 or cfg.iters < 1:
+        raise ValueError(f"--seeds, --jobs and --iters must be >= 1 (got {cfg.seeds}, {cfg.jobs}, {cfg.iters})")
+    scene = Scene.load(scene_dir, check_priors=False)
+    specs, na = [], {}
+    for row in dict.fromkeys(cfg.rows):
+        why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors)
+        if why is not None:
+            na[row] = why
+            continue
+        for s in range(cfg.seeds):
+            tcfg = train_config(row, train_args, cfg.iters, s, cfg.checkpoints)
+            spec = {"row": row, "seed": s, "scene": str(scene_dir), "cues": str(cues),
+                    "gt": str(cfg.gt) if cfg.gt else None, "metrics": asdict(cfg.metrics),
+                    "train_config": asdict(tcfg), "out": str(out_dir / "rows" / f"{row}_s{s}")}
+            spec["key"] = config_key({k: spec[k] for k in ("scene", "cues", "gt", "metrics", "train_config")})
+            specs.append(spec)
+    return specs, na
+
+
+def _execute(cfg: AblateConfig, todo: list[dict], on_done) -> None:
+    if not todo:
+        return
+    if cfg.ray is not None:
+        import ray  # optional extra: pip install .[ray]
+
+        if not ray.is_initialized():
+            ray.init(address=None if cfg.ray == "local" else cfg.ray)
+        remote = ray.remote(num_cpus=1)(run_row)
+        pending = {remote.remote(spec): spec for spec in todo}
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            spec = pending.pop(ready[0])
+            on_done(spec, ray.get(ready[0]))
+        return
+    if cfg.jobs == 1:
+        for spec in todo:
+            on_done(spec, run_row(spec))
+        return
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    threads = max(1, (os.cpu_count() or 1) // cfg.jobs)
+    with cf.ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=mp.get_context("spawn"),
+                                initializer=_worker_init) as pool:
+        futures = {pool.submit(run_row, {**spec, "threads": threads}): spec for spec in todo}
+        for fut in cf.as_completed(futures):
+            on_done(futures[fut], fut.result())
+
+
+def _worker_init() -> None:
+    os.environ["TQDM_DISABLE"] = "1"  # one progress bar per worker would interleave
+    logging.basicConfig(level=logging.WARNING)
+
+
+def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path,
+        train_args: list[str] | None = None) -> Path:
+    """Run (or resume) the ablation; write OUT/ablation.json, report.md and the plots; return OUT."""
+    from evaluation.ablation_report import write_reports
+
+    scene_dir, cues, out_dir = Path(scene_dir).resolve(), Path(cues).resolve(), Path(out_dir).resolve()
+    train_args = list(train_args or [])
+    specs, na = plan(cfg, scene_dir, cues, out_dir, train_args)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    from splat.train import TrainConfig
+
+    example = (_from_dict(TrainConfig, specs[0]["train_config"]) if specs
+               else train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))
+    results: dict[tuple[str, int], dict] = {}
+    todo = []
+    for spec in specs:
+        done = _done(Path(spec["out"]), spec["key"])
+        if done is not None:
+            log.info("row %s seed %d: finished earlier, skipped", spec["row"], spec["seed"])
+            results[(spec["row"], spec["seed"])] = done
+        else:
+            todo.append(spec)
+    log.info("ablation: %d rows x %d seeds; %d to run, %d finished, n/a: %s", len(specs) // max(cfg.seeds, 1),
+             cfg.seeds, len(todo), len(results), na or "none")
+    floor = _run_floor(cfg, scene_dir, out_dir, example)
+
+    def summary() -> dict:
+        return {"scene": str(scene_dir), "scene_label": cfg.scene_label or scene_dir.name, "cues": str(cues),
+                "config": asdict(cfg) | {"gt": str(cfg.gt) if cfg.gt else None,
+                                         "gt_depth": str(cfg.gt_depth) if cfg.gt_depth else None},
+                "train_args": train_args, "floor": floor,
+                "rows": [_row_summary(r, [results[(r, s)] for s in range(cfg.seeds) if (r, s) in results], na)
+                         for r in dict.fromkeys(cfg.rows)]}
+
+    def on_done(spec: dict, result: dict) -> None:
+        results[(spec["row"], spec["seed"])] = result
+        log.info("row %s seed %d done: %s", spec["row"], spec["seed"], _short(result["final"]))
+        write_reports(summary(), out_dir)
+
+    write_reports(summary(), out_dir)
+    _execute(cfg, todo, on_done)
+    write_reports(summary(), out_dir)
+    return out_dir
+
+
+def _short(final: dict) -> str:
+    return ", ".join(f"{k} {final[k]:.4f}" for k in ("chamfer_l1", "f_score", "normal_consistency", "psnr")
+                     if final.get(k) is not None)
+
+
+def _row_summary(row: str, runs: list[dict], na: dict[str, str]) -> dict:
+    import numpy as np
+
+    preset = get_preset(row)
+    out = {"row": row, "label": preset.label, "paper": preset.paper, "extension": preset.extension,
+           "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in preset.overrides.items()},
+           "iters_factor": preset.iters_factor}
+    if row in na:
+        return out | {"status": "n/a", "reason": na[row]}
+    if not runs:
+        return out | {"status": "pending"}
+    keys = METRICS + ("psnr", "ssim", "train_s")
+    finals = [r["final"] | {"train_s": r["train_s"]} for r in runs]
+    values = {k: [f[k] for f in finals if f.get(k) is not None] for k in keys}
+    mean = {k: float(np.mean(v)) if v else None for k, v in values.items()}
+    std = {k: float(np.std(v)) if v else None for k, v in values.items()}
+    return out | {"status": "done", "n_seeds": len(runs), "mean": mean, "std": std,
+                  "runs": [{k: r[k] for k in ("seed", "curve", "final", "train_s", "wall_s",
+                                              "gaussians_init", "gaussians_final")} for r in runs]}

@@ -1,0 +1,75 @@
+"""The `floor` row: a TSDF of the exact GT depth of the training views (DESIGN.md, "evaluation").
+
+The same views, resolution, TSDF voxel, truncation and cleaning as `splat train`'s mesh, so the
+result is the best mesh this pipeline could make from those views; every accuracy figure is read
+against it. GT depth comes from the benchmark rooms' ``SCENE/gt/depth/<stem>.npy`` (metres) or
+any folder of ``<stem>.npy`` / ``<stem>.png`` maps (PNG values divided by ``png_scale``: 1000 for
+millimetres, as ICL-NUIM ships them).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from geocues.scene import Scene
+from splat.mesh import TSDFConfig, clean_mesh, fuse_views, write_mesh
+
+log = logging.getLogger(__name__)
+
+
+def find_gt_depth_dir(scene_dir: str | Path, gt_depth: str | Path | None = None) -> Path | None:
+    """``gt_depth`` if given (it must exist), else ``SCENE/gt/depth`` if present, else None."""
+    if gt_depth is not None:
+        path = Path(gt_depth)
+        if not path.is_dir():
+            raise FileNotFoundError(f"no GT depth folder at {path}")
+        return path
+    path = Path(scene_dir) / "gt" / "depth"
+    return path if path.is_dir() else None
+
+
+def load_gt_depth(folder: Path, stem: str, shape: tuple[int, int], png_scale: float) -> np.ndarray:
+    """Exact depth [H, W] float32 metres of image ``stem``, resized (nearest) to ``shape``."""
+    import cv2
+
+    npy, png = folder / f"{stem}.npy", folder / f"{stem}.png"
+    if npy.is_file():
+        depth = np.load(npy).astype(np.float32)
+    elif png.is_file():
+        raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise ValueError(f"could not read the GT depth PNG {png}")
+        depth = raw.astype(np.float32) / float(png_scale)
+    else:
+        raise FileNotFoundError(f"no GT depth for image {stem} in {folder} (expected {npy.name} or {png.name})")
+    if depth.ndim != 2:
+        raise ValueError(f"GT depth {folder / stem}: expected an [H, W] map, got shape {depth.shape}")
+    if depth.shape != shape:
+        depth = cv2.resize(depth, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+    return np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+
+
+def fuse_floor(scene_dir: str | Path, out_mesh: str | Path, *, gt_depth: str | Path | None = None,
+               png_scale: float = 1000.0, downscale: float = 1.0, test_every: int = 8,
+               mesh_every: int = 1, tsdf: TSDFConfig | None = None) -> Path:
+    """Fuse the GT depth of every ``mesh_every``-th training view (as `splat train` fuses its
+    rendered depth), clean the mesh and write it to ``out_mesh``. Returns the mesh path."""
+    folder = find_gt_depth_dir(scene_dir, gt_depth)
+    if folder is None:
+        raise FileNotFoundError(f"the scene {scene_dir} has no gt/depth folder; pass the exact depth "
+                                "maps' folder (--gt-depth DIR)")
+    scene = Scene.load(scene_dir, downscale=downscale, test_every=test_every, check_priors=False)
+    indices = scene.train_indices[::max(mesh_every, 1)]
+
+    def views():
+        for i in indices:
+            cam = scene.cameras[i]
+            depth = load_gt_depth(folder, cam.stem, (cam.height, cam.width), png_scale)
+            yield depth, scene.load_image(i), cam.K, cam.world_to_camera
+
+    tsdf = tsdf or TSDFConfig()
+    log.info("floor: fusing the GT depth of %d training views from %s", len(indices), folder)
+    return write_mesh(clean_mesh(fuse_views(views(), tsdf), tsdf), out_mesh)

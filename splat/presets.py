@@ -1,0 +1,114 @@
+"""Named training presets: the rows of the paper's ablation (Tab. 3) and this project's extensions.
+
+One table (nerfstudio's method-config style): each preset is a set of overrides of
+:class:`splat.train.TrainConfig` fields, named by their dotted path. ``splat train --preset NAME``
+starts from it (options given after it still win) and ``splat ablate`` runs one `splat train` per
+preset. ``full`` is the default config: IndoorGS as this project runs it.
+
+A preset that only differs from ``full`` through priors the scene lacks (``no-ld`` on a scene
+without depth priors, say) ``needs`` them: the ablation reports such a row as n/a instead of
+running ``full`` a second time under another name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+# The paper's ScanNet++ ablation (Tab. 3): Chamfer-L1 (m), F-score at 5 cm, normal consistency.
+PAPER_TAB3 = {
+    "no-cues": (0.055, 0.681, 0.859), "sfm-cues-only": (0.051, 0.717, 0.789),
+    "no-plane-cues": (0.050, 0.728, 0.862), "no-custom-adc": (0.052, 0.711, 0.839),
+    "no-line-adc": (0.051, 0.720, 0.848), "no-sfm-adc": (0.040, 0.771, 0.875),
+    "no-plane-adc": (0.046, 0.741, 0.871), "no-ld": (0.044, 0.762, 0.864),
+    "no-ln": (0.051, 0.725, 0.848), "no-lnc": (0.044, 0.744, 0.808),
+    "full": (0.040, 0.776, 0.877),
+}
+
+# The RaDe-GS-style baseline: SfM-point init, plain 3DGS density control for every Gaussian, no
+# prior losses; RaDe-GS depth / normal rendering and L_nc kept.
+_NO_CUES = {"init_from": "sfm", "strategy.custom_types": (), "loss.use_depth": False,
+            "loss.use_normal": False, "loss.lambda_anchor": 0.0}
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One named training configuration."""
+
+    name: str
+    label: str
+    """Row label as the paper's Tab. 3 writes it (or this project's name for an extension)."""
+    overrides: dict[str, Any] = field(default_factory=dict)
+    """TrainConfig fields (dotted paths) and their values."""
+    needs: tuple[str, ...] = ()
+    """"depth_priors" / "normal_priors": the row equals ``full`` on a scene without them."""
+    iters_factor: float = 1.0
+    """Multiplies the run's iterations (no-cues-long: 3x)."""
+    extension: bool = False
+    """Not a row of the paper: one of this project's additions switched off or on."""
+
+    @property
+    def paper(self) -> tuple[float, float, float] | None:
+        return PAPER_TAB3.get(self.name)
+
+
+PRESETS: dict[str, Preset] = {p.name: p for p in [
+    Preset("full", "Full model"),
+    Preset("no-cues", "w/o cues (baseline)", _NO_CUES),
+    Preset("no-cues-long", "w/o cues, 3x iterations", _NO_CUES, iters_factor=3.0),
+    Preset("sfm-cues-only", "SfM cues only", {"cue_types": ("SFM",)}),
+    Preset("no-plane-cues", "w/o plane cues", {"cue_types": ("SFM", "LINE")}),
+    Preset("no-custom-adc", "w/o customised ADC", {"strategy.custom_types": ()}),
+    Preset("no-line-adc", "w/o line ADC", {"strategy.custom_types": ("SFM", "PLANE")}),
+    Preset("no-sfm-adc", "w/o SfM ADC", {"strategy.custom_types": ("LINE", "PLANE")}),
+    Preset("no-plane-adc", "w/o plane ADC", {"strategy.custom_types": ("SFM", "LINE")}),
+    Preset("no-ld", "w/o L_d", {"loss.use_depth": False}, needs=("depth_priors",)),
+    Preset("no-ln", "w/o L_n", {"loss.use_normal": False}, needs=("normal_priors",)),
+    Preset("no-lnc", "w/o L_nc", {"loss.use_nc": False}),
+    Preset("paper", "paper's loss (w/o L_a)", {"loss.lambda_anchor": 0.0}, needs=("depth_priors",),
+           extension=True),
+    Preset("literal-line-clone", "LINE clone at mu + grad (paper verbatim)",
+           {"strategy.line_clone_literal": True}, extension=True),
+]}
+
+DEFAULT_ROWS = tuple(PRESETS)
+
+
+def get_preset(name: str) -> Preset:
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+def _set(obj: Any, path: list[str], value: Any) -> Any:
+    if not dataclasses.is_dataclass(obj) or not hasattr(obj, path[0]):
+        raise ValueError(f"preset override: {type(obj).__name__} has no field {path[0]!r}")
+    if len(path) == 1:
+        return dataclasses.replace(obj, **{path[0]: value})
+    return dataclasses.replace(obj, **{path[0]: _set(getattr(obj, path[0]), path[1:], value)})
+
+
+def apply_overrides(cfg: Any, overrides: dict[str, Any]) -> Any:
+    """A copy of the dataclass ``cfg`` with each dotted field path set to its value."""
+    for key, value in overrides.items():
+        cfg = _set(cfg, key.split("."), value)
+    return cfg
+
+
+def preset_config(name: str, base: Any = None) -> Any:
+    """The TrainConfig of preset ``name`` (on top of ``base``, default TrainConfig())."""
+    from splat.train import TrainConfig
+
+    preset = get_preset(name)
+    cfg = apply_overrides(TrainConfig() if base is None else base, preset.overrides)
+    if preset.iters_factor != 1.0:
+        cfg = dataclasses.replace(cfg, iters=max(1, round(cfg.iters * preset.iters_factor)))
+    return cfg
+
+
+def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: bool) -> str | None:
+    """Why ``preset`` cannot differ from ``full`` on this scene ("no depth priors"), or None."""
+    have = {"depth_priors": has_depth_priors, "normal_priors": has_normal_priors}
+    lacking = [n.replace("_", " ") for n in preset.needs if not have[n]]
+    return f"no {' / '.join(x.removesuffix(' priors') for x in lacking)} priors" if lacking else None

@@ -1,0 +1,204 @@
+"""`splat ablate` on the tiny synthetic room: every file with its keys, resume after a kill, n/a rows,
+the floor, presets, and Ray dispatch against --jobs 1."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from cues_synth import make_room_scene, render, room_mesh
+from geocues.cue_io import write_cues_ply
+from geocues.scene import Scene
+from test_train import surface_cues
+
+TRAIN_ARGS = ["--sh-degree", "0", "--tsdf.voxel-size", "0.05", "--strategy.max-gaussians", "8000",
+              "--log-every", "5"]
+
+
+def png_size(path) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR, after checking the whole file decodes (zlib stream)."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", path
+    w, h = struct.unpack(">II", data[16:24])
+    idat, pos = b"", 8
+    while pos < len(data):
+        n = struct.unpack(">I", data[pos:pos + 4])[0]
+        if data[pos + 4:pos + 8] == b"IDAT":
+            idat += data[pos + 8:pos + 8 + n]
+        pos += 12 + n
+    assert len(zlib.decompress(idat)) > 0
+    return w, h
+
+
+def write_gt(root):
+    """gt/mesh.ply and exact gt/depth/<stem>.npy for the synthetic room."""
+    import open3d as o3d
+
+    V, T, _ = room_mesh()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
+    (root / "gt" / "depth").mkdir(parents=True, exist_ok=True)
+    o3d.io.write_triangle_mesh(str(root / "gt" / "mesh.ply"), mesh)
+    for cam in Scene.load(root, check_priors=False).cameras:
+        _, depth, _ = render(cam.K, cam.R, cam.t, cam.width, cam.height)
+        np.save(root / "gt" / "depth" / f"{cam.stem}.npy", depth.astype(np.float32))
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    base = tmp_path_factory.mktemp("ablate")
+    root = make_room_scene(base / "room", n_views=16, w=64, h=48, priors="all")
+    write_gt(root)
+    write_cues_ply(base / "cues" / "cues.ply", surface_cues(root, n_plane=1500))
+    return base, root, base / "cues"
+
+
+def _run(tiny, out, rows, **kw):
+    from evaluation.mesh_metrics import MeshMetricsConfig
+    from splat.ablate import AblateConfig, run
+
+    base, root, cues = tiny
+    cfg = AblateConfig(rows=tuple(rows), iters=30, checkpoints=(0.5, 1.0),
+                       metrics=MeshMetricsConfig(n_samples=20_000), **kw)
+    return run(cfg, root, cues, base / out, TRAIN_ARGS)
+
+
+@pytest.fixture(scope="module")
+def ablation(tiny):
+    return _run(tiny, "out", ["full", "no-cues", "no-ln"])
+
+
+def test_every_file_with_its_keys(ablation):
+    out = ablation
+    for name in ("ablation.json", "report.md", "accuracy_vs_time.png"):
+        assert (out / name).is_file(), name
+    data = json.loads((out / "ablation.json").read_text())
+    assert set(data) >= {"scene", "cues", "config", "train_args", "floor", "rows"}
+    rows = {r["row"]: r for r in data["rows"]}
+    assert list(rows) == ["full", "no-cues", "no-ln"]
+    for name in ("full", "no-cues"):
+        r = rows[name]
+        assert r["status"] == "done" and r["n_seeds"] == 1
+        curve = r["runs"][0]["curve"]
+        assert [c["step"] for c in curve] == [15, 30]
+        for c in curve:
+            assert set(c) >= {"train_s", "psnr", "chamfer_l1", "f_score", "normal_consistency"}
+            assert np.isfinite(c["chamfer_l1"]) and 0 <= c["f_score"] <= 1
+        assert r["mean"]["chamfer_l1"] == pytest.approx(curve[-1]["chamfer_l1"])
+    # the synthetic room has depth priors but no normal priors: no-ln would be `full` again
+    assert rows["no-ln"]["status"] == "n/a" and "normal" in rows["no-ln"]["reason"]
+    md = (out / "report.md").read_text()
+    assert "n/a (no normal priors)" in md and "**floor**" in md
+    assert "0.040 / 0.776 / 0.877" in md  # the paper's full row beside ours
+    assert png_size(out / "accuracy_vs_time.png") == (1080, 720)
+
+
+def test_no_cues_row_is_the_baseline(ablation):
+    rows = {r["row"]: r for r in json.loads((ablation / "ablation.json").read_text())["rows"]}
+    init = rows["no-cues"]["runs"][0]["gaussians_init"]
+    assert init["LINE"] == 0 and init["PLANE"] == 0 and init["SFM"] > 0  # SfM-point init only
+    cfg = json.loads((ablation / "rows" / "no-cues_s0" / "train" / "report.json").read_text())["config"]
+    assert cfg["init_from"] == "sfm" and cfg["strategy"]["custom_types"] == []
+    assert not cfg["loss"]["use_depth"] and cfg["loss"]["lambda_anchor"] == 0 and cfg["loss"]["use_nc"]
+
+
+def test_floor_is_exact_where_seen_and_the_best_row(ablation):
+    data = json.loads((ablation / "ablation.json").read_text())
+    floor = data["floor"]
+    assert floor["status"] == "done"
+    # exact depth: the mesh lies on the GT surface (5 cm voxels, 20k-sample point-to-point bias ~2 cm);
+    # completeness is what the 14 training views with weight > 3 cover
+    assert floor["final"]["accuracy"] < 0.03 and floor["final"]["precision"] > 0.97
+    for row in data["rows"]:
+        if row["status"] == "done":
+            assert floor["final"]["f_score"] >= row["mean"]["f_score"]
+
+
+def test_a_killed_ablation_resumes_and_skips_finished_rows(tiny, ablation, monkeypatch):
+    import splat.ablate as ablate
+
+    base = tiny[0]
+    out = base / "resume"
+    shutil.copytree(ablation, out)
+    shutil.rmtree(out / "rows" / "no-cues_s0")  # killed while its second row ran
+    (out / "rows" / "no-cues_s0" / "train").mkdir(parents=True)  # ... leaving a partial folder
+    ran = []
+    real = ablate.run_row
+    monkeypatch.setattr(ablate, "run_row", lambda spec: ran.append(spec["row"]) or real(spec))
+    _run(tiny, "resume", ["full", "no-cues", "no-ln"])
+    assert ran == ["no-cues"]
+    rows = {r["row"]: r for r in json.loads((out / "ablation.json").read_text())["rows"]}
+    assert rows["no-cues"]["status"] == "done"
+    # a changed configuration is not a finished row
+    ran.clear()
+    from splat.ablate import AblateConfig, run
+
+    from evaluation.mesh_metrics import MeshMetricsConfig
+
+    run(AblateConfig(rows=("full",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
+        tiny[1], tiny[2], out, TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
+    assert ran == ["full"]
+
+
+def test_seeds_give_mean_and_spread(tiny):
+    out = _run(tiny, "seeds", ["no-lnc"], seeds=2, floor=False)
+    row = json.loads((out / "ablation.json").read_text())["rows"][0]
+    assert row["n_seeds"] == 2 and [r["seed"] for r in row["runs"]] == [0, 1]
+    f = [r["final"]["f_score"] for r in row["runs"]]
+    assert row["mean"]["f_score"] == pytest.approx(np.mean(f))
+    assert row["std"]["f_score"] == pytest.approx(np.std(f))
+
+
+def test_preset_overrides_and_cli_options():
+    from splat.ablate import train_config
+    from splat.presets import PRESETS, preset_config
+
+    assert preset_config("no-cues-long").iters == 90_000
+    cfg = train_config("no-cues-long", ["--loss.lambda-nc", "0.3"], 100, 1, (1.0,))
+    assert cfg.iters == 300 and cfg.seed == 1 and cfg.loss.lambda_nc == 0.3 and cfg.init_from == "sfm"
+    assert train_config("no-line-adc", [], 10, 0, (1.0,)).strategy.custom_types == ("SFM", "PLANE")
+    with pytest.raises(ValueError, match="--iters"):
+        train_config("full", ["--iters", "5"], 10, 0, (1.0,))
+    assert PRESETS["full"].paper == (0.040, 0.776, 0.877)
+
+
+def test_splat_train_preset_flag_and_later_options_win(tmp_path, monkeypatch):
+    import splat.train
+    from cli.splat_cli import main
+
+    seen = {}
+    monkeypatch.setattr(splat.train, "run", lambda cfg, *a: seen.setdefault("cfg", cfg))
+    assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "no-cues", "--loss.no-use-nc"]) == 0
+    cfg = seen["cfg"]
+    assert cfg.init_from == "sfm" and cfg.strategy.custom_types == () and not cfg.loss.use_nc
+    assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "nope"]) == 1
+
+
+def test_unknown_row_is_a_clear_error(tiny, capsys):
+    from cli.splat_cli import main
+
+    base, root, cues = tiny
+    assert main(["ablate", str(root), "-c", str(cues), "-o", str(base / "x"), "--rows", "fulll"]) == 1
+    assert "unknown rows ['fulll']" in capsys.readouterr().err
+
+
+def test_ray_dispatch_gives_the_rows_of_jobs_1(tiny, ablation):
+    ray = pytest.importorskip("ray", reason="Ray is an optional extra (pip install .[ray])")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        out = _run(tiny, "ray", ["full", "no-cues", "no-ln"], ray="auto")
+    finally:
+        ray.shutdown()
+    local = {r["row"]: r for r in json.loads((ablation / "ablation.json").read_text())["rows"]}
+    remote = {r["row"]: r for r in json.loads((out / "ablation.json").read_text())["rows"]}
+    assert list(local) == list(remote)
+    for name in local:
+        assert local[name]["status"] == remote[name]["status"]
+        if local[name]["status"] == "done":
+            a, b = local[name]["runs"][0]["final"], remote[name]["runs"][0]["final"]
+            assert a["f_score"] == pytest.approx(b["f_score"], abs=0.02)
+            assert a["chamfer_l1"] == pytest.approx(b["chamfer_l1"], rel=0.1)
