@@ -84,9 +84,33 @@ def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="
     return 0
 
 
+def report(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
+           scene: Annotated[Path | None, tyro.conf.arg(metavar="SCENE")] = None,
+           gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
+           gt_depth: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
+           views: int = 4) -> int:
+    """Plots and a contact sheet of one `splat train` folder, linked from RUN/report.md.
+
+    Loss terms and Gaussians per type against iterations; test PSNR/SSIM (and mesh metrics of the
+    checkpoint meshes when a GT mesh is at hand) against seconds; held-out views as GT | render |
+    depth | normals | depth error. -v/--verbose: debug logging.
+
+    Args:
+        run: the `splat train` output folder.
+        scene: the scene it was trained on (default: the one its report.json names).
+        gt: GT mesh for the checkpoint meshes (default: SCENE/gt/mesh.ply when present).
+        gt_depth: folder of exact depth maps for the depth-error panel (default: SCENE/gt/depth).
+        views: held-out views in the contact sheet.
+    """
+    from evaluation.run_report import write_run_report
+
+    print(f"wrote {write_run_report(run, scene, gt, gt_depth, views)}")
+    return 0
+
+
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
 # The default command (metrics of a mesh) is registered under "mesh" and runs without its name.
-COMMANDS: dict = {"mesh": mesh, "make-room": make_room, "cues": cues}
+COMMANDS: dict = {"mesh": mesh, "make-room": make_room, "cues": cues, "report": report}
 DEFAULT = "mesh"
 
 

@@ -95,7 +95,7 @@ def plot_accuracy_vs_time(summary: dict, path: Path) -> Path:
                 if not pts:
                     continue
                 xs, ys = zip(*pts)
-                style = dict(lw=2.2 if r["row"] == "full" else 1.3, color=cmap(k % 20),
+                style = dict(lw=2.2 if r["row"] == "full" else 1.3, color=cmap((2 * k) % 20 + ((2 * k) // 20) % 2),
                              ls="-" if not r["row"].startswith("no-cues") else "--")
                 ax.plot(xs, ys, marker="o", ms=3, label=r["row"] if j == 0 else None,
                         alpha=1.0 if j == 0 else 0.4, **style)

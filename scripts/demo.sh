@@ -11,28 +11,25 @@ BIN=.venv/bin
 mkdir -p "$OUT"
 say() { printf '\n=== %s\n' "$*"; }
 
-say "1/7 default scene: benchmark room (images, known poses, pycolmap SfM points, GT mesh, simulated priors)"
+say "1/5 default scene: benchmark room (images, known poses, pycolmap SfM points, GT mesh and depth, simulated priors)"
 [ -d "$OUT/room" ] || $BIN/evaluate make-room "$OUT/room" --layout textured --seed 0
 $BIN/geocues info "$OUT/room"
 
-say "2/7 geometric cues: SfM (SOR), 3D lines, plane-like points"
+say "2/5 geometric cues: SfM (SOR), 3D lines, plane-like points"
 $BIN/geocues extract "$OUT/room" -o "$OUT/cues"
 
-say "3/7 cue accuracy and coverage against the GT mesh"
+say "3/5 cue accuracy and coverage against the GT mesh"
 $BIN/evaluate cues "$OUT/cues" --scene "$OUT/room" --json "$OUT/cue_metrics.json"
 
-say "4/7 mesh metrics protocol check: GT mesh against itself, exact point-to-surface distances"
-$BIN/evaluate "$OUT/room/gt/mesh.ply" --scene "$OUT/room" --mode surface --json "$OUT/mesh_metrics_gt.json"
+say "4/5 training: IndoorGS (full) against the no-cue baseline at the same budget, and the exact-depth floor"
+# 1500 iterations at 320x240: the knee of the accuracy-against-time curve on 2 cores (docs/training.md)
+$BIN/splat ablate "$OUT/room" -c "$OUT/cues" -o "$OUT/ablation" --rows full no-cues --iters 1500 \
+    --scene-label "default scene (textured room, seed 0)" --downscale 2 --strategy.max-gaussians 100000
+$BIN/evaluate report "$OUT/ablation/rows/full_s0/train"
 
-say "5/7 rasterizer: forward+backward seconds per backend (small sizes; full table: splat bench)"
-$BIN/splat bench --quick --json "$OUT/splat_bench.json"
+say "5/5 the trained mesh against the GT mesh, and the held-out views"
+$BIN/evaluate "$OUT/ablation/rows/full_s0/train/mesh.ply" --scene "$OUT/room" \
+    --renders "$OUT/ablation/rows/full_s0/train/test_renders" --test-every 8 --json "$OUT/mesh_metrics_trained.json"
+sed -n '/^| row/,/^$/p' "$OUT/ablation/report.md"
 
-say "6/7 training: typed Gaussians from the cues, IndoorGS losses and density control, TSDF mesh (short run)"
-$BIN/splat train "$OUT/room" -c "$OUT/cues" -o "$OUT/train" --iters 500 --downscale 4 --sh-degree 1 \
-    --strategy.max-gaussians 60000 --tsdf.voxel-size 0.03
-
-say "7/7 the trained mesh against the GT mesh, and the held-out views"
-$BIN/evaluate "$OUT/train/mesh.ply" --scene "$OUT/room" --renders "$OUT/train/test_renders" \
-    --json "$OUT/mesh_metrics_trained.json"
-
-say "done: results in $OUT (cue_metrics.json, mesh_metrics_gt.json, splat_bench.json, train/, mesh_metrics_trained.json)"
+say "done: $OUT/ablation/report.md (table, accuracy_vs_time.png), $OUT/ablation/rows/full_s0/train/report.md (plots, held-out views)"

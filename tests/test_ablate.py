@@ -202,3 +202,33 @@ def test_ray_dispatch_gives_the_rows_of_jobs_1(tiny, ablation):
             a, b = local[name]["runs"][0]["final"], remote[name]["runs"][0]["final"]
             assert a["f_score"] == pytest.approx(b["f_score"], abs=0.02)
             assert a["chamfer_l1"] == pytest.approx(b["chamfer_l1"], rel=0.1)
+
+
+def test_evaluate_report_of_a_run(ablation):
+    from cli.evaluate_cli import main
+
+    run = ablation / "rows" / "full_s0" / "train"
+    assert main(["report", str(run), "--views", "2"]) == 0
+    for name in ("report.md", "report_losses.png", "report_gaussians.png", "report_accuracy.png",
+                 "report_views.png", "report_data.json"):
+        assert (run / name).is_file(), name
+    data = json.loads((run / "report_data.json").read_text())
+    log_rows = [json.loads(x) for x in (run / "train_log.jsonl").read_text().splitlines()]
+    # the plotted data is the log's
+    assert [s for s, _ in data["losses"]["loss"]] == [r["step"] for r in log_rows]
+    assert [v for _, v in data["gaussians"]["n"]] == [r["n"] for r in log_rows]
+    assert [p["step"] for p in data["mesh_vs_time"]] == [15, 30]  # checkpoint meshes scored against gt/mesh.ply
+    assert len(data["views"]) == 2 and len(data["depth_errors"]) == 2  # gt/depth exists: error panel
+    assert png_size(run / "report_losses.png") == (720, 405)
+    assert png_size(run / "report_gaussians.png") == (720, 405)
+    w, h = png_size(run / "report_views.png")
+    assert (w, h) == (round(3.2 * 5 * 90), round(2.5 * 2 * 90))  # 5 panels x 2 views
+    md = (run / "report.md").read_text()
+    assert "report_views.png" in md and "Chamfer-L1" in md
+
+
+def test_evaluate_report_names_a_folder_that_is_not_a_run(tmp_path, capsys):
+    from cli.evaluate_cli import main
+
+    assert main(["report", str(tmp_path)]) == 1
+    assert "no report.json" in capsys.readouterr().err

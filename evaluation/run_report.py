@@ -1,0 +1,207 @@
+"""`evaluate report RUN`: one `splat train` folder at a glance.
+
+Writes into RUN: ``report.md`` linking ``report_losses.png`` (loss terms against iterations),
+``report_gaussians.png`` (Gaussians per type against iterations), ``report_accuracy.png`` (test
+PSNR / SSIM and, when a GT mesh is at hand, mesh metrics of the checkpoint meshes against training
+seconds), ``report_views.png`` (held-out views: GT | render | rendered depth | rendered normals |
+depth error against exact GT depth where it exists) and ``report_data.json``, the data every figure
+was drawn from. Rendering goes through splat's public API (``load_ply``, ``render``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from geocues.atomic import atomic_path
+
+log = logging.getLogger(__name__)
+
+LOSS_TERMS = ("loss", "rgb", "depth", "anchor", "normal", "flat", "nc")
+TYPES = ("SFM", "LINE", "PLANE", "n")
+
+
+def _read_log(run_dir: Path) -> list[dict]:
+    path = run_dir / "train_log.jsonl"
+    if not path.is_file():
+        raise FileNotFoundError(f"{run_dir} is not a `splat train` folder: no train_log.jsonl")
+    rows = []
+    for k, line in enumerate(path.read_text().splitlines()):
+        try:
+            rows.append(json.loads(line))
+        except ValueError:
+            log.warning("%s line %d is not JSON (a killed run?): skipped", path, k + 1)
+    return rows
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return path
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def mesh_curve(report: dict, gt: Path | None, scene: Path | None) -> list[dict]:
+    """Mesh metrics of each checkpoint mesh the run kept (needs a GT mesh)."""
+    from evaluation.mesh_metrics import evaluate_with_scene
+
+    points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and Path(p["mesh"]).is_file()]
+    if not points or (gt is None and (scene is None or not (scene / "gt" / "mesh.ply").is_file())):
+        return []
+    out = []
+    for p in points:
+        m = evaluate_with_scene(p["mesh"], gt, scene).to_dict()
+        out.append({"step": p["step"], "train_s": p["train_s"],
+                    **{k: m[k] for k in ("chamfer_l1", "f_score", "normal_consistency")}})
+    return out
+
+
+def contact_sheet(run_dir: Path, scene_dir: Path, report: dict, n_views: int, gt_depth: Path | None) -> dict:
+    """Render ``n_views`` held-out views; returns the panel images and per-view depth errors."""
+    import torch
+
+    from geocues.scene import Scene
+    from splat.camera import Camera
+    from splat.gaussians import load_ply
+    from splat.rasterize import render
+
+    cfg = report.get("config", {})
+    scene = Scene.load(scene_dir, downscale=cfg.get("downscale", 1.0), test_every=cfg.get("test_every", 8),
+                       check_priors=False)
+    params, _ = load_ply(run_dir / "point_cloud.ply")
+    indices = scene.test_indices or scene.train_indices
+    pick = [indices[k] for k in np.linspace(0, len(indices) - 1, min(n_views, len(indices))).round().astype(int)]
+    depth_dir = gt_depth if gt_depth is not None else (scene.root / "gt" / "depth")
+    rows, errors = [], []
+    bg = torch.tensor(cfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32)
+    for i in dict.fromkeys(pick):
+        cam = scene.cameras[i]
+        with torch.no_grad():
+            out = render(params, Camera.from_Rt(cam.K, cam.R, cam.t, cam.width, cam.height), background=bg)
+        depth = out["median_depth"].numpy()
+        err = None
+        if depth_dir.is_dir():
+            from splat.floor import load_gt_depth
+
+            try:
+                gt = load_gt_depth(depth_dir, cam.stem, depth.shape, 1000.0)
+                err = np.where((gt > 0) & (depth > 0), np.abs(depth - gt), np.nan)
+                errors.append({"view": cam.name, "median_abs_depth_error_m": float(np.nanmedian(err))})
+            except FileNotFoundError:
+                err = None
+        rows.append({"name": cam.name, "gt": scene.load_image(i), "render": out["rgb"].clamp(0, 1).numpy(),
+                     "depth": depth, "normal": out["normal"].numpy(), "error": err})
+    return {"rows": rows, "depth_errors": errors}
+
+
+def _draw_sheet(sheet: dict, path: Path) -> Path:
+    plt = _plt()
+    rows = sheet["rows"]
+    has_err = any(r["error"] is not None for r in rows)
+    cols = ["GT", "render", "depth (m)", "normals"] + (["|depth - GT| (m)"] if has_err else [])
+    fig, axes = plt.subplots(len(rows), len(cols), figsize=(3.2 * len(cols), 2.5 * len(rows)), squeeze=False,
+                             constrained_layout=True)
+    for r, row in zip(axes, rows):
+        valid = row["depth"][row["depth"] > 0]
+        vmax = float(np.percentile(valid, 99)) if valid.size else 1.0
+        panels = [row["gt"], row["render"], None, (1 - row["normal"]) / 2]
+        for k, ax in enumerate(r):
+            ax.set_xticks([]), ax.set_yticks([])
+            if k == 2:
+                im = ax.imshow(np.where(row["depth"] > 0, row["depth"], np.nan), cmap="turbo", vmin=0, vmax=vmax)
+                fig.colorbar(im, ax=ax, fraction=0.04)
+            elif k == 4:
+                if row["error"] is not None:
+                    im = ax.imshow(row["error"], cmap="magma", vmin=0, vmax=0.1)
+                    fig.colorbar(im, ax=ax, fraction=0.04)
+            else:
+                ax.imshow(np.clip(panels[k], 0, 1))
+            if r is axes[0]:
+                ax.set_title(cols[k], fontsize=9)
+        r[0].set_ylabel(row["name"], fontsize=8)
+    return _save(fig, path)
+
+
+def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: str | Path | None = None,
+                     gt_depth: str | Path | None = None, n_views: int = 4) -> Path:
+    """The report of one `splat train` folder (module docstring); returns RUN/report.md."""
+    run_dir = Path(run_dir)
+    report_path = run_dir / "report.json"
+    if not report_path.is_file():
+        raise FileNotFoundError(f"{run_dir} holds no report.json (not a finished `splat train` folder)")
+    report = json.loads(report_path.read_text())
+    scene_dir = Path(scene) if scene is not None else Path(report["scene"])
+    log_rows = _read_log(run_dir)
+    plt = _plt()
+
+    losses = {t: [(r["step"], r[t]) for r in log_rows if r.get(t) is not None] for t in LOSS_TERMS}
+    fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
+    for t, pts in losses.items():
+        if pts:
+            ax.plot(*zip(*pts), label=t, lw=2 if t == "loss" else 1)
+    ax.set_yscale("log"), ax.set_xlabel("iteration"), ax.set_title("loss terms (unweighted; loss = weighted total)")
+    ax.legend(fontsize=8), ax.grid(alpha=0.3)
+    _save(fig, run_dir / "report_losses.png")
+
+    counts = {t: [(r["step"], r[t]) for r in log_rows if t in r] for t in TYPES}
+    fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
+    for t, pts in counts.items():
+        if pts:
+            ax.plot(*zip(*pts), label="all" if t == "n" else t, lw=2 if t == "n" else 1.3)
+    ax.set_xlabel("iteration"), ax.set_ylabel("Gaussians"), ax.set_title("Gaussians per type")
+    ax.legend(fontsize=8), ax.grid(alpha=0.3)
+    _save(fig, run_dir / "report_gaussians.png")
+
+    images = [{k: p.get(k) for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")}
+              for p in report.get("accuracy_vs_time", [])]
+    meshes = mesh_curve(report, Path(gt) if gt else None, scene_dir)
+    panels = [("psnr", "test PSNR (dB)", images), ("ssim", "test SSIM", images)]
+    panels += [(k, k.replace("_", " "), meshes) for k in ("chamfer_l1", "f_score", "normal_consistency")] if meshes else []
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False, constrained_layout=True)
+    for ax, (key, title, data) in zip(axes[0], panels):
+        pts = [(d["train_s"], d[key]) for d in data if d.get(key) is not None]
+        if pts:
+            ax.plot(*zip(*pts), marker="o")
+        ax.set_xlabel("training seconds"), ax.set_title(title), ax.grid(alpha=0.3)
+    _save(fig, run_dir / "report_accuracy.png")
+
+    sheet = contact_sheet(run_dir, scene_dir, report, n_views, Path(gt_depth) if gt_depth else None)
+    _draw_sheet(sheet, run_dir / "report_views.png")
+
+    data = {"run": str(run_dir), "scene": str(scene_dir), "losses": losses, "gaussians": counts,
+            "images_vs_time": images, "mesh_vs_time": meshes,
+            "views": [r["name"] for r in sheet["rows"]], "depth_errors": sheet["depth_errors"]}
+    with atomic_path(run_dir / "report_data.json") as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
+    final = report.get("test_metrics", {})
+    lines = [f"# `splat train` run: {run_dir.name}", "",
+             f"Scene `{scene_dir}`; {report['config']['iters']} iterations; test PSNR "
+             f"{final.get('psnr') or float('nan'):.2f} dB, SSIM {final.get('ssim') or float('nan'):.3f} "
+             f"({final.get('n_views', 0)} views); Gaussians {report.get('gaussians_final')}; "
+             f"training {report['timings']['train_s']:.0f} s.", ""]
+    if meshes:
+        m = meshes[-1]
+        lines += [f"Final mesh: Chamfer-L1 {m['chamfer_l1'] * 100:.2f} cm, F@5cm {m['f_score']:.3f}, "
+                  f"NC {m['normal_consistency']:.3f}.", ""]
+    lines += ["![accuracy against time](report_accuracy.png)", "", "![loss terms](report_losses.png)", "",
+              "![Gaussians per type](report_gaussians.png)", "",
+              "Held-out views: GT | render | rendered median depth | rendered normals"
+              + (" | depth error against exact GT depth" if sheet["depth_errors"] else "") + ":", "",
+              "![held-out views](report_views.png)", ""]
+    with atomic_path(run_dir / "report.md") as tmp:
+        tmp.write_text("\n".join(lines))
+    return run_dir / "report.md"
