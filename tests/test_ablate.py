@@ -200,8 +200,10 @@ def test_ray_dispatch_gives_the_rows_of_jobs_1(tiny, ablation):
         assert local[name]["status"] == remote[name]["status"]
         if local[name]["status"] == "done":
             a, b = local[name]["runs"][0]["final"], remote[name]["runs"][0]["final"]
-            assert a["f_score"] == pytest.approx(b["f_score"], abs=0.02)
-            assert a["chamfer_l1"] == pytest.approx(b["chamfer_l1"], rel=0.1)
+            # same seeds and configs; only the thread count of the reductions differs (1 in a task)
+            assert a["psnr"] == pytest.approx(b["psnr"], abs=0.01)
+            assert a["f_score"] == pytest.approx(b["f_score"], abs=0.005)
+            assert a["chamfer_l1"] == pytest.approx(b["chamfer_l1"], rel=1e-3)
 
 
 def test_evaluate_report_of_a_run(ablation):
