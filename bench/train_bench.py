@@ -60,12 +60,12 @@ def main(cfg: TrainBench) -> dict:
     train_cfg = replace(cfg.train, mesh=True, mesh_at_checkpoints=True)
     out_dir = cfg.out / cfg.name
     t0 = time.perf_counter()
-    run(train_cfg, cfg.scene, cfg.cues, out_dir)
+    run(train_cfg, cfg.scene, cfg.cues, out_dir, overwrite=True)
     wall = time.perf_counter() - t0
     report = json.loads((out_dir / "report.json").read_text())
     rows = []
     for point in report["accuracy_vs_time"]:
-        m = evaluate_with_scene(point["mesh"], cfg.gt, cfg.scene, cfg.metrics).to_dict()
+        m = evaluate_with_scene(out_dir / point["mesh"], cfg.gt, cfg.scene, cfg.metrics).to_dict()
         rows.append({**{k: point[k] for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")},
                      **{k: m[k] for k in ("accuracy", "completeness", "chamfer_l1", "f_score",
                                           "normal_consistency")}})

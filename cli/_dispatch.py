@@ -68,7 +68,8 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
         return 2
     fn = commands[name]
     sub_prog = prog if (name == default and argv[0] != name) else f"{prog} {name}"
-    setup_logging("--verbose" in rest or "-v" in rest)
+    verbose = "--verbose" in rest or "-v" in rest
+    setup_logging(verbose)
     rest = [a for a in rest if a not in ("--verbose", "-v")]
     try:
         if hasattr(fn, "run_argv"):  # the command parses its own argv (e.g. passes options through)
@@ -77,8 +78,20 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
             if hasattr(fn, "from_argv"):  # the command's defaults depend on an option (--preset)
                 fn = fn.from_argv(rest)
             result = tyro.cli(fn, args=rest, prog=sub_prog)
-    except (FileNotFoundError, ValueError) as exc:
-        # Bad input: one clear line naming what is wrong, no traceback.
+    except (FileNotFoundError, ValueError, PermissionError, IsADirectoryError, NotADirectoryError) as exc:
+        # Bad input: one clear line naming what is wrong, no traceback (-v shows it).
+        if verbose:
+            raise
         print(f"{sub_prog}: error: {exc}", file=sys.stderr)
         return 1
+    except RuntimeError as exc:
+        # A run that stopped cleanly: interrupted (checkpoint written) or diverged (last good kept).
+        name = type(exc).__name__
+        if name == "TrainingInterrupted":
+            print(f"{sub_prog}: {exc}", file=sys.stderr)
+            return 130
+        if name == "TrainingDiverged":
+            print(f"{sub_prog}: error: {exc}", file=sys.stderr)
+            return 1
+        raise
     return int(result) if isinstance(result, int) else 0

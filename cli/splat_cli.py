@@ -42,6 +42,8 @@ def _train_command(preset_name: str = "full"):
               cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
               out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
               preset: PresetName = preset_name,
+              overwrite: bool = False,
+              resume: bool = False,
               cfg: Annotated[TrainConfig, tyro.conf.arg(name="")] = base) -> int:
         """Train typed Gaussians on SCENE from the cue cloud CUES, then fuse a TSDF mesh (IndoorGS §4).
 
@@ -54,12 +56,14 @@ def _train_command(preset_name: str = "full"):
             out: output folder.
             preset: start from this named configuration (splat/presets.py: `full` is IndoorGS, `no-cues`
                 the RaDe-GS-style baseline, the rest the paper's ablation rows); options given on the
-                command line override it. -v/--verbose: debug logging.
+                command line override it. -v/--verbose: debug logging and tracebacks.
+            overwrite: replace a finished run in OUT (without it, a finished OUT is an error).
+            resume: continue the unfinished run in OUT.partial from its checkpoint (same options).
             cfg: training options.
         """
         from splat.train import run
 
-        run(cfg, scene, cues, out)
+        run(cfg, scene, cues, out, overwrite=overwrite, resume=resume)
         print(f"wrote {out}/report.json")
         return 0
 

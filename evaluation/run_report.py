@@ -55,16 +55,16 @@ def _plt():
     return plt
 
 
-def mesh_curve(report: dict, gt: Path | None, scene: Path | None) -> list[dict]:
-    """Mesh metrics of each checkpoint mesh the run kept (needs a GT mesh)."""
+def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None) -> list[dict]:
+    """Mesh metrics of each checkpoint mesh the run kept (paths relative to RUN; needs a GT mesh)."""
     from evaluation.mesh_metrics import evaluate_with_scene
 
-    points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and Path(p["mesh"]).is_file()]
+    points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and (run_dir / p["mesh"]).is_file()]
     if not points or (gt is None and (scene is None or not (scene / "gt" / "mesh.ply").is_file())):
         return []
     out = []
     for p in points:
-        m = evaluate_with_scene(p["mesh"], gt, scene).to_dict()
+        m = evaluate_with_scene(run_dir / p["mesh"], gt, scene).to_dict()
         out.append({"step": p["step"], "train_s": p["train_s"],
                     **{k: m[k] for k in ("chamfer_l1", "f_score", "normal_consistency")}})
     return out
@@ -168,7 +168,7 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
 
     images = [{k: p.get(k) for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")}
               for p in report.get("accuracy_vs_time", [])]
-    meshes = mesh_curve(report, Path(gt) if gt else None, scene_dir)
+    meshes = mesh_curve(run_dir, report, Path(gt) if gt else None, scene_dir)
     panels = [("psnr", "test PSNR (dB)", images), ("ssim", "test SSIM", images)]
     panels += [(k, k.replace("_", " "), meshes) for k in ("chamfer_l1", "f_score", "normal_consistency")] if meshes else []
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False, constrained_layout=True)

@@ -109,14 +109,14 @@ def run_row(spec: dict) -> dict:
     out.mkdir(parents=True)
     cfg = _from_dict(TrainConfig, spec["train_config"])
     t0 = time.perf_counter()
-    train_run(cfg, spec["scene"], spec["cues"], out / "train")
+    train_run(cfg, spec["scene"], spec["cues"], out / "train", overwrite=True)
     train_wall = time.perf_counter() - t0
     report = json.loads((out / "train" / "report.json").read_text())
     metrics = MeshMetricsConfig(**spec["metrics"])
     gt = Path(spec["gt"]) if spec.get("gt") else None
     curve = []
     for point in report["accuracy_vs_time"]:
-        scores = _score_mesh(Path(point["mesh"]), gt, Path(spec["scene"]), metrics)
+        scores = _score_mesh(out / "train" / point["mesh"], gt, Path(spec["scene"]), metrics)
         curve.append({k: point[k] for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")} | scores)
     result = {"row": spec["row"], "seed": spec["seed"], "key": spec["key"], "curve": curve,
               "final": curve[-1] if curve else {}, "train_s": report["timings"]["train_s"],

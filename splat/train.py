@@ -35,7 +35,10 @@ from geocues.cue_io import CueCloud, read_cues_ply
 from geocues.depth_align import load_alignments
 from geocues.scene import Scene
 from geocues.types import CueType
+from splat import checkpoint
+from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.gaussians import InitConfig, init_from_cues, save_ply, scene_scale
+from splat.guard import GuardConfig, NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
 from splat.mesh import TSDFConfig, clean_mesh, fuse_views, write_mesh
 from splat.rasterize import render
@@ -100,11 +103,50 @@ class TrainConfig:
     """Use every n-th training view for the TSDF fusion."""
     seed: int = 0
     """Seed of the view order, the loss patches and the density control."""
+    save_every: float = 300.0
+    """Write OUT.partial/ckpt/last.pt every this many seconds of training (0: only when stopped by
+    SIGINT / SIGTERM); `--resume` continues from it."""
+    keep_ckpt: bool = False
+    """Keep OUT/ckpt/last.pt (the final state) after a finished run."""
     lr: LearningRates = field(default_factory=LearningRates)
     init: InitConfig = field(default_factory=InitConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     strategy: IndoorStrategyConfig = field(default_factory=IndoorStrategyConfig)
     tsdf: TSDFConfig = field(default_factory=TSDFConfig)
+    guard: GuardConfig = field(default_factory=GuardConfig)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first impossible option."""
+        def finite_pos(name: str, value: float, zero_ok: bool = False) -> None:
+            if not (math.isfinite(value) and (value >= 0 if zero_ok else value > 0)):
+                raise ValueError(f"--{name} must be a finite number {'>= 0' if zero_ok else '> 0'}, got {value}")
+
+        if self.iters <= 0:
+            raise ValueError(f"--iters must be positive, got {self.iters}")
+        finite_pos("downscale", self.downscale)
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"--sh-degree must be in 0..3, got {self.sh_degree}")
+        bad = [t for t in self.cue_types if t not in CueType.__members__]
+        if bad:
+            raise ValueError(f"--cue-types: unknown cue types {bad}; choose from {list(CueType.__members__)}")
+        for name, value in asdict(self.lr).items():
+            finite_pos(f"lr.{name.replace('_', '-')}", value)
+        if not 0 < self.init.init_opacity < 1:
+            raise ValueError(f"--init.init-opacity must be in (0, 1), got {self.init.init_opacity}")
+        for name in ("min_scale", "flat_ratio", "max_scale_mult"):
+            finite_pos(f"init.{name.replace('_', '-')}", getattr(self.init, name))
+        if self.init.knn < 1:
+            raise ValueError(f"--init.knn must be >= 1, got {self.init.knn}")
+        for name, value in asdict(self.loss).items():
+            if isinstance(value, float):
+                finite_pos(f"loss.{name.replace('_', '-')}", value, zero_ok=True)
+        if not all(0 < c <= 1 for c in self.checkpoints):
+            raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
+        finite_pos("save-every", self.save_every, zero_ok=True)
+        if self.log_every < 1 or self.mesh_every < 1:
+            raise ValueError("--log-every and --mesh-every must be >= 1")
+        self.tsdf.validate()
+        self.guard.validate()
 
 
 def resolve_device(name: str) -> torch.device:
@@ -136,10 +178,13 @@ def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[st
 
 def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, view: View, step: int,
                sh_degree: int, cfg: TrainConfig, loss_cfg: LossConfig,
-               generator: torch.Generator | None = None) -> tuple[Tensor, dict, dict]:
+               generator: torch.Generator | None = None, guard: NumericsGuard | None = None
+               ) -> tuple[Tensor, dict, dict]:
     """One iteration on one view: render, IndoorGS loss, backward, Adam, per-type density control.
 
     ``loss_cfg`` is the run's loss config with its iteration counts already scaled (see run()).
+    With a ``guard``, a step whose loss or gradients are not sound takes no optimizer step and no
+    density control; its report is returned under ``density["guard"]``.
     Returns the loss, its terms and what the density control did at this step (empty if nothing).
     """
     out = render_view(params, view, sh_degree, cfg)
@@ -150,6 +195,12 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
             "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
     strategy.step_pre_backward(params, optimizers, state, step, info)
     loss.backward()
+    if guard is not None:
+        event = guard.check_step(step, float(loss.detach()), terms, params)
+        if event is not None:
+            for opt in optimizers.values():
+                opt.zero_grad(set_to_none=True)
+            return loss.detach(), terms, {"guard": event}
     for opt in optimizers.values():
         opt.step()
     density = strategy.step_post_backward(params, optimizers, state, step, info)
@@ -211,18 +262,37 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
 
 
-def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path) -> Path:
+def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
+        overwrite: bool = False, resume: bool = False) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
-    holding it); write the outputs (module docstring) to ``out_dir``; return ``out_dir``."""
+    holding it); write the outputs (module docstring) to ``out_dir``; return ``out_dir``.
+
+    The run works in ``OUT.partial`` and renames it to OUT when everything is written, so OUT is
+    never a mix of two runs. ``OUT.partial/ckpt/last.pt`` is written every ``save_every`` seconds
+    of training and on SIGINT / SIGTERM (then :class:`TrainingInterrupted` is raised);
+    ``resume=True`` continues from it. A finished OUT is only replaced with ``overwrite=True``.
+    """
     out_dir, cues = Path(out_dir), Path(cues)
     cues_ply = cues / "cues.ply" if cues.is_dir() else cues
     if not cues_ply.is_file():
         raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
-    if cfg.iters <= 0:
-        raise ValueError(f"iters must be positive, got {cfg.iters}")
-    bad = [t for t in cfg.cue_types if t not in CueType.__members__]
-    if bad:
-        raise ValueError(f"unknown cue types {bad}; choose from {list(CueType.__members__)}")
+    cfg.validate()
+    work = staging_dir(out_dir)
+    if (out_dir / "report.json").is_file() and not overwrite:
+        raise ValueError(f"{out_dir} holds a finished run; pass --overwrite to replace it")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"the output path {out_dir} is a file, not a folder")
+    ckpt = None
+    if resume:
+        ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
+        now, then = json.loads(json.dumps(asdict(cfg))), json.loads(json.dumps(ckpt["config"]))
+        if now != then:
+            diff = [k for k in now if now[k] != then.get(k)]
+            raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
+                             f"({work / checkpoint.CKPT_NAME}); resume with the same options")
+    elif work.exists():
+        log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
+        shutil.rmtree(work)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
@@ -252,64 +322,131 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     state = strategy.initialize_state(scale)
     state["cue_type"] = cue_type.to(device)
     strategy.check_sanity(params, optimizers)
+    guard = NumericsGuard(cfg.guard, torch.as_tensor(np.median(cloud.xyz, 0), dtype=torch.float32, device=device),
+                          scale)
     timings["load_and_init_s"] = time.perf_counter() - t_start
     log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, device %s",
              cfg.iters, len(train_views), len(test_views), len(cue_type), _type_counts(cue_type), scale, device)
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    work.mkdir(parents=True, exist_ok=True)
     checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
     sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
-    curve, order, train_s = [], [], 0.0
-    log_path = out_dir / "train_log.jsonl"
-    with open(log_path, "w") as log_file, tqdm(total=cfg.iters, desc="splat train", unit="it") as bar:
-        for step in range(cfg.iters):
+    base_lr = {k: opt.param_groups[0]["lr"] for k, opt in optimizers.items()}
+    curve, order, train_s, step0, log_bytes = [], [], 0.0, 0, 0
+    log_path = work / "train_log.jsonl"
+
+    def snapshot(step: int) -> dict:
+        return checkpoint.capture(params, optimizers, state, {
+            "step": step, "order": [int(i) for i in order], "numpy_rng": checkpoint.numpy_rng_state(rng),
+            "gen": gen.get_state(), "curve": curve, "train_s": train_s, "log_bytes": log_bytes,
+            "lr_mult": guard.lr_mult, "guard_events": guard.events})
+
+    def restore(snap: dict) -> int:
+        nonlocal order, curve, train_s, log_bytes
+        extra = checkpoint.restore(snap, params, optimizers, state)
+        order, curve, train_s, log_bytes = extra["order"], extra["curve"], extra["train_s"], extra["log_bytes"]
+        checkpoint.set_numpy_rng_state(rng, extra["numpy_rng"])
+        gen.set_state(extra["gen"])
+        return extra["step"]
+
+    if ckpt is not None:
+        step0 = restore(ckpt)
+        guard.lr_mult, guard.events = dict(ckpt["lr_mult"]), list(ckpt["guard_events"])
+        log.info("resuming %s at step %d (%.0f s of training done)", work, step0, train_s)
+    with open(log_path, "a+b") as f:  # a resumed run cuts the log back to its checkpoint
+        f.truncate(log_bytes)
+    good = snapshot(step0)
+    ckpt_path = work / checkpoint.CKPT_NAME
+    last_save = train_s
+    step = step0
+    with open(log_path, "a") as log_file, SignalCatcher() as signals, \
+            tqdm(total=cfg.iters, initial=step0, desc="splat train", unit="it") as bar:
+        while step < cfg.iters:
             t0 = time.perf_counter()
-            for group in optimizers["means"].param_groups:
-                group["lr"] = means_lr(step, cfg.iters, cfg.lr, scale)
+            for key, opt in optimizers.items():
+                rate = means_lr(step, cfg.iters, cfg.lr, scale) if key == "means" else base_lr[key]
+                opt.param_groups[0]["lr"] = rate * guard.lr_mult.get(key, 1.0)
             if not order:
                 order = list(rng.permutation(len(train_views)))
             view = train_views[order.pop()]
             sh_degree = min(cfg.sh_degree, step // sh_every)
             loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
-                                              cfg, loss_cfg, gen)
+                                              cfg, loss_cfg, gen, guard if cfg.guard.enabled else None)
+            event = density.get("guard") or guard.check_params(step, params)
+            if event is not None:
+                try:
+                    guard.on_rollback(event)  # raises TrainingDiverged after too many in a row
+                except TrainingDiverged as exc:
+                    checkpoint.save(ckpt_path, good, asdict(cfg))
+                    raise TrainingDiverged(f"{exc}; the last good state (step {good['step']}) is in {ckpt_path}") from None
+                log_file.flush()
+                lr_mult, events = dict(guard.lr_mult), list(guard.events)
+                step = restore(good)
+                guard.lr_mult, guard.events = lr_mult, events
+                log_file.seek(0, 2)
+                log_file.write(json.dumps({"step": event["step"], "guard": event}) + "\n")
+                log_file.flush()
+                log_bytes = log_file.tell()
+                good = snapshot(step)
+                bar.n = step
+                continue
             train_s += time.perf_counter() - t0
+            step += 1
             bar.update(1)
-            if step % cfg.log_every == 0 or step == cfg.iters - 1 or density:
-                row = {"step": step, "train_s": round(train_s, 3), "loss": float(loss.detach()), **terms,
+            if (step - 1) % cfg.log_every == 0 or step == cfg.iters or density:
+                row = {"step": step - 1, "train_s": round(train_s, 3), "loss": float(loss), **terms,
                        "n": len(state["cue_type"]), **_type_counts(state["cue_type"])}
                 if density:
                     row["density"] = density
                 log_file.write(json.dumps(row) + "\n")
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", n=len(state["cue_type"]))
-            if step + 1 in checkpoints:
+                bar.set_postfix(loss=f"{float(loss):.4f}", n=len(state["cue_type"]))
+            if step in checkpoints:
                 metrics = evaluate_views(params, test_views, sh_degree, cfg)
-                curve.append({"step": step + 1, "train_s": round(train_s, 2), "psnr": metrics["psnr"],
+                curve.append({"step": step, "train_s": round(train_s, 2), "psnr": metrics["psnr"],
                               "ssim": metrics["ssim"], "n_gaussians": len(state["cue_type"])})
                 if cfg.mesh and cfg.mesh_at_checkpoints:
-                    path = out_dir / "checkpoints" / f"mesh_{step + 1:06d}.ply"
-                    curve[-1]["mesh"] = str(write_mesh(fuse_mesh(params, train_views, sh_degree, cfg), path))
-                log.info("checkpoint %d: %.1f s training, test PSNR %s", step + 1, train_s, metrics["psnr"])
+                    rel = Path("checkpoints") / f"mesh_{step:06d}.ply"
+                    write_mesh(fuse_mesh(params, train_views, sh_degree, cfg), work / rel)
+                    curve[-1]["mesh"] = str(rel)
+                log.info("checkpoint %d: %.1f s training, test PSNR %s", step, train_s, metrics["psnr"])
+            if step % cfg.guard.snapshot_every == 0 or signals.caught or \
+                    (cfg.save_every > 0 and train_s - last_save >= cfg.save_every):
+                log_file.flush()
+                log_bytes = log_file.tell()
+                good = snapshot(step)
+                guard.on_snapshot()
+                if signals.caught or (cfg.save_every > 0 and train_s - last_save >= cfg.save_every):
+                    checkpoint.save(ckpt_path, good, asdict(cfg))
+                    last_save = train_s
+                if signals.caught:
+                    raise TrainingInterrupted(
+                        f"stopped by {signals.caught} at step {step} of {cfg.iters}; checkpoint {ckpt_path}; "
+                        "continue with the same command and --resume")
     timings["train_s"] = train_s
 
     t0 = time.perf_counter()
-    final = evaluate_views(params, test_views, cfg.sh_degree, cfg, out_dir / "test_renders")
-    save_ply(out_dir / "point_cloud.ply", params, state["cue_type"])
+    final = evaluate_views(params, test_views, cfg.sh_degree, cfg, work / "test_renders")
+    save_ply(work / "point_cloud.ply", params, state["cue_type"])
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()
         if curve and curve[-1]["step"] == cfg.iters and "mesh" in curve[-1]:
-            shutil.copyfile(curve[-1]["mesh"], out_dir / "mesh.ply")  # the same model, fused already
+            shutil.copyfile(work / curve[-1]["mesh"], work / "mesh.ply")  # the same model, fused already
         else:
-            write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg), out_dir / "mesh.ply")
+            write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg), work / "mesh.ply")
         timings["mesh_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),
               "scene_scale": scale, "n_train_views": len(train_views), "n_test_views": len(test_views),
               "gaussians_init": _type_counts(cue_type), "gaussians_final": _type_counts(state["cue_type"]),
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
-              "test_per_view": final.get("per_view", []), "accuracy_vs_time": curve, "timings": timings}
-    with atomic_path(out_dir / "report.json") as tmp:
-        tmp.write_text(json.dumps(report, indent=2))
+              "test_per_view": final.get("per_view", []), "accuracy_vs_time": curve, "timings": timings,
+              "resumed_from_step": step0 if ckpt is not None else None, "guard_events": guard.events}
+    with atomic_path(work / "report.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2, allow_nan=False))
+    if not cfg.keep_ckpt:
+        shutil.rmtree(work / "ckpt", ignore_errors=True)
+    publish(work, out_dir)
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
              final["psnr"], len(state["cue_type"]), out_dir)
     return out_dir
