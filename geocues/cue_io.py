@@ -191,10 +191,16 @@ def read_cues_ply(path: str | Path) -> CueCloud:
             return np.stack([np.asarray(v[k]) for k in keys], axis=-1).astype(dtype)
         return np.full((n, len(keys)), default, dtype)
 
-    return CueCloud(cols(("x", "y", "z"), 0.0, np.float64), cols(("red", "green", "blue"), 128, np.uint8),
-                    cols(("nx", "ny", "nz"), 0.0, np.float32),
-                    cols(("cue_type",), int(CueType.SFM), np.uint8)[:, 0],
-                    cols(("confidence",), 1.0, np.float32)[:, 0])
+    cue_type = cols(("cue_type",), int(CueType.SFM), np.uint8)[:, 0]
+    unknown = sorted(set(np.unique(cue_type).tolist()) - {int(t) for t in CueType})
+    if unknown:
+        raise ValueError(f"{path}: unknown cue_type values {unknown} in {int(np.isin(cue_type, unknown).sum())} "
+                         f"points (known: {', '.join(f'{t.name}={int(t)}' for t in CueType)})")
+    xyz = cols(("x", "y", "z"), 0.0, np.float64)
+    if not np.isfinite(xyz).all():
+        raise ValueError(f"{path}: {int((~np.isfinite(xyz).all(1)).sum())} points have non-finite coordinates")
+    return CueCloud(xyz, cols(("red", "green", "blue"), 128, np.uint8), cols(("nx", "ny", "nz"), 0.0, np.float32),
+                    cue_type, cols(("confidence",), 1.0, np.float32)[:, 0])
 
 
 def write_lines_npz(path: str | Path, segments: np.ndarray, n_views: np.ndarray,

@@ -34,7 +34,7 @@ from geocues.plane_regions import split_regions_by_lines
 from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
 from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
-from geocues.texture import TextureConfig, config_key, load_or_compute
+from geocues.texture import TextureConfig, config_key, load_or_compute, tree_stamp
 from geocues.types import CueType
 
 log = logging.getLogger(__name__)
@@ -177,7 +177,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     if cfg.downscale <= 0:
         raise ValueError(f"downscale must be > 0, got {cfg.downscale}")
     cfg.line.validate()
-    key = config_key(cfg, scene_dir.resolve())
+    # the scene's content, not only its path: a scene regenerated in place is extracted again
+    key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")))
     report_path = out_dir / "report.json"
     if report_path.is_file() and not overwrite:
         old = json.loads(report_path.read_text())

@@ -87,6 +87,33 @@ def config_key(cfg: object, *extra: object) -> str:
     return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 
+def file_stamp(*paths: str | Path | None) -> str:
+    """What a cache entry depends on in each file: its name, byte size and modification time
+    (nanoseconds); "-" for None or a missing file. A file rewritten in place gets a new stamp."""
+    parts = []
+    for p in paths:
+        if p is None or not Path(p).is_file():
+            parts.append("-")
+        else:
+            st = Path(p).stat()
+            parts.append(f"{Path(p).name}:{st.st_size}:{st.st_mtime_ns}")
+    return "|".join(parts)
+
+
+def tree_stamp(root: str | Path, subdirs: tuple[str, ...]) -> str:
+    """Hash of the file stamps under ``root/<subdir>`` for each subdir (images, priors, model):
+    a scene regenerated at the same path gets a new value."""
+    h = hashlib.sha1()
+    root = Path(root)
+    for sub in subdirs:
+        base = root / sub
+        if not base.exists():
+            continue
+        for f in sorted(p for p in base.rglob("*") if p.is_file()):
+            h.update(f"{f.relative_to(root)}={file_stamp(f)};".encode())
+    return h.hexdigest()[:12]
+
+
 def segment_image(bgr: np.ndarray, cfg: TextureConfig) -> np.ndarray:
     """Over-segment ``bgr`` [H, W, 3] uint8 -> labels [H, W] int32 in 0..S-1."""
     import cv2
@@ -241,7 +268,7 @@ def load_or_compute(image_path: Path, load_image, cfg: TextureConfig, cache_dir:
 
     path = None
     if cache_dir is not None:
-        path = _cache_path(Path(cache_dir), Path(image_path), config_key(cfg, size))
+        path = _cache_path(Path(cache_dir), Path(image_path), config_key(cfg, size, file_stamp(image_path)))
         if path.is_file():
             try:
                 with np.load(path) as z:

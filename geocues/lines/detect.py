@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from geocues.atomic import atomic_path
+from geocues.texture import file_stamp
 from geocues.lines.config import LineConfig
 
 log = logging.getLogger(__name__)
@@ -189,9 +190,10 @@ def detect_image(image: np.ndarray, normal: np.ndarray | None, cfg: LineConfig) 
     return result, {"rgb": len(rgb_segs), "normal": n_normal, "duplicates": n_dup}
 
 
-def cache_key(cfg: LineConfig, width: int, height: int, with_normals: bool) -> str:
-    """Hash of everything that changes an image's 2D segments."""
-    params = {"v": CACHE_VERSION, "detector": cfg.detector, "min_length_px": cfg.min_length_px,
+def cache_key(cfg: LineConfig, width: int, height: int, with_normals: bool, stamp: str = "") -> str:
+    """Hash of everything that changes an image's 2D segments (``stamp``: the image's and its
+    normal prior's file stamps, so a rewritten image is detected again)."""
+    params = {"v": CACHE_VERSION, "files": stamp, "detector": cfg.detector, "min_length_px": cfg.min_length_px,
               "max_segments": cfg.max_segments, "dedup": [cfg.dedup_angle_deg, cfg.dedup_dist_px],
               "ref_w": cfg.reference_width, "size": [width, height], "normals": with_normals}
     return hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:12]
@@ -212,7 +214,8 @@ def detect_all(scene, cfg: LineConfig, cache_dir: Path | None = None) -> tuple[l
              "cached": 0}
     for cam in tqdm(scene.cameras, desc="lines: 2D segments", unit="img", leave=False):
         normal = scene.normal_prior(cam.index) if with_normals else None
-        key = cache_key(cfg, cam.width, cam.height, normal is not None)
+        stamp = file_stamp(cam.image_path, scene.normal_prior_path(cam.index) if normal is not None else None)
+        key = cache_key(cfg, cam.width, cam.height, normal is not None, stamp)
         path = None if cache_dir is None else Path(cache_dir) / "lines2d" / f"{cam.stem}_{key}.npz"
         if path is not None and path.is_file():
             with np.load(path) as z:
