@@ -97,6 +97,8 @@ def find_model_dir(scene_or_model: Path) -> Path:
     p = Path(scene_or_model)
     if not p.exists():
         raise FileNotFoundError(f"scene folder does not exist: {p}")
+    if not p.is_dir():
+        raise ValueError(f"{p} is a file; a scene is a folder (images/ and sparse/0/ with a COLMAP model)")
     for cand in (p / "sparse" / "0", p / "sparse", p):
         if any((cand / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
             return cand

@@ -92,10 +92,22 @@ class Points3D:
 
 
 def _read_image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image
+    from PIL import Image, UnidentifiedImageError
 
-    with Image.open(path) as im:
-        return im.size  # (width, height)
+    try:
+        with Image.open(path) as im:
+            return im.size  # (width, height)
+    except (UnidentifiedImageError, OSError) as exc:
+        size = path.stat().st_size if path.exists() else 0
+        raise ValueError(f"cannot read the image {path} ({'empty file' if size == 0 else type(exc).__name__})") from None
+
+
+def _load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray:
+    """np.load with an error that names the file (truncated or foreign .npy files)."""
+    try:
+        return np.load(path, mmap_mode=mmap_mode)
+    except (ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"cannot read the {what} {path} ({exc})") from None
 
 
 class Scene:
@@ -176,7 +188,7 @@ class Scene:
                 path = self._prior_path(kind, cam.index)
                 if path is None:
                     continue
-                shape = (np.load(path, mmap_mode="r").shape if path.suffix == ".npy"
+                shape = (_load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
                          else _read_image_size(path)[::-1])
                 ok_hw = {(raw.height, raw.width), (cam.height, cam.width)}
                 if tuple(shape[:2]) not in ok_hw or (kind == "normal" and path.suffix == ".npy"
@@ -242,7 +254,7 @@ class Scene:
         if path is None:
             return None
         if path.suffix == ".npy":
-            d = np.load(path).astype(np.float32)
+            d = _load_npy(path, "depth prior").astype(np.float32)
         else:
             scale = self.metadata.get("depth_png_scale")
             if scale is None:
@@ -250,7 +262,12 @@ class Scene:
                                  f"has no 'depth_png_scale' (units per metre)")
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             d = raw.astype(np.float32) / float(scale)
-        d[~np.isfinite(d)] = 0.0
+        if d.ndim != 2:
+            raise ValueError(f"the depth prior {path} has shape {d.shape}; expected [H, W]")
+        bad = ~np.isfinite(d)
+        if bad.any():  # NaN / Inf are invalid pixels (0), counted once per file
+            log.warning("depth prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
+            d[bad] = 0.0
         cam = self.cameras[i]
         if d.shape != (cam.height, cam.width):  # nearest keeps 0 = invalid intact
             d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
@@ -264,10 +281,16 @@ class Scene:
         if path is None:
             return None
         if path.suffix == ".npy":
-            n = np.load(path).astype(np.float32)
+            n = _load_npy(path, "normal prior").astype(np.float32)
         else:
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
             n = raw.astype(np.float32) / float(np.iinfo(raw.dtype).max) * 2.0 - 1.0
+        if n.ndim != 3 or n.shape[2] != 3:
+            raise ValueError(f"the normal prior {path} has shape {n.shape}; expected [H, W, 3]")
+        bad = ~np.isfinite(n).all(-1)
+        if bad.any():
+            log.warning("normal prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
+            n[bad] = 0.0
         cam = self.cameras[i]
         if n.shape[:2] != (cam.height, cam.width):
             n = cv2.resize(n, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)

@@ -1,0 +1,146 @@
+"""Bad input, end to end: one clear error naming the input, exit code != 0, no traceback, no earlier
+good output destroyed. One test per row of the table in docs/robustness.md."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from cues_synth import make_room_scene
+from geocues.cue_io import CueCloud, write_cues_ply
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    base = tmp_path_factory.mktemp("bad")
+    root = make_room_scene(base / "room", n_views=8, w=64, h=48, priors="all")
+    write_cues_ply(base / "cues" / "cues.ply", CueCloud.make(np.random.default_rng(0).uniform(0, 3, (200, 3)),
+                                                             np.full((200, 3), 0.5), 2))
+    return base, root
+
+
+def _copy(room, name):
+    base, root = room
+    dst = base / name
+    if dst.exists():
+        shutil.rmtree(dst)
+    return shutil.copytree(root, dst)
+
+
+def _fails(capsys, main, args, *needles):
+    code = main(args)
+    err = capsys.readouterr().err
+    assert code not in (0, None), err
+    errors = [line for line in err.splitlines() if ": error: " in line]
+    assert len(errors) == 1, err
+    for needle in needles:
+        assert needle in errors[0], errors[0]
+    assert "Traceback" not in err
+    return errors[0]
+
+
+def geocues(args):
+    from cli.geocues_cli import main
+
+    return main(args)
+
+
+def splat(args):
+    from cli.splat_cli import main
+
+    return main(args)
+
+
+def evaluate(args):
+    from cli.evaluate_cli import main
+
+    return main(args)
+
+
+def test_scene_path_that_is_a_file(room, capsys):
+    f = room[0] / "afile"
+    f.write_text("x")
+    _fails(capsys, geocues, ["info", str(f)], str(f), "is a file")
+    _fails(capsys, splat, ["train", str(f), "-c", str(room[0] / "cues"), "-o", str(room[0] / "o1")], "is a file")
+
+
+def test_missing_scene(room, capsys):
+    _fails(capsys, geocues, ["extract", str(room[0] / "nope"), "-o", str(room[0] / "c")], "does not exist")
+
+
+def test_zero_byte_image(room, capsys):
+    root = _copy(room, "zero")
+    (root / "images" / "00003.png").write_bytes(b"")
+    _fails(capsys, geocues, ["info", str(root)], "00003.png", "empty file")
+
+
+def test_missing_image(room, capsys):
+    root = _copy(room, "missing")
+    (root / "images" / "00002.png").unlink()
+    _fails(capsys, geocues, ["info", str(root)], "00002.png", "missing")
+
+
+def test_truncated_npy_prior(room, capsys):
+    root = _copy(room, "trunc_prior")
+    p = root / "priors" / "depth" / "00002.npy"
+    p.write_bytes(p.read_bytes()[:200])
+    _fails(capsys, geocues, ["extract", str(root), "-o", str(room[0] / "c_trunc")], "00002.npy")
+
+
+def test_wrong_shape_prior(room, capsys):
+    root = _copy(room, "shape_prior")
+    np.save(root / "priors" / "depth" / "00001.npy", np.ones((48, 64, 2), np.float32))
+    _fails(capsys, geocues, ["extract", str(root), "-o", str(room[0] / "c_shape")], "00001.npy", "shape")
+
+
+def test_nan_prior_pixels_are_dropped_and_counted(room, caplog):
+    from geocues.scene import Scene
+
+    root = _copy(room, "nan_prior")
+    d = np.load(root / "priors" / "depth" / "00002.npy")
+    d[:5] = np.nan
+    d[5, :7] = np.inf
+    np.save(root / "priors" / "depth" / "00002.npy", d)
+    prior = Scene.load(root).depth_prior(2)
+    assert np.isfinite(prior).all() and (prior[:5] == 0).all() and (prior[5, :7] == 0).all()
+    assert "327 non-finite pixels set invalid" in caplog.text  # 5 rows x 64 + 7, counted exactly
+
+def test_truncated_mesh_ply(room, capsys):
+    import open3d as o3d
+
+    box = room[0] / "box.ply"
+    o3d.io.write_triangle_mesh(str(box), o3d.geometry.TriangleMesh.create_box())
+    cut = room[0] / "box_cut.ply"
+    cut.write_bytes(box.read_bytes()[:-40])  # inside the face section
+    _fails(capsys, evaluate, [str(cut), "--gt", str(box)], "box_cut.ply", "truncated")
+
+
+def test_unknown_cue_type(room, capsys):
+    base, root = room
+    cloud = CueCloud.make(np.random.default_rng(1).uniform(0, 3, (30, 3)), np.full((30, 3), 0.5), 0)
+    cloud.cue_type[::3] = 7
+    write_cues_ply(base / "cues7" / "cues.ply", cloud)
+    _fails(capsys, splat, ["train", str(root), "-c", str(base / "cues7"), "-o", str(base / "o7"), "--iters", "5"],
+           "cues.ply", "unknown cue_type values [7]")
+
+
+def test_output_path_is_a_file(room, capsys):
+    base, root = room
+    f = base / "out_file"
+    f.write_text("keep me")
+    _fails(capsys, splat, ["train", str(root), "-c", str(base / "cues"), "-o", str(f), "--iters", "5"], "is a file")
+    assert f.read_text() == "keep me"
+
+
+def test_resume_without_a_checkpoint(room, capsys):
+    base, root = room
+    _fails(capsys, splat, ["train", str(root), "-c", str(base / "cues"), "-o", str(base / "fresh"), "--resume"],
+           "no checkpoint")
+
+
+def test_paths_with_spaces_and_non_ascii(room, capsys):
+    root = _copy(room, "ro om é")
+    assert geocues(["info", str(root)]) == 0
+    assert "8" in capsys.readouterr().out
