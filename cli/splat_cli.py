@@ -11,7 +11,7 @@ import tyro
 from cli._dispatch import dispatch
 from splat.ablate import AblateConfig
 from splat.bench import BenchConfig
-from splat.presets import PRESETS, preset_config
+from splat.presets import PRESETS, load_config_file, preset_config
 from splat.train import TrainConfig
 
 
@@ -34,9 +34,10 @@ def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
 
-def _train_command(preset_name: str = "full"):
-    """`splat train` with the defaults of preset ``preset_name`` (options on the command line win)."""
-    base = preset_config(preset_name)
+def _train_command(preset_name: str = "full", config_file: Path | None = None):
+    """`splat train` with the defaults of preset ``preset_name`` or of a run's config.yaml
+    (options on the command line win)."""
+    base = load_config_file(config_file) if config_file is not None else preset_config(preset_name)
 
     def train(scene: tyro.conf.Positional[Path],
               cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
@@ -44,6 +45,7 @@ def _train_command(preset_name: str = "full"):
               preset: PresetName = preset_name,
               overwrite: bool = False,
               resume: bool = False,
+              load_config: Path | None = config_file,
               cfg: Annotated[TrainConfig, tyro.conf.arg(name="")] = base) -> int:
         """Train typed Gaussians on SCENE from the cue cloud CUES, then fuse a TSDF mesh (IndoorGS §4).
 
@@ -59,6 +61,7 @@ def _train_command(preset_name: str = "full"):
                 command line override it. -v/--verbose: debug logging and tracebacks.
             overwrite: replace a finished run in OUT (without it, a finished OUT is an error).
             resume: continue the unfinished run in OUT.partial from its checkpoint (same options).
+            load_config: start from the options of an earlier run (its RUN/config.yaml) to repeat it exactly.
             cfg: training options.
         """
         from splat.train import run
@@ -70,20 +73,23 @@ def _train_command(preset_name: str = "full"):
     return train
 
 
-def _preset_from_argv(argv: list[str]) -> str:
+def _option_from_argv(argv: list[str], name: str) -> str | None:
     for k, a in enumerate(argv):
-        if a == "--preset" and k + 1 < len(argv):
+        if a == name and k + 1 < len(argv):
             return argv[k + 1]
-        if a.startswith("--preset="):
+        if a.startswith(name + "="):
             return a.split("=", 1)[1]
-    return "full"
+    return None
 
 
 def train_command(argv: list[str]):
-    name = _preset_from_argv(argv)
+    name = _option_from_argv(argv, "--preset") or "full"
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
-    return _train_command(name)
+    config = _option_from_argv(argv, "--load-config")
+    if config is not None and _option_from_argv(argv, "--preset") is not None:
+        raise ValueError("give --preset or --load-config, not both")
+    return _train_command(name, Path(config) if config else None)
 
 
 train = _train_command()

@@ -29,7 +29,7 @@ from typing import Any
 
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path
-from splat.presets import DEFAULT_ROWS, PRESETS, get_preset, missing_needs, preset_config
+from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ def run_row(spec: dict) -> dict:
     if out.exists():  # an unfinished or outdated run of this row: start it again
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    cfg = _from_dict(TrainConfig, spec["train_config"])
+    cfg = config_from_dict(TrainConfig, spec["train_config"])
     t0 = time.perf_counter()
     train_run(cfg, spec["scene"], spec["cues"], out / "train", overwrite=True)
     train_wall = time.perf_counter() - t0
@@ -125,22 +125,6 @@ def run_row(spec: dict) -> dict:
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result
-
-
-def _from_dict(cls, data: dict):
-    """Rebuild a (nested) config dataclass from its asdict() form."""
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        value = data[f.name]
-        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
-        if isinstance(value, dict) and dataclasses.is_dataclass(sub):
-            value = _from_dict(type(sub), value)
-        elif isinstance(value, list):
-            value = tuple(value)
-        kwargs[f.name] = value
-    return cls(**kwargs)
 
 
 def _done(out: Path, key: str) -> dict | None:
@@ -254,7 +238,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     out_dir.mkdir(parents=True, exist_ok=True)
     from splat.train import TrainConfig
 
-    example = (_from_dict(TrainConfig, specs[0]["train_config"]) if specs
+    example = (config_from_dict(TrainConfig, specs[0]["train_config"]) if specs
                else train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))
     results: dict[tuple[str, int], dict] = {}
     todo = []

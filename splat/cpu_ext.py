@@ -54,6 +54,8 @@ def _build():
     out_dir = build_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    if not any(out_dir.glob(f"{EXT_NAME}*.so")):
+        log.info("building the C++ rasterizer kernels (first run only, about 1 min on 2 cores) in %s", out_dir)
     try:
         module = load(name=EXT_NAME, sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
                       extra_ldflags=["-fopenmp"], build_directory=str(out_dir), verbose=False)

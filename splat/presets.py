@@ -13,7 +13,9 @@ running ``full`` a second time under another name.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 # The paper's ScanNet++ ablation (Tab. 3): Chamfer-L1 (m), F-score at 5 cm, normal consistency.
@@ -105,6 +107,70 @@ def preset_config(name: str, base: Any = None) -> Any:
     if preset.iters_factor != 1.0:
         cfg = dataclasses.replace(cfg, iters=max(1, round(cfg.iters * preset.iters_factor)))
     return cfg
+
+
+def config_from_dict(cls, data: dict) -> Any:
+    """Rebuild a (nested) config dataclass from its ``asdict()`` form (lists become tuples; keys
+    the dataclass does not have are an error naming them)."""
+    unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown options {unknown}")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if isinstance(value, dict) and dataclasses.is_dataclass(sub):
+            value = config_from_dict(type(sub), value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def load_config_file(path: str | Path) -> Any:
+    """The TrainConfig stored in a run's ``config.yaml`` (``splat train --load-config``)."""
+    import yaml
+
+    from splat.train import TrainConfig
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no config file at {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path} is not valid YAML ({exc})") from None
+    if not isinstance(data, dict) or "train" not in data:
+        raise ValueError(f"{path} holds no 'train' section (write it with `splat train`)")
+    return config_from_dict(TrainConfig, data["train"])
+
+
+def write_config_file(path: str | Path, cfg: Any, extra: dict | None = None) -> Path:
+    """``config.yaml``: the resolved TrainConfig under ``train`` plus package version and git commit."""
+    import subprocess
+
+    import yaml
+
+    from geocues.atomic import atomic_path
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                                cwd=Path(__file__).resolve().parent).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    try:
+        from importlib.metadata import version
+
+        ver = version("indoorgs")
+    except Exception:  # noqa: BLE001 - not installed as a package
+        ver = None
+    doc = {"indoorgs_version": ver, "git_commit": commit, **(extra or {}),
+           "train": json.loads(json.dumps(dataclasses.asdict(cfg)))}
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return Path(path)
 
 
 def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: bool) -> str | None:

@@ -171,7 +171,7 @@ def test_splat_train_preset_flag_and_later_options_win(tmp_path, monkeypatch):
     from cli.splat_cli import main
 
     seen = {}
-    monkeypatch.setattr(splat.train, "run", lambda cfg, *a: seen.setdefault("cfg", cfg))
+    monkeypatch.setattr(splat.train, "run", lambda cfg, *a, **kw: seen.setdefault("cfg", cfg))
     assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "no-cues", "--loss.no-use-nc"]) == 0
     cfg = seen["cfg"]
     assert cfg.init_from == "sfm" and cfg.strategy.custom_types == () and not cfg.loss.use_nc

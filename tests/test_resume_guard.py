@@ -205,3 +205,18 @@ def test_a_finished_run_is_not_overwritten_without_asking(scene, uninterrupted, 
     assert main(args + ["--overwrite"]) == 0
     assert (out / "report.json").read_text() != before
     assert not (out / "mesh.ply").exists()  # no stale mesh beside the new --no-mesh run
+
+
+def test_config_yaml_repeats_a_run_exactly(scene, capsys):
+    from cli.splat_cli import main
+
+    base, root, cues = scene
+    a, b = base / "cfg_a", base / "cfg_b"
+    assert main(["train", str(root), "-c", str(cues), "-o", str(a), "--iters", "30", "--sh-degree", "1",
+                 "--no-mesh", "--loss.lambda-nc", "0.3", "--seed", "4", "--strategy.max-gaussians", "3000"]) == 0
+    text = (a / "config.yaml").read_text()
+    assert "git_commit" in text and "lambda_nc: 0.3" in text
+    assert main(["train", str(root), "-c", str(cues), "-o", str(b), "--load-config", str(a / "config.yaml")]) == 0
+    ra, rb = (json.loads((d / "report.json").read_text()) for d in (a, b))
+    assert ra["config"] == rb["config"] and ra["test_metrics"] == rb["test_metrics"]
+    assert _same_model(a, b) == 0.0
