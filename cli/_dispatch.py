@@ -26,9 +26,23 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
-def setup_logging(verbose: bool = False) -> None:
+GLOBAL_HELP = ("global options (every command): -v/--verbose debug logging and tracebacks; "
+               "-q/--quiet warnings and errors only, no progress bars")
+
+
+def disable_progress_bars() -> None:
+    """Every tqdm bar created from now on is disabled (modules hold the class itself, so its
+    constructor's default is changed; TQDM_DISABLE is only read at import)."""
+    from functools import partialmethod
+
+    import tqdm
+
+    tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)
+
+
+def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     """Route the package loggers to stderr; the library itself never configures logging."""
-    level = logging.DEBUG if verbose else logging.INFO
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     handler = _StderrHandler()
     handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s] %(message)s", "%H:%M:%S"))
     for name in ("geocues", "splat", "evaluation"):
@@ -45,6 +59,7 @@ def _usage(prog: str, commands: dict[str, Callable], default: str | None) -> str
         lines.append(f"  {name:<14} {doc[0] if doc else ''}")
     if default is not None:
         lines.append(f"\nWith no command name, `{prog} ARGS...` runs `{default}`.")
+    lines.append("\n" + GLOBAL_HELP)
     return "\n".join(lines)
 
 
@@ -69,8 +84,17 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
     fn = commands[name]
     sub_prog = prog if (name == default and argv[0] != name) else f"{prog} {name}"
     verbose = "--verbose" in rest or "-v" in rest
-    setup_logging(verbose)
-    rest = [a for a in rest if a not in ("--verbose", "-v")]
+    quiet = "--quiet" in rest or "-q" in rest
+    setup_logging(verbose, quiet)
+    if quiet:
+        disable_progress_bars()
+    rest = [a for a in rest if a not in ("--verbose", "-v", "--quiet", "-q")]
+    if "-h" in rest or "--help" in rest:
+        try:
+            tyro.cli(fn.from_argv(rest) if hasattr(fn, "from_argv") else fn, args=rest, prog=sub_prog)
+        except SystemExit:
+            print(GLOBAL_HELP)
+            return 0
     try:
         if hasattr(fn, "run_argv"):  # the command parses its own argv (e.g. passes options through)
             result = fn.run_argv(rest)

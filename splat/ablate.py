@@ -223,7 +223,11 @@ def _execute(cfg: AblateConfig, todo: list[dict], on_done) -> None:
 
 
 def _worker_init() -> None:
-    os.environ["TQDM_DISABLE"] = "1"  # one progress bar per worker would interleave
+    from functools import partialmethod
+
+    import tqdm
+
+    tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
     logging.basicConfig(level=logging.WARNING)
 
 

@@ -220,3 +220,24 @@ def test_config_yaml_repeats_a_run_exactly(scene, capsys):
     ra, rb = (json.loads((d / "report.json").read_text()) for d in (a, b))
     assert ra["config"] == rb["config"] and ra["test_metrics"] == rb["test_metrics"]
     assert _same_model(a, b) == 0.0
+
+
+def test_quiet_and_verbose_are_in_every_help(capsys):
+    from cli.evaluate_cli import main as evaluate
+    from cli.geocues_cli import main as geocues
+    from cli.splat_cli import main as splat
+
+    for main, cmd in ((splat, "train"), (splat, "ablate"), (geocues, "extract"), (evaluate, "report")):
+        assert main([cmd, "--help"]) == 0
+        out = capsys.readouterr().out
+        assert "-v/--verbose" in out and "-q/--quiet" in out
+
+
+def test_quiet_run_prints_no_progress_bars(scene, capsys):
+    from cli.splat_cli import main
+
+    base, root, cues = scene
+    assert main(["train", str(root), "-c", str(cues), "-o", str(base / "quiet"), "--iters", "10",
+                 "--sh-degree", "0", "--no-mesh", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "splat train:" not in err and "it/s" not in err

@@ -1,0 +1,104 @@
+"""Write the committed ablation results into the docs (figures in docs are generated, not typed).
+
+    python bench/ablation_summary.py                      # docs/training.md from bench/results/ablation_*/
+    python bench/ablation_summary.py --demo outputs/demo  # also README.md's demo figures and plot
+
+For each ``bench/results/ablation_<scene>/ablation.json`` (copied there from a `splat ablate` OUT
+with ``--collect OUT NAME``), a table of every row: Chamfer-L1, F@5cm, NC, test PSNR, training
+seconds, the ratio of Chamfer-L1 to the floor's and the deltas against `no-cues`. The text between
+``<!-- ablation-summary -->`` and ``<!-- /ablation-summary -->`` in docs/training.md is replaced.
+With ``--demo DIR`` the main job's figures (DIR/ablation/ablation.json) go between
+``<!-- demo-figures -->`` markers in README.md and its plot to docs/img/demo_accuracy_vs_time.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results"
+
+
+def _replace(path: Path, marker: str, text: str) -> None:
+    doc = path.read_text()
+    start, end = f"<!-- {marker} -->", f"<!-- /{marker} -->"
+    if start not in doc or end not in doc:
+        raise SystemExit(f"{path} has no {start} ... {end} markers")
+    head, rest = doc.split(start, 1)
+    _, tail = rest.split(end, 1)
+    path.write_text(f"{head}{start}\n{text.rstrip()}\n{end}{tail}")
+
+
+def _f(v, scale=1.0, digits=3):
+    return "–" if v is None else f"{v * scale:.{digits}f}"
+
+
+def scene_table(data: dict) -> str:
+    rows = {r["row"]: r for r in data["rows"]}
+    floor = (data.get("floor") or {}).get("final") if (data.get("floor") or {}).get("status") == "done" else None
+    base = rows.get("no-cues", {}).get("mean") if rows.get("no-cues", {}).get("status") == "done" else None
+    cfg = data["config"]
+    lines = [f"**{data['scene_label']}** — {cfg['iters']} iterations, {cfg['seeds']} seed(s), train options "
+             f"`{' '.join(data['train_args']) or '(defaults)'}`", "",
+             "| row | C-L1 (cm) | F@5cm | NC | C-L1 / floor | ΔF vs no-cues | ΔNC vs no-cues | test PSNR | train s |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    if floor:
+        lines.append(f"| floor (exact GT depth) | {_f(floor['chamfer_l1'], 100, 2)} | {_f(floor['f_score'])} | "
+                     f"{_f(floor['normal_consistency'])} | 1.00 |  |  | – | – |")
+    for name, r in rows.items():
+        if r["status"] != "done":
+            why = f"n/a ({r['reason']})" if r["status"] == "n/a" else "not run yet"
+            lines.append(f"| `{name}` | {why} |  |  |  |  |  |  |  |")
+            continue
+        m = r["mean"]
+        ratio = f"{m['chamfer_l1'] / floor['chamfer_l1']:.2f}" if floor else "–"
+        df = f"{m['f_score'] - base['f_score']:+.3f}" if base and name != "no-cues" else ""
+        dn = f"{m['normal_consistency'] - base['normal_consistency']:+.3f}" if base and name != "no-cues" else ""
+        lines.append(f"| `{name}` | {_f(m['chamfer_l1'], 100, 2)} | {_f(m['f_score'])} | "
+                     f"{_f(m['normal_consistency'])} | {ratio} | {df} | {dn} | {_f(m.get('psnr'), 1, 2)} | "
+                     f"{_f(m.get('train_s'), 1, 0)} |")
+    return "\n".join(lines)
+
+
+def collect(out: Path, name: str) -> Path:
+    """Copy a `splat ablate` OUT's reports (not its training folders) to bench/results/ablation_NAME/."""
+    dst = RESULTS / f"ablation_{name}"
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in ("ablation.json", "report.md", "accuracy_vs_time.png"):
+        shutil.copyfile(out / f, dst / f)
+    return dst
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--collect", nargs=2, metavar=("OUT", "NAME"), action="append", default=[],
+                    help="copy the reports of a `splat ablate` OUT to bench/results/ablation_NAME first")
+    ap.add_argument("--demo", type=Path, help="the main job's output folder (outputs/demo)")
+    args = ap.parse_args()
+    for out, name in args.collect:
+        print(f"collected {collect(Path(out), name)}")
+    parts = []
+    for path in sorted(RESULTS.glob("ablation_*/ablation.json")):
+        data = json.loads(path.read_text())
+        rel = path.parent.relative_to(REPO)
+        parts.append(scene_table(data) + f"\n\n([report]({'../' + str(rel)}/report.md), "
+                     f"[plot]({'../' + str(rel)}/accuracy_vs_time.png), [JSON]({'../' + str(rel)}/ablation.json))")
+    if parts:
+        _replace(REPO / "docs" / "training.md", "ablation-summary", "\n\n".join(parts))
+        print("updated docs/training.md")
+    if args.demo:
+        data = json.loads((args.demo / "ablation" / "ablation.json").read_text())
+        (REPO / "docs" / "img").mkdir(exist_ok=True)
+        shutil.copyfile(args.demo / "ablation" / "accuracy_vs_time.png", REPO / "docs" / "img" / "demo_accuracy_vs_time.png")
+        text = ("Measured on 2 cores (generated by `bench/ablation_summary.py --demo outputs/demo` from the run's "
+                "`ablation.json`):\n\n" + scene_table(data)
+                + "\n\n![accuracy against time of the main job](docs/img/demo_accuracy_vs_time.png)")
+        _replace(REPO / "README.md", "demo-figures", text)
+        print("updated README.md")
+
+
+if __name__ == "__main__":
+    main()
