@@ -80,7 +80,12 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
               f"mean reprojection error {pts.error.mean():.3f} px")
     else:
         print("points     0  (run `geocues sfm` to triangulate them)")
-    print(f"priors     depth {n_depth}/{len(s)}  normal {n_normal}/{len(s)}")
+    print(f"priors     depth {n_depth}/{len(s)}  normal {n_normal}/{len(s)}"
+          + (f" ({s.normal_axes} axes)" if n_normal else ""))
+    away = s.normals_facing_away()
+    if away is not None and away > 0.5:
+        print(f"warning    {away:.0%} of the normal-prior pixels face away from the camera: the priors look like "
+              "OpenGL camera axes (y up, z back); set {\"priors\": {\"normal_axes\": \"opengl\"}} in scene.json")
     print(f"split      {len(s.train_indices)} train / {len(s.test_indices)} test (every {test_every})")
     print(f"gt mesh    {s.gt_mesh_path or 'none'}")
     if s.metadata:

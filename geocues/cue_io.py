@@ -4,8 +4,13 @@ Cue PLY (docs/conventions.md): binary little-endian with ``x y z`` (float), ``re
 (uchar), ``nx ny nz`` (float, zero where unknown), ``cue_type`` (uchar, ``CueType``) and
 ``confidence`` (float in [0, 1]). Standard viewers (Open3D, MeshLab, CloudCompare) open it;
 Open3D's tensor reader exposes ``cue_type`` and ``confidence`` as extra point attributes.
-The writer is plain numpy (no plyfile dependency); the reader parses the header itself and accepts
-binary little/big-endian and ASCII files with extra properties.
+The writer is plain numpy; the reader parses the header itself and accepts binary little/big-endian
+and ASCII files with extra properties.
+
+Two files only for looking at the cues (MeshLab, CloudCompare, Open3D), written with plyfile:
+``lines3d.ply`` (the 3D segments as a ``vertex`` element x y z and an ``edge`` element
+vertex1 vertex2 with the line's red green blue; ``o3d.io.read_line_set`` opens it) and
+``cues_by_type.ply`` (the cue points coloured by type, :data:`CUE_TYPE_COLORS`).
 
 ``lines3d.npz`` holds ``segments`` [L, 2, 3] (metres), ``n_views`` [L], the supporting camera
 indices as a ragged array (``view_ids`` concatenated, ``view_offsets`` [L + 1]), ``colors`` [L, 3]
@@ -34,6 +39,9 @@ _CUE_FIELDS = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "
                ("nx", "f4"), ("ny", "f4"), ("nz", "f4"), ("cue_type", "u1"), ("confidence", "f4")]
 _NP_TO_PLY = {"f4": "float", "f8": "double", "u1": "uchar", "i1": "char", "u2": "ushort",
               "i2": "short", "u4": "uint", "i4": "int"}
+
+# cues_by_type.ply colours (Tableau blue, red, green): SfM points, line samples, plane-like points.
+CUE_TYPE_COLORS = {CueType.SFM: (31, 119, 180), CueType.LINE: (214, 39, 40), CueType.PLANE: (44, 160, 44)}
 
 
 
@@ -201,6 +209,61 @@ def read_cues_ply(path: str | Path) -> CueCloud:
         raise ValueError(f"{path}: {int((~np.isfinite(xyz).all(1)).sum())} points have non-finite coordinates")
     return CueCloud(xyz, cols(("red", "green", "blue"), 128, np.uint8), cols(("nx", "ny", "nz"), 0.0, np.float32),
                     cue_type, cols(("confidence",), 1.0, np.float32)[:, 0])
+
+
+def _write_ply_elements(path: Path, elements: list) -> Path:
+    from plyfile import PlyData
+
+    with atomic_path(path) as tmp:
+        PlyData(elements, text=False, byte_order="<").write(str(tmp))
+    return path
+
+
+def write_lines_ply(path: str | Path, segments: np.ndarray, colors: np.ndarray | None = None) -> Path:
+    """Write 3D segments [L, 2, 3] (metres) as a line-set PLY, atomically: ``vertex`` (x y z float,
+    2L points, segment l = vertices 2l and 2l+1) and ``edge`` (vertex1 vertex2 int, plus red green
+    blue uchar when ``colors`` [L, 3] uint8 or float in [0, 1] is given). Returns ``path``."""
+    from plyfile import PlyElement
+
+    path = Path(path)
+    segments = np.asarray(segments, np.float64).reshape(-1, 2, 3)
+    L = len(segments)
+    if not np.isfinite(segments).all():
+        raise ValueError(f"refusing to write non-finite line segments to {path}")
+    vert = np.empty(2 * L, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    vert["x"], vert["y"], vert["z"] = segments.reshape(-1, 3).T.astype(np.float32)
+    fields = [("vertex1", "<i4"), ("vertex2", "<i4")]
+    if colors is not None:
+        colors = np.asarray(colors)
+        if colors.shape != (L, 3):
+            raise ValueError(f"line colours have shape {colors.shape}, expected ({L}, 3)")
+        if colors.dtype != np.uint8:
+            colors = np.clip(np.round(colors.astype(np.float64) * 255), 0, 255).astype(np.uint8)
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    edge = np.empty(L, dtype=fields)
+    edge["vertex1"], edge["vertex2"] = np.arange(0, 2 * L, 2), np.arange(1, 2 * L, 2)
+    if colors is not None:
+        edge["red"], edge["green"], edge["blue"] = colors.T
+    return _write_ply_elements(path, [PlyElement.describe(vert, "vertex"), PlyElement.describe(edge, "edge")])
+
+
+def write_cues_by_type_ply(path: str | Path, cloud: CueCloud) -> Path:
+    """Write the cue points coloured by type (:data:`CUE_TYPE_COLORS`) as x y z float, red green blue
+    uchar and ``cue_type`` uchar, atomically. Returns ``path``."""
+    from plyfile import PlyElement
+
+    path = Path(path)
+    if not np.all(np.isfinite(cloud.xyz)):
+        raise ValueError(f"refusing to write non-finite cue positions to {path}")
+    palette = np.zeros((256, 3), np.uint8)
+    for t, rgb in CUE_TYPE_COLORS.items():
+        palette[int(t)] = rgb
+    rec = np.empty(len(cloud), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
+                                      ("green", "u1"), ("blue", "u1"), ("cue_type", "u1")])
+    rec["x"], rec["y"], rec["z"] = cloud.xyz.T.astype(np.float32)
+    rec["red"], rec["green"], rec["blue"] = palette[cloud.cue_type].T
+    rec["cue_type"] = cloud.cue_type
+    return _write_ply_elements(path, [PlyElement.describe(rec, "vertex")])
 
 
 def write_lines_npz(path: str | Path, segments: np.ndarray, n_views: np.ndarray,

@@ -8,7 +8,8 @@ Stages (each can be switched off for the paper's ablations, each is timed):
               (geocues.depth_align, when the image has a prior and priors are on), plane-like
               points with or without the prior (geocues.planes); then a voxel merge.
 
-Outputs: ``CUES/cues.ply`` (typed points), ``CUES/lines3d.npz``, ``CUES/report.json`` (counts per
+Outputs: ``CUES/cues.ply`` (typed points), ``CUES/lines3d.npz``, ``CUES/lines3d.ply`` and
+``CUES/cues_by_type.ply`` (to look at in MeshLab / CloudCompare), ``CUES/report.json`` (counts per
 type, rejections with reasons, seconds per stage and per image, alignment residuals, notes on hard
 cases) and ``CUES/cache/`` (per-image texture results and the line stage's cache, reused by later
 runs). Every file is written atomically.
@@ -26,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from geocues.atomic import atomic_path
-from geocues.cue_io import CueCloud, write_cues_ply, write_lines_npz
+from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_merge import consolidate_planes, multiview_conflict, multiview_support, voxel_downsample
@@ -258,9 +259,11 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     cues = CueCloud.concat(clouds)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_cues_ply(out_dir / "cues.ply", cues)
+    write_cues_by_type_ply(out_dir / "cues_by_type.ply", cues)  # for looking at: coloured by type
     lc = lines if lines is not None else LineCues.empty()
     write_lines_npz(out_dir / "lines3d.npz", lc.segments, lc.n_views, lc.views, lc.colors,
                     lc.points, lc.point_colors, lc.point_line)
+    write_lines_ply(out_dir / "lines3d.ply", lc.segments, lc.colors)  # for looking at: a line set
     timings["write"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {

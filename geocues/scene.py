@@ -183,6 +183,9 @@ class Scene:
                         {i: np.asarray(v, np.int64) for i, v in vis.items()})
 
     def _check_priors(self, raw_images) -> None:
+        """Every prior must be a map of the right kind; one of another size than its image is
+        resized when loaded (nearest: 0 = invalid stays intact), with a warning here."""
+        resized = []
         for cam, raw in zip(self.cameras, raw_images):
             for kind in ("depth", "normal"):
                 path = self._prior_path(kind, cam.index)
@@ -190,12 +193,20 @@ class Scene:
                     continue
                 shape = (_load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
                          else _read_image_size(path)[::-1])
-                ok_hw = {(raw.height, raw.width), (cam.height, cam.width)}
-                if tuple(shape[:2]) not in ok_hw or (kind == "normal" and path.suffix == ".npy"
-                                                     and (len(shape) != 3 or shape[2] != 3)):
-                    want = f"{raw.height}x{raw.width}" + ("x3" if kind == "normal" else "")
+                want = "HxW" + ("x3" if kind == "normal" else "")
+                if path.suffix == ".npy" and (len(shape) != (3 if kind == "normal" else 2)
+                                              or (kind == "normal" and shape[2] != 3)):
                     raise ValueError(f"{kind} prior {path} has shape {tuple(shape)}, expected {want} "
-                                     f"(the size of {cam.image_path.name})")
+                                     f"({raw.height}x{raw.width} for {cam.image_path.name})")
+                if tuple(shape[:2]) not in {(raw.height, raw.width), (cam.height, cam.width)}:
+                    resized.append(f"{path.name} {shape[1]}x{shape[0]}")
+                    if abs(shape[1] / shape[0] - raw.width / raw.height) > 0.02 * raw.width / raw.height:
+                        log.warning("%s prior %s is %dx%d but its image %s is %dx%d: another aspect ratio "
+                                    "(is it cropped?); it is stretched to the image", kind, path, shape[1],
+                                    shape[0], cam.image_path.name, raw.width, raw.height)
+        if resized:
+            log.warning("%d priors are not the size of their images and are resized when loaded (%s%s)",
+                        len(resized), ", ".join(resized[:3]), ", ..." if len(resized) > 3 else "")
 
     # ------------------------------------------------------------------ views
     @property
@@ -287,6 +298,8 @@ class Scene:
             n = raw.astype(np.float32) / float(np.iinfo(raw.dtype).max) * 2.0 - 1.0
         if n.ndim != 3 or n.shape[2] != 3:
             raise ValueError(f"the normal prior {path} has shape {n.shape}; expected [H, W, 3]")
+        if self.normal_axes == "opengl":  # OpenGL camera axes (x right, y up, z back) -> OpenCV, once, here
+            n = n * np.array([1.0, -1.0, -1.0], np.float32)
         bad = ~np.isfinite(n).all(-1)
         if bad.any():
             log.warning("normal prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
@@ -296,6 +309,33 @@ class Scene:
             n = cv2.resize(n, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
         return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+
+    @property
+    def normal_axes(self) -> str:
+        """Camera axes of the normal priors: "opencv" (default) or "opengl" (scene.json
+        ``{"priors": {"normal_axes": "opengl"}}``), converted to OpenCV when loaded."""
+        axes = (self.metadata.get("priors") or {}).get("normal_axes", "opencv") \
+            if isinstance(self.metadata.get("priors"), dict) else "opencv"
+        if axes not in ("opencv", "opengl"):
+            raise ValueError(f"{self.root / 'scene.json'}: priors.normal_axes must be 'opencv' or 'opengl', got {axes!r}")
+        return axes
+
+    def normals_facing_away(self, max_images: int = 5) -> float | None:
+        """Share of valid normal-prior pixels (of up to ``max_images`` images, as loaded) that face
+        away from the camera (n . viewing ray > 0). Visible surfaces face the camera, so a large
+        share means the priors use other camera axes (OpenGL's y up, z back). None: no priors."""
+        idx = [i for i in range(len(self.cameras)) if self.normal_prior_path(i) is not None]
+        if not idx:
+            return None
+        away = total = 0
+        for i in idx[:: max(1, len(idx) // max_images)][:max_images]:
+            n = self.normal_prior(i)
+            rays = self.cameras[i].pixel_rays()
+            valid = np.linalg.norm(n, axis=-1) > 0.5
+            dots = (n * rays.reshape(n.shape)).sum(-1)
+            away += int((dots[valid] > 0).sum())
+            total += int(valid.sum())
+        return away / total if total else None
 
     @property
     def gt_mesh_path(self) -> Path | None:

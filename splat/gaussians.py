@@ -12,9 +12,10 @@ samples where extract gave one) becomes a flat disc whose third axis is that nor
 thickness is ``flat_ratio`` times the tangent scale; one without a normal is isotropic. Colours
 come from the cue colours as the SH DC term, higher bands start at zero.
 
-The PLY written by :func:`save_ply` has the property layout of the 3DGS reference code (x y z,
-nx ny nz, f_dc_*, f_rest_*, opacity, scale_*, rot_*), which common splat viewers open, plus a
-``cue_type`` property that they ignore.
+The PLY written by :func:`save_ply` is exactly the 3DGS reference layout: one ``vertex`` element of
+62 float32 properties (x y z, nx ny nz, f_dc_0..2, f_rest_0..44, opacity, scale_0..2, rot_0..3), a
+fixed 248-byte stride that SIBR and every other 3DGS reader take; ``shN`` is zero-padded to SH
+degree 3 on disk. The cue type goes into a sidecar ``.npy`` beside it (:func:`cue_type_path`).
 """
 
 from __future__ import annotations
@@ -26,13 +27,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from geocues.atomic import atomic_path
-from geocues.cue_io import CueCloud, _read_ply_vertices
-from splat.sh import SH_C0, num_sh_bases
+from geocues.types import CueType
+from geocues.cue_io import CueCloud
+from splat.sh import SH_C0, num_sh_bases, sh_degree_of
 
 log = logging.getLogger(__name__)
 
@@ -131,66 +134,137 @@ def init_from_cues(cues: CueCloud, sh_degree: int, cfg: InitConfig = InitConfig(
 
 
 # ----------------------------------------------------------------------------------------------
-# 3DGS-format PLY
+# 3DGS-format PLY (the reference layout) and its cue-type sidecar
 
-def _ply_fields(n_rest: int) -> list[str]:
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-            + [f"f_rest_{i}" for i in range(3 * n_rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+PLY_REST = 15  # rest SH coefficients per channel on disk: degree 3, (3 + 1)^2 - 1
+PLY_FIELDS = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+              + [f"f_rest_{i}" for i in range(3 * PLY_REST)]
+              + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+             "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def cue_type_path(ply_path: str | Path) -> Path:
+    """The cue-type sidecar of a Gaussian PLY, in the same folder: ``point_cloud.ply`` ->
+    ``cue_type.npy``; any other ``NAME.ply`` -> ``NAME.cue_type.npy``."""
+    ply_path = Path(ply_path)
+    name = "cue_type.npy" if ply_path.name == "point_cloud.ply" else f"{ply_path.stem}.cue_type.npy"
+    return ply_path.with_name(name)
 
 
 def save_ply(path: str | Path, params: dict[str, Tensor], cue_type: Tensor | None = None) -> Path:
-    """Write the Gaussians as a binary 3DGS PLY (viewers open it), plus ``cue_type``. Atomic."""
+    """Write the Gaussians as a binary little-endian PLY in exactly the 3DGS reference layout
+    (:data:`PLY_FIELDS`, 62 float32 = 248 bytes per Gaussian; normals zero; ``shN`` zero-padded to
+    15 rows, stored channel-major ``f_rest_{c * 15 + k}`` like the reference), and ``cue_type`` [N]
+    as uint8 into the sidecar :func:`cue_type_path` (a stale sidecar is removed when ``cue_type`` is
+    None). Both atomic. Raises ValueError, naming ``path``, on bad shapes or non-finite values."""
     path = Path(path)
-    p = {k: v.detach().cpu().float().numpy() for k, v in params.items()}
-    n, n_rest = len(p["means"]), p["shN"].shape[1]
-    # 3DGS stores the rest coefficients channel-major: f_rest_{c * K + k}
-    rest = p["shN"].transpose(0, 2, 1).reshape(n, 3 * n_rest)
-    cols = [p["means"], np.zeros((n, 3), np.float32), p["sh0"].reshape(n, 3), rest,
-            p["opacities"].reshape(n, 1), p["scales"], p["quats"]]
-    data = np.concatenate(cols, axis=1).astype("<f4")
-    names = _ply_fields(n_rest)
-    dtype = [(name, "<f4") for name in names]
+    keys = ("means", "quats", "scales", "opacities", "sh0", "shN")
+    if any(k not in params for k in keys):
+        raise ValueError(f"cannot write {path}: params lack {[k for k in keys if k not in params]}")
+    p = {k: params[k].detach().cpu().float().numpy() for k in keys}
+    n = len(p["means"])
+    expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,), "sh0": (n, 1, 3)}
+    p["opacities"] = p["opacities"].reshape(-1)
+    for key, shape in expected.items():
+        if p[key].shape != shape:
+            raise ValueError(f"cannot write {path}: params['{key}'] has shape {p[key].shape}, expected {shape}")
+    shn = p["shN"]
+    if shn.ndim != 3 or shn.shape[0] != n or shn.shape[2] != 3 or shn.shape[1] > PLY_REST:
+        raise ValueError(f"cannot write {path}: params['shN'] has shape {shn.shape}, expected ({n}, K <= 15, 3)")
+    for key, a in p.items():
+        if not np.isfinite(a).all():
+            raise ValueError(f"refusing to write {path}: params['{key}'] holds "
+                             f"{int((~np.isfinite(a)).sum())} non-finite values")
+    rest = np.zeros((n, PLY_REST, 3), np.float32)
+    rest[:, : shn.shape[1]] = shn
+    rest = rest.transpose(0, 2, 1).reshape(n, 3 * PLY_REST)  # channel-major, as the reference
+    data = np.concatenate([p["means"], np.zeros((n, 3), np.float32), p["sh0"].reshape(n, 3), rest,
+                           p["opacities"][:, None], p["scales"], p["quats"]], axis=1)
+    assert data.shape == (n, len(PLY_FIELDS)), data.shape
+    rec = np.ascontiguousarray(data, dtype="<f4").view([(name, "<f4") for name in PLY_FIELDS]).reshape(n)
+    types = None
     if cue_type is not None:
-        dtype.append(("cue_type", "u1"))
-    rec = np.empty(n, dtype=dtype)
-    for i, name in enumerate(names):
-        rec[name] = data[:, i]
-    if cue_type is not None:
-        rec["cue_type"] = cue_type.detach().cpu().numpy().astype(np.uint8)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-    header += [f"property float {name}" for name in names]
-    if cue_type is not None:
-        header.append("property uchar cue_type")
-    header.append("end_header")
+        types = cue_type.detach().cpu().numpy().reshape(-1)
+        if len(types) != n:
+            raise ValueError(f"cannot write {path}: cue_type has {len(types)} entries for {n} Gaussians")
+        unknown = sorted(set(np.unique(types).tolist()) - {int(t) for t in CueType})
+        if unknown:
+            raise ValueError(f"cannot write {path}: unknown cue_type values {unknown}")
+        types = types.astype(np.uint8)
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(rec.tobytes())
+        PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<").write(str(tmp))
+    side = cue_type_path(path)
+    if types is None:
+        side.unlink(missing_ok=True)
+    else:
+        with atomic_path(side) as tmp, open(tmp, "wb") as f:  # a file object: np.save keeps the name
+            np.save(f, types)
     return path
 
 
-def load_ply(path: str | Path) -> tuple[dict[str, Tensor], Tensor | None]:
-    """Read a 3DGS PLY (from :func:`save_ply` or the 3DGS reference code): (params, cue_type or None)."""
+def load_ply(path: str | Path, sh_degree: int | None = None) -> tuple[dict[str, Tensor], Tensor | None]:
+    """Read a Gaussian PLY: this project's (cue type from the sidecar :func:`cue_type_path`, or from
+    a ``cue_type`` property in older files), the 3DGS reference layout, or gsplat's export (no
+    normals, 0..45 ``f_rest``, channel-major). Returns (params, cue_type [N] int64 or None).
+
+    ``shN`` keeps the rows the file has (15 for a padded file) unless ``sh_degree`` is given: then it
+    has exactly (sh_degree + 1)^2 - 1 rows, trailing bands trimmed (they must be all zero) or padded
+    with zeros. The renderer takes the degree from ``shN`` unless told one, and zero bands add nothing.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no Gaussian PLY at {path}")
-    v = _read_ply_vertices(path)
+    if sh_degree is not None and not 0 <= sh_degree <= 3:
+        raise ValueError(f"sh_degree must be in 0..3, got {sh_degree}")
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as e:  # plyfile raises several types for malformed files
+        raise ValueError(f"{path} is not a readable PLY file: {e}") from e
+    if "vertex" not in [el.name for el in ply.elements]:
+        raise ValueError(f"{path} has no 'vertex' element (elements: {[el.name for el in ply.elements]})")
+    v = ply["vertex"].data
     names = v.dtype.names or ()
-    n_rest = sum(1 for name in names if name.startswith("f_rest_"))
-    if n_rest % 3 or any(name not in names for name in _ply_fields(n_rest // 3)):
-        raise ValueError(f"{path} is not a 3DGS Gaussian PLY (properties: {list(names)})")
-    k = n_rest // 3
-    col = lambda *keys: np.stack([np.asarray(v[key], np.float32) for key in keys], 1)  # noqa: E731
+    missing = [name for name in _REQUIRED if name not in names]
+    if missing:
+        raise ValueError(f"{path} is not a 3DGS Gaussian PLY: no {missing} (properties: {list(names)})")
+    rest_names = [name for name in names if name.startswith("f_rest_")]
+    m = len(rest_names)
+    if m % 3 or sorted(rest_names) != sorted(f"f_rest_{i}" for i in range(m)):
+        raise ValueError(f"{path}: {m} f_rest properties, expected f_rest_0..f_rest_(3K-1)")
+    k = m // 3
+    if k not in (0, 3, 8, 15):
+        raise ValueError(f"{path}: {m} f_rest properties is no SH degree in 0..3 (0, 9, 24 or 45)")
     n = len(v)
+    col = lambda *keys: np.stack([np.asarray(v[key], np.float32) for key in keys], 1)  # noqa: E731
+    shn = (col(*[f"f_rest_{i}" for i in range(m)]).reshape(n, 3, k).transpose(0, 2, 1) if k
+           else np.zeros((n, 0, 3), np.float32))  # channel-major on disk -> [N, K, 3]
+    if sh_degree is not None:
+        rows = num_sh_bases(sh_degree) - 1
+        if rows < k and np.any(shn[:, rows:]):
+            raise ValueError(f"{path} holds non-zero SH coefficients above degree {sh_degree}; "
+                             f"load it with sh_degree=None or {sh_degree_of(shn)}")
+        shn = np.concatenate([shn[:, :rows], np.zeros((n, max(0, rows - k), 3), np.float32)], 1)
     params = {
         "means": torch.from_numpy(col("x", "y", "z")),
         "quats": torch.from_numpy(col("rot_0", "rot_1", "rot_2", "rot_3")),
         "scales": torch.from_numpy(col("scale_0", "scale_1", "scale_2")),
         "opacities": torch.from_numpy(np.asarray(v["opacity"], np.float32).copy()),
         "sh0": torch.from_numpy(col("f_dc_0", "f_dc_1", "f_dc_2")).reshape(n, 1, 3),
-        "shN": torch.from_numpy(col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, k)
-                                .transpose(0, 2, 1).copy()) if k else torch.zeros(n, 0, 3),
+        "shN": torch.from_numpy(np.ascontiguousarray(shn)),
     }
-    cue_type = torch.from_numpy(np.asarray(v["cue_type"], np.int64)) if "cue_type" in names else None
-    return params, cue_type
+    side = cue_type_path(path)
+    if side.is_file():
+        types, source = np.load(side), side
+    elif "cue_type" in names:
+        types, source = np.asarray(v["cue_type"]), path
+    else:
+        return params, None
+    types = types.reshape(-1).astype(np.int64)
+    if len(types) != n:
+        raise ValueError(f"{source} holds {len(types)} cue types for the {n} Gaussians of {path}")
+    unknown = sorted(set(np.unique(types).tolist()) - {int(t) for t in CueType})
+    if unknown:
+        raise ValueError(f"{source}: unknown cue_type values {unknown}")
+    return params, torch.from_numpy(types)
+

@@ -37,6 +37,7 @@ from geocues.scene import Scene
 from geocues.types import CueType
 from splat import checkpoint
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
+from splat.export import write_3dgs_run
 from splat.gaussians import InitConfig, init_from_cues, save_ply, scene_scale
 from splat.guard import GuardConfig, NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
@@ -427,6 +428,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     t0 = time.perf_counter()
     final = evaluate_views(params, test_views, cfg.sh_degree, cfg, work / "test_renders")
     save_ply(work / "point_cloud.ply", params, state["cue_type"])
+    write_3dgs_run(work, params, state["cue_type"], scene, asdict(cfg), cfg.iters)
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()

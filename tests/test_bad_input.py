@@ -92,7 +92,7 @@ def test_truncated_npy_prior(room, capsys):
 def test_wrong_shape_prior(room, capsys):
     root = _copy(room, "shape_prior")
     np.save(root / "priors" / "depth" / "00001.npy", np.ones((48, 64, 2), np.float32))
-    _fails(capsys, geocues, ["extract", str(root), "-o", str(room[0] / "c_shape")], "00001.npy", "shape")
+    _fails(capsys, geocues, ["extract", str(root), "-o", str(room[0] / "c_shape")], "00001.npy", "expected HxW")
 
 
 def test_nan_prior_pixels_are_dropped_and_counted(room, caplog):
@@ -144,3 +144,25 @@ def test_paths_with_spaces_and_non_ascii(room, capsys):
     root = _copy(room, "ro om é")
     assert geocues(["info", str(root)]) == 0
     assert "8" in capsys.readouterr().out
+
+
+def test_opengl_normal_priors_are_detected_and_converted(room, capsys):
+    import json
+
+    from geocues.scene import Scene
+
+    root = _copy(room, "gl_normals")
+    scene = Scene.load(root)
+    (root / "priors" / "normal").mkdir()
+    for i, cam in enumerate(scene.cameras):  # camera-facing normals (OpenCV), written in OpenGL axes
+        n = -cam.pixel_rays() / np.linalg.norm(cam.pixel_rays(), axis=-1, keepdims=True)
+        np.save(root / "priors" / "normal" / f"{cam.stem}.npy", (n * [1, -1, -1]).astype(np.float32))
+    assert Scene.load(root).normals_facing_away() > 0.8  # all but the far off-axis pixels
+    assert geocues(["info", str(root)]) == 0
+    assert "look like OpenGL camera axes" in capsys.readouterr().out
+    (root / "scene.json").write_text(json.dumps({"priors": {"normal_axes": "opengl"}}))
+    fixed = Scene.load(root)
+    assert fixed.normals_facing_away() < 0.05
+    n = fixed.normal_prior(0)
+    ref = -scene.cameras[0].pixel_rays() / np.linalg.norm(scene.cameras[0].pixel_rays(), axis=-1, keepdims=True)
+    np.testing.assert_allclose(n, ref, atol=1e-5)

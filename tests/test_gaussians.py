@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from geocues.cue_io import CueCloud
 from geocues.types import CueType
@@ -101,23 +102,69 @@ def test_initialised_plane_cues_render_their_plane():
     assert float((out["normal"][centre] - torch.tensor([0.0, 0.0, -1.0])).abs().max()) < 1e-4
 
 
-@pytest.mark.parametrize("sh_degree", [0, 3])
+@pytest.mark.parametrize("sh_degree", [0, 1, 3])
 def test_ply_round_trip_and_3dgs_layout(tmp_path, sh_degree):
     params, cue_type = init_from_cues(mixed_cloud(), sh_degree)
     params["shN"] = torch.randn_like(params["shN"])
-    path = save_ply(tmp_path / "g.ply", params, cue_type)
-    loaded, loaded_type = load_ply(path)
+    path = save_ply(tmp_path / "point_cloud.ply", params, cue_type)
+    loaded, loaded_type = load_ply(path, sh_degree=sh_degree)
     for k in params:
         torch.testing.assert_close(loaded[k], params[k], rtol=0, atol=0, msg=k)
     assert loaded_type.tolist() == cue_type.tolist()
+    # on disk: always degree 3 (45 f_rest), whatever the training degree; no cue_type inside
     header = path.read_bytes().split(b"end_header")[0].decode()
+    assert f"element vertex {len(cue_type)}" in header and header.count("f_rest_") == 45
+    assert "cue_type" not in header and (tmp_path / "cue_type.npy").is_file()
+    padded, _ = load_ply(path)  # without sh_degree: what the file holds, 15 rows, zeros above the degree
     k = params["shN"].shape[1]
-    assert f"element vertex {len(cue_type)}" in header and header.count("f_rest_") == 3 * k
-    if k:  # channel-major like 3DGS: f_rest_0 .. f_rest_{K-1} are the red channel's coefficients
-        from geocues.cue_io import _read_ply_vertices
-        v = _read_ply_vertices(path)
+    assert padded["shN"].shape == (len(cue_type), 15, 3)
+    torch.testing.assert_close(padded["shN"][:, :k], params["shN"], rtol=0, atol=0)
+    assert not padded["shN"][:, k:].any()
+    # channel-major like 3DGS: f_rest_0 .. f_rest_14 are the red channel's 15 coefficients
+    from plyfile import PlyData
+    v = PlyData.read(str(path))["vertex"].data
+    if k:
         np.testing.assert_array_equal(v[f"f_rest_{k - 1}"], params["shN"][:, k - 1, 0].numpy())
-        np.testing.assert_array_equal(v[f"f_rest_{k}"], params["shN"][:, 0, 1].numpy())
+        np.testing.assert_array_equal(v["f_rest_15"], params["shN"][:, 0, 1].numpy())
+        np.testing.assert_array_equal(v["f_rest_30"], params["shN"][:, 0, 2].numpy())
+    if k < 15:
+        assert not np.any(v[f"f_rest_{k}"]) and not np.any(v["f_rest_44"])
+
+
+def test_load_ply_trims_only_zero_bands(tmp_path):
+    params, cue_type = init_from_cues(mixed_cloud(), 3)
+    params["shN"] = torch.randn_like(params["shN"])
+    path = save_ply(tmp_path / "g.ply", params, cue_type)
+    assert (tmp_path / "g.cue_type.npy").is_file()  # not point_cloud.ply: <stem>.cue_type.npy
+    with pytest.raises(ValueError, match="non-zero SH coefficients above degree 1"):
+        load_ply(path, sh_degree=1)
+    params["shN"] = params["shN"][:, :0]  # degree 0 read at degree 2: zero-padded rows
+    save_ply(path, params)
+    loaded, loaded_type = load_ply(path, sh_degree=2)
+    assert loaded["shN"].shape == (len(cue_type), 8, 3) and not loaded["shN"].any()
+    assert loaded_type is None and not (tmp_path / "g.cue_type.npy").exists()  # stale sidecar removed
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_padded_shN_renders_like_the_trained_degree(tmp_path, backend):
+    """Regression (issue 14): files are padded to degree 3; the renderer must give the same image
+    from 15 rows (degree inferred, or told 1) as from the trained 3 rows with sh_degree=1."""
+    from splat.composite import available_backends
+    if backend not in available_backends():
+        pytest.skip(f"backend {backend} unavailable")
+    params, cue_type = init_from_cues(mixed_cloud(), 1)
+    params["shN"] = 0.3 * torch.randn_like(params["shN"])
+    params["opacities"][:] = 2.0
+    padded, _ = load_ply(save_ply(tmp_path / "point_cloud.ply", params, cue_type))
+    assert padded["shN"].shape[1] == 15
+    R = Rotation.from_euler("x", 0.2).as_matrix()  # oblique view: the degree-1 band matters
+    cam = Camera.from_Rt(np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]]), R, np.zeros(3), 32, 24)
+    ref = render(params, cam, sh_degree=1, backend=backend)["rgb"]
+    flat = render({**params, "shN": torch.zeros_like(params["shN"])}, cam, sh_degree=1, backend=backend)["rgb"]
+    assert float((ref - flat).abs().max()) > 1e-2  # the test can fail: the SH band changes the image
+    for degree in (None, 1):
+        torch.testing.assert_close(render(padded, cam, sh_degree=degree, backend=backend)["rgb"], ref,
+                                   rtol=0, atol=1e-6)
 
 
 def test_load_ply_errors(tmp_path):

@@ -151,11 +151,20 @@ class TestBadInput:
         with pytest.raises(ValueError, match=str(scene_dir / "images" / "00006.png")):
             Scene.load(scene_dir)
 
-    def test_prior_of_wrong_size(self, scene_dir: Path):
+    def test_prior_of_another_size_is_resized_with_a_warning(self, scene_dir: Path, caplog):
+        (scene_dir / "priors" / "depth").mkdir(parents=True)
+        other = scene_dir / "priors" / "depth" / "00003.npy"
+        np.save(other, np.full((H * 2, W * 2), 2.5, np.float32))  # an estimator's output size
+        scene = Scene.load(scene_dir)
+        assert "1 priors are not the size of their images" in caplog.text and "00003.npy" in caplog.text
+        prior = scene.depth_prior(3)
+        assert prior.shape == (H, W) and np.all(prior == 2.5)
+
+    def test_prior_of_wrong_rank(self, scene_dir: Path):
         (scene_dir / "priors" / "depth").mkdir(parents=True)
         bad = scene_dir / "priors" / "depth" / "00003.npy"
-        np.save(bad, np.ones((H + 1, W), np.float32))
-        with pytest.raises(ValueError, match=str(bad) + r".*expected 48x64"):
+        np.save(bad, np.ones((H, W, 3), np.float32))
+        with pytest.raises(ValueError, match=str(bad) + r".*expected HxW"):
             Scene.load(scene_dir)
 
     def test_normal_prior_without_3_channels(self, scene_dir: Path):

@@ -1,0 +1,98 @@
+"""A training run in the folder layout of the 3DGS reference code (graphdeco-inria/gaussian-splatting),
+so that SIBR's viewer and the reference ``render.py`` / ``metrics.py`` open it as one of theirs:
+
+    RUN/point_cloud/iteration_<N>/point_cloud.ply   the Gaussians, exact reference layout (62 floats)
+    RUN/point_cloud/iteration_<N>/cue_type.npy      this project's Gaussian types (readers ignore it)
+    RUN/cfg_args                                    repr of the argparse Namespace of ModelParams
+    RUN/cameras.json                                the reference ``camera_to_JSON`` of every camera
+
+``cfg_args`` always says ``sh_degree=3``: the PLY is padded to degree 3 and the reference loader
+asserts that its ``f_rest`` count matches that degree. Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from argparse import Namespace
+from pathlib import Path
+
+import numpy as np
+from torch import Tensor
+
+from geocues.atomic import atomic_path
+from geocues.scene import Scene
+from splat.gaussians import save_ply
+
+log = logging.getLogger(__name__)
+
+
+def model_path_of(run_dir: Path) -> Path:
+    """Where the run will live once published: a staging folder ``OUT.partial`` becomes ``OUT``."""
+    run_dir = Path(run_dir).resolve()
+    return run_dir.with_name(run_dir.name[: -len(".partial")]) if run_dir.name.endswith(".partial") else run_dir
+
+
+def reference_cfg_args(scene: Scene, cfg_dict: dict, model_path: Path) -> Namespace:
+    """The reference's ModelParams as its train.py writes them (field order of current upstream
+    ``arguments/__init__.py``; older versions lack ``depths`` and ``train_test_exp`` and ignore them).
+
+    ``resolution``: the reference's -1 (its own rule: at most 1600 px wide) unless this run used
+    one of its integer factors 1, 2, 4, 8; ``eval``: whether held-out views exist (the reference
+    holds out every 8th image, ``llffhold``, as this project's default ``test_every``).
+    """
+    downscale = float(cfg_dict.get("downscale", 1.0))
+    background = tuple(float(c) for c in cfg_dict.get("background", (0.0, 0.0, 0.0)))
+    return Namespace(
+        sh_degree=3,  # the PLY is padded to degree 3 whatever the training degree
+        source_path=str(Path(scene.root).resolve()),
+        model_path=str(model_path),
+        images="images",
+        depths="",
+        resolution=int(downscale) if downscale in (1.0, 2.0, 4.0, 8.0) else -1,
+        white_background=background == (1.0, 1.0, 1.0),
+        train_test_exp=False,
+        data_device="cuda",
+        eval=int(cfg_dict.get("test_every", 8)) > 0,
+    )
+
+
+def camera_to_json(index: int, cam) -> dict:
+    """One entry of the reference ``cameras.json`` (``utils/camera_utils.py::camera_to_JSON``):
+    position and rotation are camera-to-world (rotation columns = camera axes in the world),
+    ``img_name`` is the file name up to its first dot (as the reference's COLMAP reader),
+    width/height/fx/fy in pixels at the training resolution. cam: a geocues.scene.Camera."""
+    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    return {
+        "id": index,
+        "img_name": Path(cam.name).name.split(".")[0],
+        "width": int(cam.width),
+        "height": int(cam.height),
+        "position": (-R.T @ t).tolist(),
+        "rotation": [row.tolist() for row in R.T],
+        "fy": float(cam.K[1, 1]),
+        "fx": float(cam.K[0, 0]),
+    }
+
+
+def write_3dgs_run(run_dir: str | Path, params: dict[str, Tensor], cue_type: Tensor | None, scene: Scene,
+                   cfg_dict: dict, iteration: int) -> Path:
+    """Write the reference 3DGS run files into ``run_dir`` (see the module docstring).
+
+    params: the Gaussians (splat.gaussians contract); cue_type: [N] or None; scene: the trained
+    scene (its cameras go to cameras.json, its root to ``source_path``); cfg_dict: the training
+    config as a dict (``downscale``, ``background``, ``test_every`` are read); iteration: N of
+    ``point_cloud/iteration_N``. Returns the PLY path.
+    """
+    run_dir = Path(run_dir)
+    if int(iteration) < 0:
+        raise ValueError(f"iteration must be >= 0, got {iteration}")
+    ply = save_ply(run_dir / "point_cloud" / f"iteration_{int(iteration)}" / "point_cloud.ply", params, cue_type)
+    args = reference_cfg_args(scene, cfg_dict, model_path_of(run_dir))
+    with atomic_path(run_dir / "cfg_args") as tmp:
+        tmp.write_text(repr(args))
+    cams = [camera_to_json(i, cam) for i, cam in enumerate(scene.cameras)]
+    with atomic_path(run_dir / "cameras.json") as tmp:
+        tmp.write_text(json.dumps(cams, allow_nan=False))
+    log.info("wrote the 3DGS reference layout of %s (iteration %d, %d cameras)", run_dir, iteration, len(cams))
+    return ply
