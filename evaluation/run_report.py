@@ -82,7 +82,7 @@ def contact_sheet(run_dir: Path, scene_dir: Path, report: dict, n_views: int, gt
     cfg = report.get("config", {})
     scene = Scene.load(scene_dir, downscale=cfg.get("downscale", 1.0), test_every=cfg.get("test_every", 8),
                        check_priors=False)
-    params, _ = load_ply(run_dir / "point_cloud.ply")
+    params, _ = load_ply(run_dir / "point_cloud.ply", sh_degree=cfg.get("sh_degree"))
     indices = scene.test_indices or scene.train_indices
     pick = [indices[k] for k in np.linspace(0, len(indices) - 1, min(n_views, len(indices))).round().astype(int)]
     depth_dir = gt_depth if gt_depth is not None else (scene.root / "gt" / "depth")

@@ -193,6 +193,11 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     t_all = time.perf_counter()
     cache = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
+    away = scene.normals_facing_away()
+    if away is not None and away > 0.5:
+        log.warning("%.0f%% of the normal-prior pixels face away from the camera: the priors look like OpenGL "
+                    "camera axes (y up, z back); set {\"priors\": {\"normal_axes\": \"opengl\"}} in %s",
+                    100 * away, scene.root / "scene.json")
     n_img = len(scene.cameras)
     timings: dict[str, float] = {}
     rejections: dict[str, dict] = {}

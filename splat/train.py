@@ -295,6 +295,10 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
         shutil.rmtree(work)
     device = resolve_device(cfg.device)
+    if device.type == "cpu" and cfg.backend in ("auto", "cpu"):
+        from splat.composite import available_backends
+
+        available_backends()  # builds the C++ kernels now, with a message, not inside the first step
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)  # CPU: the loss patches are drawn on the CPU
@@ -330,6 +334,10 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
              cfg.iters, len(train_views), len(test_views), len(cue_type), _type_counts(cue_type), scale, device)
 
     work.mkdir(parents=True, exist_ok=True)
+    if ckpt is None:
+        from splat.presets import write_config_file
+
+        write_config_file(work / "config.yaml", cfg, {"scene": str(scene_dir), "cues": str(cues_ply)})
     checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
     sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
     base_lr = {k: opt.param_groups[0]["lr"] for k, opt in optimizers.items()}
