@@ -157,6 +157,8 @@ class Scene:
             if (w, h) != (im.width, im.height):
                 raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "
                                  f"{im.width}x{im.height}")
+            if not (np.isfinite(im.K).all() and np.isfinite(im.R).all() and np.isfinite(im.t).all()):
+                raise ValueError(f"image {im.name} in {model_dir} has a non-finite pose or intrinsics")
             nw, nh = max(1, int(round(im.width / downscale))), max(1, int(round(im.height / downscale)))
             S = np.diag([nw / im.width, nh / im.height, 1.0])  # exact under COLMAP pixel centres
             cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path,
@@ -173,6 +175,13 @@ class Scene:
 
     @staticmethod
     def _points_from_raw(raw: RawPoints, cameras: list[Camera]) -> Points3D:
+        finite = np.isfinite(raw.xyz).all(1) if len(raw.xyz) else np.zeros(0, bool)
+        if not finite.all():  # dropped with a counted reason, never carried into the cues
+            log.warning("SfM model: %d of %d points have non-finite coordinates and are dropped",
+                        int((~finite).sum()), len(finite))
+            keep = np.where(finite)[0]
+            raw = RawPoints(raw.ids[keep], raw.xyz[keep], raw.rgb[keep], raw.error[keep],
+                            raw.track_length[keep], [raw.track_image_ids[k] for k in keep])
         by_image_id = {c.image_id: c.index for c in cameras}
         vis: dict[int, list[int]] = {c.index: [] for c in cameras}
         for k, track in enumerate(raw.track_image_ids):

@@ -354,6 +354,10 @@ def write_mesh(mesh: o3d.geometry.TriangleMesh, path: str | Path) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".ply":
         raise ValueError(f"write_mesh writes PLY; the path must end in .ply, got {path}")
+    verts = np.asarray(mesh.vertices)
+    if len(verts) and not np.isfinite(verts).all():
+        raise ValueError(f"write_mesh: {int((~np.isfinite(verts).all(1)).sum())} non-finite vertices; "
+                         f"not writing {path}")
     with atomic_path(path) as tmp:
         if len(mesh.vertices) == 0:
             log.warning("write_mesh: the mesh is empty; writing an empty PLY to %s", path)

@@ -166,3 +166,27 @@ def test_opengl_normal_priors_are_detected_and_converted(room, capsys):
     n = fixed.normal_prior(0)
     ref = -scene.cameras[0].pixel_rays() / np.linalg.norm(scene.cameras[0].pixel_rays(), axis=-1, keepdims=True)
     np.testing.assert_allclose(n, ref, atol=1e-5)
+
+
+def test_non_finite_sfm_points_are_dropped_and_poses_refused(room, caplog, capsys):
+    """pycolmap's text reader refuses NaN itself; a binary model (or a caller's RawPoints) can carry it."""
+    from geocues.colmap_io import RawPoints, find_model_dir, read_model
+    from geocues.scene import Scene
+
+    base, root = room
+    scene = Scene.load(root)
+    _, raw = read_model(find_model_dir(root))
+    n = len(raw.xyz)
+    raw.xyz[:4] = np.nan
+    points = Scene._points_from_raw(raw, scene.cameras)
+    assert len(points) == n - 4 and np.isfinite(points.xyz).all()
+    assert f"4 of {n} points have non-finite coordinates" in caplog.text
+    bad = _copy(room, "inf_pose")
+    text = (find_model_dir(bad) / "images.txt").read_text().splitlines()
+    k = next(i for i, line in enumerate(text) if line and not line.startswith("#"))
+    fields = text[k].split()
+    fields[5] = "inf"  # TX of the first image
+    text[k] = " ".join(fields)
+    (find_model_dir(bad) / "images.txt").write_text("\n".join(text) + "\n")
+    err = _fails(capsys, geocues, ["info", str(bad)])
+    assert "non-finite pose" in err or "could not read COLMAP model" in err
