@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # On a machine with a CUDA GPU and a python3 that holds torch, numpy, scipy and pytest (no project
 # install needed: splat/ imports none of open3d, pycolmap, tyro): run the rasterizer tests, which
-# include the CUDA ones, then `splat bench` with the torch backend on the GPU next to the CPU
+# include the CUDA ones (tests/test_composite_cuda.py builds the CUDA kernels on first use, about a
+# minute), then `splat bench` with the CUDA kernels and the torch backend on the GPU next to the CPU
 # backends. Usage: bash bench/gpu_check.sh OUT_DIR   (writes OUT_DIR/pytest_cuda.log,
 # OUT_DIR/splat_bench_cuda.json and OUT_DIR/splat_bench_cuda.txt)
 set -euo pipefail
@@ -15,7 +16,7 @@ print("torch", torch.__version__, "cuda", torch.version.cuda, "device",
       torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
 PY
 tests_rc=0
-python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_render_hard_cases.py \
+python3 -m pytest -q -p no:cacheprovider tests/test_composite_cuda.py tests/test_cuda.py tests/test_render_hard_cases.py \
     tests/test_render.py tests/test_composite_torch.py tests/test_projection.py 2>&1 | tee "$out/pytest_cuda.log" \
     || tests_rc=$?
 python3 - "$out" <<'PY'
@@ -24,7 +25,7 @@ from pathlib import Path
 from splat.bench import BenchConfig, format_table, run_bench
 logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
 out = Path(sys.argv[1])
-result = run_bench(BenchConfig(backends=("torch-cuda", "torch", "cpu")), json_out=out / "splat_bench_cuda.json")
+result = run_bench(BenchConfig(backends=("cuda", "torch-cuda", "torch", "cpu")), json_out=out / "splat_bench_cuda.json")
 table = format_table(result)
 (out / "splat_bench_cuda.txt").write_text(table + "\n")
 print(table)

@@ -2,7 +2,12 @@
 
 One iteration is what training does per view: ``render()`` (torch projection + compositing + the
 per-pixel depth/normal combination), a loss on RGB, expected depth and normal, and
-``loss.backward()``. The Gaussians lie on the surfaces of a procedural room (a box room with
+``loss.backward()``. Each configuration also times compositing alone (``composite_s``): the
+backend's ``composite()`` on the inputs ``render()`` gives it (recorded once, detached), a sum of
+its outputs and the backward, so that the projection's share is ``seconds_per_iter - composite_s``
+(roughly: the per-pixel depth/normal combination and the loss are in the first only).
+
+The Gaussians lie on the surfaces of a procedural room (a box room with
 furniture-like boxes, normals facing the free space): points sampled by area on its triangles,
 tangent scales from nearest-neighbour distances, flat along the surface normal, random colours
 and opacities; the camera stands inside the room looking at walls and furniture.
@@ -53,7 +58,8 @@ class BenchConfig:
     counts: tuple[int, ...] = (10_000, 50_000, 200_000)
     """Numbers of Gaussians placed on the room's surfaces."""
     backends: tuple[str, ...] = ("torch", "cpu")
-    """Compositing backends to time ("torch", "cpu"; "torch-cuda" = torch backend on the GPU)."""
+    """Compositing backends to time ("torch", "cpu"; on a GPU "cuda" = the CUDA kernels and
+    "torch-cuda" = the torch backend there)."""
     iters: int = 5
     """Timed iterations per configuration (the median is reported)."""
     warmup: int = 1
@@ -202,6 +208,55 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
+def _composite_inputs(params: dict[str, torch.Tensor], camera, backend: str) -> tuple[tuple, dict]:
+    """The arguments ``render()`` passes to ``composite()`` (one no-grad render), for timing it alone."""
+    import splat.rasterize as rasterize
+
+    captured = {}
+    real = rasterize.composite
+
+    def spy(*args, **kwargs):
+        captured["args"], captured["kwargs"] = args, kwargs
+        return real(*args, **kwargs)
+
+    rasterize.composite = spy
+    try:
+        with torch.no_grad():
+            rasterize.render(params, camera, backend=backend)
+    finally:
+        rasterize.composite = real
+    return captured["args"], captured["kwargs"]
+
+
+def time_composite(params: dict[str, torch.Tensor], camera, backend: str, n_iters: int, warmup: int,
+                   sync) -> list[tuple[float, float]]:
+    """(forward, backward) seconds of ``composite()`` alone per timed iteration, on render()'s inputs."""
+    from splat.composite import composite
+
+    args, kwargs = _composite_inputs(params, camera, backend)
+    # means2d, conics, opacities, features require grad; depths, radii, width, height do not
+    leaves = [a.detach().clone().requires_grad_() for a in args[:4]]
+    bg = kwargs["background"].detach().clone().requires_grad_()
+    med = kwargs["median_features"].detach().clone().requires_grad_()
+    rest = dict(kwargs, background=bg, median_features=med)
+    times = []
+    for it in range(warmup + n_iters):
+        sync()
+        t0 = time.perf_counter()
+        out = composite(*leaves, *args[4:], **rest)
+        loss = out.features.sum() + out.alpha.sum() + out.median.sum()
+        sync()
+        t1 = time.perf_counter()
+        loss.backward()
+        sync()
+        t2 = time.perf_counter()
+        for t in (*leaves, bg, med):
+            t.grad = None
+        if it >= warmup:
+            times.append((t1 - t0, t2 - t1))
+    return times
+
+
 def time_config(backend: str, width: int, height: int, n: int, cfg: BenchConfig) -> dict:
     """Time ``cfg.warmup + k`` iterations of render + loss + backward; the measured entry."""
     from splat.composite import available_backends
@@ -209,12 +264,12 @@ def time_config(backend: str, width: int, height: int, n: int, cfg: BenchConfig)
 
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
-    device = torch.device("cuda" if backend == "torch-cuda" else "cpu")
+    device = torch.device("cuda" if backend in ("torch-cuda", "cuda") else "cpu")
     name = "torch" if backend == "torch-cuda" else backend
-    if name not in available_backends():
-        return {"status": f"skipped ({name} backend unavailable here)"}
     if device.type == "cuda" and not torch.cuda.is_available():
         return {"status": "skipped (no CUDA device)"}
+    if name not in available_backends():
+        return {"status": f"skipped ({name} backend unavailable here)"}
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     params = {k: v.to(device).requires_grad_() for k, v in surface_gaussians(n, cfg.sh_degree, cfg.seed).items()}
     camera = bench_camera(width, height).to(device)
@@ -245,12 +300,16 @@ def time_config(backend: str, width: int, height: int, n: int, cfg: BenchConfig)
         fwd.append(t1 - t0)
         bwd.append(t2 - t1)
     total = [f + b for f, b in zip(fwd, bwd)]
+    comp = time_composite(params, camera, name, len(total), cfg.warmup, sync)
     entry = {
         "status": "ok",
         "seconds_per_iter": statistics.median(total),
         "forward_s": statistics.median(fwd),
         "backward_s": statistics.median(bwd),
         "times": total,
+        "composite_s": statistics.median(f + b for f, b in comp),
+        "composite_forward_s": statistics.median(f for f, _ in comp),
+        "composite_backward_s": statistics.median(b for _, b in comp),
         "n_visible": visible,
         "peak_rss_mb": _rss_mb() - rss0,
     }
@@ -299,13 +358,14 @@ def run_bench(cfg: BenchConfig = BenchConfig(), json_out: Path | None = None) ->
         if w <= 0 or h <= 0:
             raise ValueError(f"image sizes must be positive, got {w}x{h}")
     for b in cfg.backends:
-        if b not in ("torch", "cpu", "torch-cuda"):
-            raise ValueError(f"backend must be one of torch, cpu, torch-cuda, got {b!r}")
+        if b not in ("torch", "cpu", "cuda", "torch-cuda"):
+            raise ValueError(f"backend must be one of torch, cpu, cuda, torch-cuda, got {b!r}")
     started = time.time()
     result = {
         "config": asdict(cfg),
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                     "torch": torch.__version__, "threads": cfg.threads or torch.get_num_threads(),
+                    "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
                     "loadavg_start": os.getloadavg()},
         "memory_note": "peak_rss_mb = ru_maxrss after the timed iterations minus ru_maxrss after "
                        "building the scene, in a fresh process per configuration",
@@ -344,18 +404,20 @@ def run_bench(cfg: BenchConfig = BenchConfig(), json_out: Path | None = None) ->
 
 
 def format_table(result: dict) -> str:
-    """The results as a fixed-width text table."""
+    """The results as a fixed-width text table (comp: compositing alone, forward + backward; peak
+    MB: GPU memory for runs on a GPU, the process's resident memory otherwise)."""
     lines = [f"{'backend':<11}{'size':>9}{'gaussians':>10}{'visible':>9}{'s/iter':>9}{'fwd':>8}"
-             f"{'bwd':>8}{'peak MB':>9}{'speed-up':>9}  status"]
+             f"{'bwd':>8}{'comp':>8}{'peak MB':>9}{'speed-up':>9}  status"]
     for r in result["runs"]:
         size = f"{r['width']}x{r['height']}"
         if r["status"] != "ok":
-            lines.append(f"{r['backend']:<11}{size:>9}{r['n_gaussians']:>10}{'':>52}  {r['status']}")
+            lines.append(f"{r['backend']:<11}{size:>9}{r['n_gaussians']:>10}{'':>60}  {r['status']}")
             continue
         sp = f"{r['speedup_vs_torch']:.1f}x" if "speedup_vs_torch" in r else "-"
         lines.append(f"{r['backend']:<11}{size:>9}{r['n_gaussians']:>10}{r['n_visible']:>9}"
                      f"{r['seconds_per_iter']:>9.3f}{r['forward_s']:>8.3f}{r['backward_s']:>8.3f}"
-                     f"{r['peak_rss_mb']:>9.0f}{sp:>9}  ok ({len(r['times'])} timed)")
+                     f"{r.get('composite_s', float('nan')):>8.3f}"
+                     f"{r.get('peak_cuda_mb', r['peak_rss_mb']):>9.0f}{sp:>9}  ok ({len(r['times'])} timed)")
     m = result["machine"]
     lines.append(f"threads {m['threads']}, load average {m['loadavg_start'][0]:.1f} at start, "
                  f"{m['loadavg_end'][0]:.1f} at end, {result['wall_s']:.0f} s in all")

@@ -6,7 +6,10 @@ than one implementation ("backend"):
 
 - ``"torch"``: :mod:`splat.composite_torch`, the reference and oracle; pure torch, CPU or CUDA.
 - ``"cpu"``: :mod:`splat.composite_cpu`, a C++ kernel (CPU tensors only), built on first use.
-- ``"auto"``: ``"cpu"`` for CPU tensors when it imports and builds, else ``"torch"``.
+- ``"cuda"``: :mod:`splat.composite_cuda`, CUDA kernels (float32 CUDA tensors only), built on first
+  use; never imported where ``torch.cuda.is_available()`` is false.
+- ``"auto"``: ``"cpu"`` for CPU tensors and ``"cuda"`` for float32 CUDA tensors when it imports and
+  builds, else ``"torch"``.
 
 Exact per-pixel rule (3DGS ``forward.cu`` semantics; every backend follows it)
 -----------------------------------------------------------------------------
@@ -36,9 +39,10 @@ and ``radii`` get no gradient.
 A backend may cap the number of blended Gaussians per pixel (the torch backend's ``max_per_pixel``,
 default 256): after the cap the pixel stops as if ``test_T`` had dropped below 1e-4.
 
-A backend module (``splat.composite_cpu``) exposes ``composite(means2d, conics, opacities, features,
-depths, radii, width, height, *, background=None, median_features=None) -> CompositeOut`` taking
-tensors already checked by :func:`check_composite_inputs`.
+A backend module (``splat.composite_cpu``, ``splat.composite_cuda``) exposes ``composite(means2d,
+conics, opacities, features, depths, radii, width, height, *, background=None,
+median_features=None) -> CompositeOut`` taking tensors already checked by
+:func:`check_composite_inputs`.
 """
 
 from __future__ import annotations
@@ -51,10 +55,12 @@ from torch import Tensor
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("torch", "cpu", "auto")
+BACKENDS = ("torch", "cpu", "cuda", "auto")
 
 _cpu_module = None  # the imported splat.composite_cpu module, once it has been tried
 _cpu_error: str | None = None  # why it failed to import/build, if it did
+_cuda_module = None  # the imported splat.composite_cuda module, once it has been tried
+_cuda_error: str | None = None  # why it failed to import/build (or "no CUDA device"), if it did
 
 
 class CompositeOut(NamedTuple):
@@ -80,21 +86,60 @@ def _load_cpu_backend():
     return _cpu_module
 
 
+def _load_cuda_backend():
+    """Import (and thereby build) the CUDA backend once when a GPU is present; the module or None."""
+    global _cuda_module, _cuda_error
+    if _cuda_module is None and _cuda_error is None:
+        if not torch.cuda.is_available():
+            _cuda_error = "no CUDA device"  # never import (or build) it on CPU-only machines
+        else:
+            try:
+                from splat import composite_cuda  # lazy: building takes about a minute the first time
+
+                _cuda_module = composite_cuda
+            except Exception as exc:  # noqa: BLE001 - any build/import failure means "fall back"
+                _cuda_error = f"{type(exc).__name__}: {exc}"
+                log.warning("CUDA compositing backend unavailable, using torch: %s", _cuda_error)
+    return _cuda_module
+
+
 def cpu_backend_available() -> bool:
     """True when :mod:`splat.composite_cpu` imports (building it if needed)."""
     return _load_cpu_backend() is not None
 
 
+def cuda_backend_available() -> bool:
+    """True when there is a CUDA device and :mod:`splat.composite_cuda` imports (building it if needed)."""
+    return _load_cuda_backend() is not None
+
+
 def available_backends() -> list[str]:
-    """The concrete backends that work here ("torch" always, "cpu" if it builds)."""
-    return ["torch"] + (["cpu"] if cpu_backend_available() else [])
+    """The concrete backends that work here ("torch" always, "cpu" and "cuda" if they build)."""
+    return (["torch"] + (["cpu"] if cpu_backend_available() else [])
+            + (["cuda"] if cuda_backend_available() else []))
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
-    """Map "auto" and unavailable choices to a concrete backend name ("torch" or "cpu")."""
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | None = None) -> str:
+    """Map "auto" and unavailable choices to a concrete backend name ("torch", "cpu" or "cuda").
+
+    ``dtype`` (of the features, when known): the "cuda" backend takes float32 only.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "torch":
+        return "torch"
+    if device.type == "cuda" and backend in ("cuda", "auto"):
+        if dtype is not None and dtype != torch.float32:
+            if backend == "cuda":
+                log.warning("backend 'cuda' takes float32 only, got %s; using torch", dtype)
+            return "torch"
+        if _load_cuda_backend() is None:
+            if backend == "cuda":
+                log.warning("backend 'cuda' requested but unavailable (%s); using torch", _cuda_error)
+            return "torch"
+        return "cuda"
+    if backend == "cuda":
+        log.warning("backend 'cuda' needs CUDA tensors, got %s; using torch", device)
         return "torch"
     if device.type != "cpu":
         if backend == "cpu":
@@ -163,9 +208,13 @@ def composite(
     """
     check_composite_inputs(means2d, conics, opacities, features, depths, radii, width, height,
                            background, median_features)
-    name = resolve_backend(backend, means2d.device)
+    name = resolve_backend(backend, means2d.device, features.dtype)
     if name == "cpu":
         return _load_cpu_backend().composite(
+            means2d, conics, opacities, features, depths, radii, int(width), int(height),
+            background=background, median_features=median_features)
+    if name == "cuda":
+        return _load_cuda_backend().composite(
             means2d, conics, opacities, features, depths, radii, int(width), int(height),
             background=background, median_features=median_features)
     from splat.composite_torch import composite_torch

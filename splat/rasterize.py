@@ -54,7 +54,9 @@ def render(
     """Render one view of the Gaussians ``params`` (keys means, quats, scales, opacities, sh0, shN).
 
     ``backend`` picks the projection and compositing code: "torch" (reference, any device), "cpu"
-    (C++ kernels, CPU tensors), "auto" ("cpu" when it builds and the tensors are on the CPU).
+    (C++ kernels, CPU tensors), "cuda" (CUDA compositing kernels, float32 CUDA tensors; the
+    projection stays torch), "auto" ("cpu" for CPU tensors, "cuda" for float32 CUDA tensors, when
+    it builds; else "torch").
 
     Returns a dict (H, W = camera.height, camera.width):
       rgb [H, W, 3]           colour, background [3] (default black) blended behind
@@ -70,8 +72,10 @@ def render(
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a splat.camera.Camera, got {type(camera).__name__}")
     cfg = ProjectionConfig(near=near, far=far, eps2d=eps2d, antialiased=antialiased)
-    backend = resolve_backend(backend, params["means"].device) if "means" in params else backend
-    proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg, backend=backend)
+    if "means" in params:
+        backend = resolve_backend(backend, params["means"].device, params["means"].dtype)
+    proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg,
+                             backend="cpu" if backend == "cpu" else "torch")  # no CUDA projection yet
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()  # for densification (accumulated screen-space gradients)

@@ -197,4 +197,4 @@ def test_bad_inputs_raise():
     with pytest.raises(ValueError, match="background"):
         composite(means, *ok.values(), 4, 4, background=torch.zeros(3))
     with pytest.raises(ValueError, match="backend"):
-        composite(means, *ok.values(), 4, 4, backend="cuda")
+        composite(means, *ok.values(), 4, 4, backend="metal")  # "cuda" is a backend now
