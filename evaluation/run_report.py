@@ -115,7 +115,7 @@ def _draw_sheet(sheet: dict, path: Path) -> Path:
     cols = ["GT", "render", "depth (m)", "normals"] + (["|depth - GT| (m)"] if has_err else [])
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(3.2 * len(cols), 2.5 * len(rows)), squeeze=False,
                              constrained_layout=True)
-    for r, row in zip(axes, rows):
+    for ri, (r, row) in enumerate(zip(axes, rows)):
         valid = row["depth"][row["depth"] > 0]
         vmax = float(np.percentile(valid, 99)) if valid.size else 1.0
         panels = [row["gt"], row["render"], None, (1 - row["normal"]) / 2]
@@ -130,7 +130,7 @@ def _draw_sheet(sheet: dict, path: Path) -> Path:
                     fig.colorbar(im, ax=ax, fraction=0.04)
             else:
                 ax.imshow(np.clip(panels[k], 0, 1))
-            if r is axes[0]:
+            if ri == 0:
                 ax.set_title(cols[k], fontsize=9)
         r[0].set_ylabel(row["name"], fontsize=8)
     return _save(fig, path)
