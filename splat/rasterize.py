@@ -54,9 +54,9 @@ def render(
     """Render one view of the Gaussians ``params`` (keys means, quats, scales, opacities, sh0, shN).
 
     ``backend`` picks the projection and compositing code: "torch" (reference, any device), "cpu"
-    (C++ kernels, CPU tensors), "cuda" (CUDA compositing kernels, float32 CUDA tensors; the
-    projection stays torch), "auto" ("cpu" for CPU tensors, "cuda" for float32 CUDA tensors, when
-    it builds; else "torch").
+    (C++ kernels, CPU tensors), "cuda" (CUDA projection and compositing kernels, float32 CUDA
+    tensors; the projection falls back to torch when the camera requires grad), "auto" ("cpu" for
+    CPU tensors, "cuda" for float32 CUDA tensors, when it builds; else "torch").
 
     Returns a dict (H, W = camera.height, camera.width):
       rgb [H, W, 3]           colour, background [3] (default black) blended behind
@@ -74,8 +74,13 @@ def render(
     cfg = ProjectionConfig(near=near, far=far, eps2d=eps2d, antialiased=antialiased)
     if "means" in params:
         backend = resolve_backend(backend, params["means"].device, params["means"].dtype)
-    proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg,
-                             backend="cpu" if backend == "cpu" else "torch")  # no CUDA projection yet
+    if backend == "cuda" and "means" in params:  # fused CUDA projection (torch where it cannot)
+        from splat.project_cuda import project_gaussians_cuda  # built with the compositing kernels
+
+        proj = project_gaussians_cuda(params, camera, sh_degree=sh_degree, config=cfg)
+    else:
+        proj = project_gaussians(params, camera, sh_degree=sh_degree, config=cfg,
+                                 backend="cpu" if backend == "cpu" else "torch")
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()  # for densification (accumulated screen-space gradients)
