@@ -128,7 +128,11 @@ class AnchoredPlane:
             lam[:2] = 1.0 / np.tan(prior_normal_std_rad) ** 2
         wr = w.copy()
         for _ in range(5 if huber else 1):  # Huber IRLS against anchors off the surface
-            Nmat = M.T @ (M * wr[:, None]) / sigma ** 2 + np.diag(lam) + 1e-12 * np.eye(3)
+            Nmat = M.T @ (M * wr[:, None]) / sigma ** 2 + np.diag(lam)
+            # ridge relative to the matrix's scale: an absolute 1e-12 vanished next to 1 / sigma^2 and
+            # collinear anchors without a prior normal raised LinAlgError (fuzz finding,
+            # tests/test_fuzz_geometry.py); now the free direction gets a huge std instead
+            Nmat = Nmat + 1e-12 * max(float(np.trace(Nmat)), 1.0) * np.eye(3)
             self.cov = np.linalg.inv(Nmat)
             self.theta = self.cov @ (M.T @ (wr * h)) / sigma ** 2
             self.residual = M @ self.theta - h  # [A] signed, metres

@@ -4,7 +4,8 @@ One function per term, named in its docstring; ``total_loss`` combines them for 
 Inputs follow the renderer (splat/rasterize.py ``render``): rgb [H, W, 3] in [0, 1], depth [H, W]
 z-depth in metres (0 = not covered), normal [H, W, 3] unit camera-frame normals facing the camera
 (OpenCV axes, zeros = undefined), alpha [H, W]. Priors: depth [H, W] metres (0 = invalid), normals
-[H, W, 3] unit camera frame (zeros = invalid). Intrinsics K [3, 3] use COLMAP pixel centres.
+[H, W, 3] unit camera frame (zeros = invalid); NaN / Inf prior pixels are invalid too (scene loading
+already sets them to 0; tests/test_fuzz_losses.py). Intrinsics K [3, 3] use COLMAP pixel centres.
 
 Every masked mean divides by max(count, 1), so an empty mask gives a 0 that is still connected to
 the graph (zero gradients, never NaN).
@@ -102,9 +103,12 @@ def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int,
     _check_shape("valid", valid, tuple(depth.shape))
     h, w = depth.shape
     corners, ph, pw = sample_patch_grid(h, w, patch_size, n_patches, generator, depth.device)
-    m = _gather_patches(valid, corners, ph, pw).to(depth.dtype).flatten(1)  # [M, P]
-    x = _gather_patches(depth, corners, ph, pw).flatten(1)
-    y = _gather_patches(prior.to(depth.dtype), corners, ph, pw).flatten(1)
+    mb = _gather_patches(valid, corners, ph, pw).flatten(1)  # [M, P] bool
+    m = mb.to(depth.dtype)
+    # invalid pixels are selected out, not multiplied by 0: a NaN / Inf there (a prior's invalid
+    # pixel) would leak into the sums as NaN (fuzz finding, tests/test_fuzz_losses.py)
+    x = torch.where(mb, _gather_patches(depth, corners, ph, pw).flatten(1), 0.0)
+    y = torch.where(mb, _gather_patches(prior.to(depth.dtype), corners, ph, pw).flatten(1), 0.0)
     n = m.sum(1)  # [M]
     n_safe = n.clamp(min=1)
     mx, my = (x * m).sum(1) / n_safe, (y * m).sum(1) / n_safe
@@ -131,7 +135,8 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
     _check_shape("normal", normal, (None, None, 3))
     _check_shape("prior", prior, tuple(normal.shape))
     _check_shape("valid", valid, tuple(normal.shape[:2]))
-    mask = valid & (normal.detach().abs().sum(-1) > 0) & (prior.abs().sum(-1) > 0)
+    # an Inf prior pixel passes the "not all zero" test: non-finite pixels are invalid (fuzz finding)
+    mask = valid & (normal.detach().abs().sum(-1) > 0) & (prior.abs().sum(-1) > 0) & torch.isfinite(prior).all(-1)
     return _masked_mean((normal - prior.to(normal.dtype)).abs().sum(-1), mask)
 
 
@@ -217,7 +222,7 @@ def anchored_depth_loss(depth: Tensor, anchor: Tensor, valid: Tensor, tolerance:
     if not tolerance >= 0.0:
         raise ValueError(f"tolerance must be >= 0, got {tolerance}")
     excess = torch.relu((depth - anchor.to(depth.dtype)).abs() - tolerance)
-    return _masked_mean(excess, valid & (anchor > 0))
+    return _masked_mean(excess, valid & (anchor > 0) & torch.isfinite(anchor))  # Inf > 0: invalid too
 
 
 @dataclass
@@ -292,7 +297,7 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
     terms: dict[str, tuple[float, Tensor]] = {"rgb": (1.0, rgb_loss(out["rgb"], gt_rgb, cfg.lambda_dssim))}
     if cfg.use_depth and depth_prior is not None:
         _check_shape("depth_prior", depth_prior, (h, w))
-        valid = covered & (depth_prior > 0) & (out["depth"] > 0)
+        valid = covered & (depth_prior > 0) & torch.isfinite(depth_prior) & (out["depth"] > 0)
         terms["depth"] = (cfg.lambda_depth, depth_pcc_loss(out["depth"], depth_prior, valid, cfg.patch_size,
                                                            cfg.n_patches, generator))
     if cfg.lambda_anchor > 0 and depth_anchor is not None:

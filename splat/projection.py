@@ -168,7 +168,10 @@ def depth_plane_and_normal(axes_cam: Tensor, log_scales: Tensor, p_cam: Tensor, 
     r0 = torch.stack([x / z, y / z, torch.ones_like(z)], -1)  # [N, 3]
     local = (axes_cam * r0[:, :, None]).sum(1)  # [N, 3] r0 in Gaussian axes (A^T r0)
     n = (axes_cam * (weights * local)[:, None, :]).sum(2)  # [N, 3] A (w * local)
-    n_hat = n * torch.rsqrt(torch.clamp((n * n).sum(-1, keepdim=True), min=1e-30))
+    # n / max(|n|, 1e-15), not n * rsqrt(max(|n|^2, 1e-30)): rsqrt's backward -x^-1.5 / 2 overflows
+    # float32 for |n|^2 < 2e-26 (the ray perpendicular to the smallest axis, the other axes far
+    # larger: n ~ 1e-13) and gave NaN gradients (fuzz finding, tests/test_fuzz_render.py)
+    n_hat = n / torch.clamp(torch.linalg.vector_norm(n, dim=-1, keepdim=True), min=1e-15)
     r0n = (r0 * n_hat).sum(-1)  # >= 0 in exact arithmetic
     r0_norm = torch.linalg.vector_norm(r0, dim=-1)
     denom = torch.maximum(r0n.abs(), min_cos * r0_norm) * torch.where(r0n < 0, -1.0, 1.0).to(r0n)

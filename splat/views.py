@@ -2,7 +2,8 @@
 
 Images are read once (scene scale, RGB) and kept as uint8 tensors (640x480: 0.9 MB a view); depth
 and normal priors, when the scene has them (``SCENE/priors/{depth,normal}/``), are kept as float16
-(metres for depth: 1 mm steps up to 2 m, 2 mm to 4 m, enough for a monocular prior's accuracy).
+(metres for depth: 1 mm steps up to 2 m, 2 mm to 4 m, enough for a monocular prior's accuracy;
+a depth map with values outside float16's normal range stays float32).
 
 With the per-image alignments of ``geocues extract`` (``geocues.depth_align.load_alignments``), a
 view also carries its depth prior *aligned to the cues* (metric, scale/shift/warp fitted to the line
@@ -25,6 +26,17 @@ from geocues.scene import Scene
 from splat.camera import Camera
 
 log = logging.getLogger(__name__)
+
+_F16_MAX, _F16_TINY = float(np.finfo(np.float16).max), float(np.finfo(np.float16).tiny)
+
+
+def _compact(a: np.ndarray) -> Tensor:
+    """float16 copy of a depth map when every non-zero |value| lies in float16's normal range, else
+    float32: a relative prior in other units (L_d takes "any positive scale") overflowed to Inf
+    above 65504 or lost its valid pixels to 0 below ~6e-8 (fuzz finding, tests/test_fuzz_losses.py)."""
+    nz = np.abs(a[a != 0])
+    fits = nz.size == 0 or (float(nz.max()) <= _F16_MAX and float(nz.min()) >= _F16_TINY)
+    return torch.from_numpy(a).half() if fits else torch.from_numpy(np.ascontiguousarray(a, np.float32))
 
 
 @dataclass
@@ -61,10 +73,10 @@ class ViewSet:
             self._rgb.append(torch.from_numpy(rgb))
             d = scene.depth_prior(i) if load_priors else None
             n = scene.normal_prior(i) if load_priors else None
-            self._depth.append(None if d is None else torch.from_numpy(d).half())
-            self._normal.append(None if n is None else torch.from_numpy(n).half())
+            self._depth.append(None if d is None else _compact(d))
+            self._normal.append(None if n is None else torch.from_numpy(n).half())  # unit: fits
             al = (alignments or {}).get(cam.name) if d is not None else None
-            self._anchor.append(None if al is None else torch.from_numpy(al.apply(d)).half())
+            self._anchor.append(None if al is None else _compact(al.apply(d)))
             self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)

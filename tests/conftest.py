@@ -32,3 +32,21 @@ def _seed_global_rngs():
     torch.manual_seed(0)
     np.random.seed(0)
     yield
+
+
+# ---- hypothesis profiles of the property-based fuzz suite (tests/test_fuzz_*.py, docs/testing.md)
+# "ci" (default): 100 examples per property, derandomized (the same examples on every run and
+# machine), no example database. "fuzz" (--hypothesis-profile=fuzz): 1000 random examples per
+# property; failures found are kept in .cache/hypothesis (ignored by git) and replayed first.
+try:
+    from hypothesis import HealthCheck, settings
+    from hypothesis.database import DirectoryBasedExampleDatabase
+except ImportError:  # the test extra is not installed: the fuzz files fail to import on their own
+    pass
+else:
+    settings.register_profile("ci", max_examples=100, deadline=None, derandomize=True, database=None,
+                              suppress_health_check=[HealthCheck.too_slow])
+    settings.register_profile("fuzz", max_examples=1000, deadline=None, derandomize=False,
+                              database=DirectoryBasedExampleDatabase(str(REPO / ".cache" / "hypothesis")),
+                              suppress_health_check=[HealthCheck.too_slow])
+    settings.load_profile("ci")

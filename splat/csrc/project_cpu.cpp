@@ -361,7 +361,10 @@ void backward_one(const Cam<T>& cam, int64_t i, const T* means, const T* quats, 
     sig_bar = g_op[i] * sq;
     const T ratio_bar = ratio >= T(1e-12) ? g_op[i] * sig * T(0.5) / sq : T(0);
     det_bar += ratio_bar / g.Dlp;
-    Dlp_bar += -ratio_bar * g.det / (g.Dlp * g.Dlp);
+    // d ratio / d Dlp = -(det / Dlp) / Dlp, in torch's order: det / Dlp^2 overflowed float32 (Dlp ~ 1e36
+    // for a huge Gaussian seen up close, log-scale 40) and gave inf / inf = NaN (fuzz finding,
+    // tests/test_fuzz_render.py)
+    Dlp_bar += -ratio_bar * (ratio / g.Dlp);
   }
   d_op[i] = sig_bar * sig * (T(1) - sig);
 
@@ -376,7 +379,7 @@ void backward_one(const Cam<T>& cam, int64_t i, const T* means, const T* quats, 
   c_bar += g0 / g.Dlp;
   b_bar += -g1 / g.Dlp;
   a_bar += g2 / g.Dlp;
-  Dlp_bar += -(g0 * (g.c + e) - g1 * g.b + g2 * (g.a + e)) / (g.Dlp * g.Dlp);
+  Dlp_bar += -(g0 * g.conic[0] + g1 * g.conic[1] + g2 * g.conic[2]) / g.Dlp;  // not / Dlp^2: overflow (above)
   det_bar += Dlp_bar;
   a_bar += e * Dlp_bar;
   c_bar += e * Dlp_bar;
