@@ -51,11 +51,20 @@ def atomic_dir(final: str | Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    replace_dir(tmp, final)
+
+
+def replace_dir(src: str | Path, final: str | Path) -> Path:
+    """Rename the finished folder ``src`` onto ``final``; an existing ``final`` is moved aside
+    first and removed after, so ``final`` holds one complete result at every moment but the two
+    renames."""
+    src, final = Path(src), Path(final)
     if final.exists():
         backup = final.with_name(f".{final.name}.old")
         shutil.rmtree(backup, ignore_errors=True)
         os.replace(final, backup)
-        os.replace(tmp, final)
+        os.replace(src, final)
         shutil.rmtree(backup, ignore_errors=True)
     else:
-        os.replace(tmp, final)
+        os.replace(src, final)
+    return final

@@ -134,18 +134,8 @@ def staging_dir(out_dir: Path) -> Path:
 
 
 def publish(work: Path, out_dir: Path) -> Path:
-    """Rename the finished ``work`` folder onto ``out_dir`` (a previous run there is moved aside
-    first and removed after), so OUT holds one complete run at every moment but the two renames."""
-    import os
-    import shutil
+    """Rename the finished ``work`` folder onto ``out_dir`` (geocues.atomic.replace_dir: a previous
+    run there is moved aside first and removed after)."""
+    from geocues.atomic import replace_dir
 
-    out_dir = Path(out_dir)
-    if out_dir.exists():
-        old = out_dir.with_name(out_dir.name + ".old")
-        shutil.rmtree(old, ignore_errors=True)
-        os.replace(out_dir, old)
-        os.replace(work, out_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(work, out_dir)
-    return out_dir
+    return replace_dir(work, out_dir)

@@ -110,21 +110,26 @@ def test_sigterm_to_the_command_leaves_a_checkpoint_and_one_line(scene):
     assert (out.with_name("cli.partial") / "ckpt" / "last.pt").is_file()
 
 
-def test_an_injected_nan_gradient_is_rolled_back_and_the_run_ends_finite(scene, monkeypatch):
+def _poison_render(monkeypatch, at_call: int = 30) -> None:
+    """The ``at_call``-th render carries a NaN into the loss and every gradient."""
     import splat.train as train
 
-    base, root, cues = scene
     real = train.render_view
     calls = {"n": 0}
 
     def poisoned(params, view, sh_degree, cfg):
         out = real(params, view, sh_degree, cfg)
         calls["n"] += 1
-        if calls["n"] == 30:  # one step's render carries a NaN into the loss and every gradient
-            out = {**out, "rgb": out["rgb"] * torch.tensor(float("nan"))}
-        return out
+        return {**out, "rgb": out["rgb"] * torch.tensor(float("nan"))} if calls["n"] == at_call else out
 
     monkeypatch.setattr(train, "render_view", poisoned)
+
+
+def test_an_injected_nan_gradient_is_rolled_back_and_the_run_ends_finite(scene, monkeypatch):
+    import splat.train as train
+
+    base, root, cues = scene
+    _poison_render(monkeypatch)
     out = train.run(_cfg(), root, cues, base / "nan")
     report = json.loads((out / "report.json").read_text())
     assert len(report["guard_events"]) == 1
@@ -141,15 +146,7 @@ def test_without_the_guard_the_same_fault_poisons_the_model(scene, monkeypatch):
     from splat.guard import GuardConfig
 
     base, root, cues = scene
-    real = train.render_view
-    calls = {"n": 0}
-
-    def poisoned(params, view, sh_degree, cfg):
-        out = real(params, view, sh_degree, cfg)
-        calls["n"] += 1
-        return {**out, "rgb": out["rgb"] * torch.tensor(float("nan"))} if calls["n"] == 30 else out
-
-    monkeypatch.setattr(train, "render_view", poisoned)
+    _poison_render(monkeypatch)
     with pytest.raises(Exception):
         # non-finite values: the report (allow_nan=False) or the PLY refuses them
         out = train.run(_cfg(guard=GuardConfig(enabled=False)), root, cues, base / "nan_off")
