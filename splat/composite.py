@@ -57,10 +57,9 @@ log = logging.getLogger(__name__)
 
 BACKENDS = ("torch", "cpu", "cuda", "auto")
 
-_cpu_module = None  # the imported splat.composite_cpu module, once it has been tried
-_cpu_error: str | None = None  # why it failed to import/build, if it did
-_cuda_module = None  # the imported splat.composite_cuda module, once it has been tried
-_cuda_error: str | None = None  # why it failed to import/build (or "no CUDA device"), if it did
+# name -> the imported backend module (None: not tried yet or failed), and why it failed
+_modules: dict[str, object | None] = {"cpu": None, "cuda": None}
+_errors: dict[str, str | None] = {"cpu": None, "cuda": None}
 
 
 class CompositeOut(NamedTuple):
@@ -72,45 +71,32 @@ class CompositeOut(NamedTuple):
     n_contrib: Tensor  # [H, W] int32 number of Gaussians blended at the pixel
 
 
-def _load_cpu_backend():
-    """Import (and thereby build) the C++ backend once; return the module or None, logging why."""
-    global _cpu_module, _cpu_error
-    if _cpu_module is None and _cpu_error is None:
-        try:
-            from splat import composite_cpu  # lazy: building takes about a minute the first time
+def _load_backend(name: str):
+    """Import (and thereby build) the "cpu" or "cuda" backend module once; the module or None,
+    logging why. The CUDA one is never imported (nor built) on a machine without a CUDA device."""
+    if _modules[name] is None and _errors[name] is None:
+        if name == "cuda" and not torch.cuda.is_available():
+            _errors[name] = "no CUDA device"
+            return None
+        try:  # lazy: building takes about a minute the first time
+            import importlib
 
-            _cpu_module = composite_cpu
+            _modules[name] = importlib.import_module(f"splat.composite_{name}")
         except Exception as exc:  # noqa: BLE001 - any build/import failure means "fall back"
-            _cpu_error = f"{type(exc).__name__}: {exc}"
-            log.warning("C++ compositing backend unavailable, using torch: %s", _cpu_error)
-    return _cpu_module
-
-
-def _load_cuda_backend():
-    """Import (and thereby build) the CUDA backend once when a GPU is present; the module or None."""
-    global _cuda_module, _cuda_error
-    if _cuda_module is None and _cuda_error is None:
-        if not torch.cuda.is_available():
-            _cuda_error = "no CUDA device"  # never import (or build) it on CPU-only machines
-        else:
-            try:
-                from splat import composite_cuda  # lazy: building takes about a minute the first time
-
-                _cuda_module = composite_cuda
-            except Exception as exc:  # noqa: BLE001 - any build/import failure means "fall back"
-                _cuda_error = f"{type(exc).__name__}: {exc}"
-                log.warning("CUDA compositing backend unavailable, using torch: %s", _cuda_error)
-    return _cuda_module
+            _errors[name] = f"{type(exc).__name__}: {exc}"
+            log.warning("%s compositing backend unavailable, using torch: %s",
+                        {"cpu": "C++", "cuda": "CUDA"}[name], _errors[name])
+    return _modules[name]
 
 
 def cpu_backend_available() -> bool:
     """True when :mod:`splat.composite_cpu` imports (building it if needed)."""
-    return _load_cpu_backend() is not None
+    return _load_backend("cpu") is not None
 
 
 def cuda_backend_available() -> bool:
     """True when there is a CUDA device and :mod:`splat.composite_cuda` imports (building it if needed)."""
-    return _load_cuda_backend() is not None
+    return _load_backend("cuda") is not None
 
 
 def available_backends() -> list[str]:
@@ -133,9 +119,9 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | Non
             if backend == "cuda":
                 log.warning("backend 'cuda' takes float32 only, got %s; using torch", dtype)
             return "torch"
-        if _load_cuda_backend() is None:
+        if _load_backend("cuda") is None:
             if backend == "cuda":
-                log.warning("backend 'cuda' requested but unavailable (%s); using torch", _cuda_error)
+                log.warning("backend 'cuda' requested but unavailable (%s); using torch", _errors["cuda"])
             return "torch"
         return "cuda"
     if backend == "cuda":
@@ -145,9 +131,9 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | Non
         if backend == "cpu":
             log.warning("backend 'cpu' needs CPU tensors, got %s; using torch", device)
         return "torch"
-    if _load_cpu_backend() is None:
+    if _load_backend("cpu") is None:
         if backend == "cpu":
-            log.warning("backend 'cpu' requested but unavailable (%s); using torch", _cpu_error)
+            log.warning("backend 'cpu' requested but unavailable (%s); using torch", _errors["cpu"])
         return "torch"
     return "cpu"
 
@@ -210,11 +196,11 @@ def composite(
                            background, median_features)
     name = resolve_backend(backend, means2d.device, features.dtype)
     if name == "cpu":
-        return _load_cpu_backend().composite(
+        return _load_backend("cpu").composite(
             means2d, conics, opacities, features, depths, radii, int(width), int(height),
             background=background, median_features=median_features)
     if name == "cuda":
-        return _load_cuda_backend().composite(
+        return _load_backend("cuda").composite(
             means2d, conics, opacities, features, depths, radii, int(width), int(height),
             background=background, median_features=median_features)
     from splat.composite_torch import composite_torch
