@@ -29,6 +29,7 @@ from typing import Any
 
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path
+from splat.checkpoint import TrainingInterrupted
 from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
 log = logging.getLogger(__name__)
@@ -271,7 +272,11 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
         write_reports(summary(), out_dir)
 
     write_reports(summary(), out_dir)
-    _execute(cfg, todo, on_done)
+    try:
+        _execute(cfg, todo, on_done)
+    except TrainingInterrupted as exc:  # the row's own checkpoint is not reused: the row reruns
+        raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {len(results)} row runs are finished in "
+                                  f"{out_dir}: run the same command again to run the rest") from None
     write_reports(summary(), out_dir)
     return out_dir
 
