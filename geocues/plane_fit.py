@@ -11,27 +11,26 @@ import numpy as np
 
 def fit_plane_ransac(points: np.ndarray, dist: float, seed: int = 0, iters: int = 500,
                      max_points: int = 3000) -> tuple[np.ndarray, float, np.ndarray]:
-    """RANSAC plane n·x + d = 0 (‖n‖ = 1) through ``points`` [N, 3], N >= 3, via Open3D
-    ``segment_plane`` on at most ``max_points`` random points (speed); inliers are then counted on
-    all points. Returns (n [3], d, inlier mask [N])."""
-    import open3d as o3d
+    """RANSAC plane n·x + d = 0 (‖n‖ = 1) through ``points`` [N, 3], N >= 3, fitted on at most
+    ``max_points`` random points (speed) and refined by least squares on its inliers; inliers are
+    then counted on all points. Returns (n [3], d, inlier mask [N]).
 
+    The same seed gives the same plane: Open3D's ``segment_plane`` scores its hypotheses on several
+    threads and, seeded or not, returned a different plane on 4 of 20 identical calls (Open3D
+    0.20), which made ``geocues extract`` give different PLANE cue counts run to run. This is the
+    same RANSAC, vectorised in numpy with one seeded generator (:func:`fit_plane_groups` with
+    equal weights)."""
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
         raise ValueError(f"need [N >= 3, 3] points, got shape {pts.shape}")
+    rng = np.random.default_rng(seed)
     sub = pts
     if len(pts) > max_points:
-        sub = pts[np.random.default_rng(seed).choice(len(pts), size=max_points, replace=False)]
-    o3d.utility.random.seed(seed)
-    pcd = o3d.geometry.PointCloud(points=o3d.utility.Vector3dVector(sub))
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        model, _ = pcd.segment_plane(distance_threshold=dist, ransac_n=3, num_iterations=iters)
-    model = np.asarray(model, np.float64).ravel()
-    norm = np.linalg.norm(model[:3])
-    if norm < 1e-12 or not np.all(np.isfinite(model)):
+        sub = pts[rng.choice(len(pts), size=max_points, replace=False)]
+    n, d, _, _ = fit_plane_groups(sub, np.arange(len(sub)), dist, rng, iters=iters)
+    if not (np.all(np.isfinite(n)) and np.isfinite(d)):
         return np.array([0.0, 0.0, 1.0]), 0.0, np.zeros(len(pts), bool)
-    n, d = model[:3] / norm, float(model[3] / norm)
-    return n, d, np.abs(pts @ n + d) < dist
+    return n, float(d), np.abs(pts @ n + d) < dist
 
 
 def group_weights(groups: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@
 Two modes per image (details and the reasons for each choice in docs/geocues.md):
 
 * **with a depth prior** (:func:`plane_cues_with_prior`): back-project the region's pixels with the
-  aligned prior, split them into planes by sequential RANSAC (Open3D ``segment_plane``), refit each
+  aligned prior, split them into planes by sequential seeded RANSAC (:func:`~geocues.plane_fit.fit_plane_ransac`), refit each
   plane to the nearby line / SfM cues with the prior normal as a pseudo-observation
   (:class:`~geocues.plane_fit.AnchoredPlane`), keep it if those cues agree with it, and cut the
   pixels' rays with it;
