@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geocues.atomic import atomic_path
+from geocues.atomic import atomic_path, check_output_dir
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +143,7 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     report_path = run_dir / "report.json"
     if not report_path.is_file():
         raise FileNotFoundError(f"{run_dir} holds no report.json (not a finished `splat train` folder)")
+    check_output_dir(run_dir)  # the report is written into RUN
     report = json.loads(report_path.read_text())
     scene_dir = Path(scene) if scene is not None else Path(report["scene"])
     log_rows = _read_log(run_dir)

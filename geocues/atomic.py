@@ -68,3 +68,30 @@ def replace_dir(src: str | Path, final: str | Path) -> Path:
     else:
         os.replace(src, final)
     return final
+
+
+def check_output_dir(path: str | Path) -> Path:
+    """Fail early, before any work, when the output folder ``path`` cannot be written: it is a file,
+    or the folder (or, where it does not exist yet, its nearest existing parent, where the staging
+    sibling is made) refuses a new file (permissions, a read-only file system). The check writes and
+    removes a probe file, so it holds for root without CAP_DAC_OVERRIDE and for ACLs as well."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"the output path {path} is a file, not a folder")
+    probes = [path] if path.is_dir() else []
+    parent = path.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"cannot make the output folder {path}: {parent} is a file, not a folder")
+    probes.append(parent)
+    for folder in probes:
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".write-probe.", dir=folder)
+        except OSError as exc:
+            why = exc.strerror.lower() if exc.strerror else type(exc).__name__
+            raise PermissionError(f"cannot write the output folder {path}: {folder} is not writable "
+                                  f"({why})") from exc
+        os.close(fd)
+        os.unlink(probe)
+    return path

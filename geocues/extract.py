@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from geocues.atomic import atomic_path
+from geocues.atomic import atomic_path, check_output_dir
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
 from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
 from geocues.lines import LineConfig, LineCues
@@ -178,6 +178,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     if cfg.downscale <= 0:
         raise ValueError(f"downscale must be > 0, got {cfg.downscale}")
     cfg.line.validate()
+    check_output_dir(out_dir)
     # the scene's content, not only its path: a scene regenerated in place is extracted again
     key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")))
     report_path = out_dir / "report.json"

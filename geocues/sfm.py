@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from geocues import sfm_steps as U
-from geocues.atomic import atomic_dir, atomic_path
+from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir
 from geocues.scene import IMAGE_EXTS
 
@@ -193,6 +193,7 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
     root = scene_dir if in_place else Path(out_dir)
     if in_place and not os.access(scene_dir, os.W_OK):
         raise ValueError(f"{scene_dir} is not writable: pass an output folder (-o OUT) to write a new scene")
+    check_output_dir(root)
     log.info("sfm %s -> %s (mode %s) config %s", scene_dir, root, mode, asdict(cfg))
 
     U.quiet_pycolmap()

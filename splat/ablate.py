@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from evaluation.mesh_metrics import MeshMetricsConfig
-from geocues.atomic import atomic_path
+from geocues.atomic import atomic_path, check_output_dir
 from splat.checkpoint import TrainingInterrupted
 from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
@@ -239,6 +239,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
 
     scene_dir, cues, out_dir = Path(scene_dir).resolve(), Path(cues).resolve(), Path(out_dir).resolve()
     train_args = list(train_args or [])
+    check_output_dir(out_dir)
     specs, na = plan(cfg, scene_dir, cues, out_dir, train_args)
     out_dir.mkdir(parents=True, exist_ok=True)
     from splat.train import TrainConfig

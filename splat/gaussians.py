@@ -220,7 +220,8 @@ def load_ply(path: str | Path, sh_degree: int | None = None) -> tuple[dict[str, 
     try:
         ply = PlyData.read(str(path))
     except Exception as e:  # plyfile raises several types for malformed files
-        raise ValueError(f"{path} is not a readable PLY file: {e}") from e
+        what = "is truncated or damaged" if "end-of-file" in str(e) else "is not a readable PLY file"
+        raise ValueError(f"{path} {what}: {e}") from e
     if "vertex" not in [el.name for el in ply.elements]:
         raise ValueError(f"{path} has no 'vertex' element (elements: {[el.name for el in ply.elements]})")
     v = ply["vertex"].data
@@ -253,6 +254,10 @@ def load_ply(path: str | Path, sh_degree: int | None = None) -> tuple[dict[str, 
         "sh0": torch.from_numpy(col("f_dc_0", "f_dc_1", "f_dc_2")).reshape(n, 1, 3),
         "shN": torch.from_numpy(np.ascontiguousarray(shn)),
     }
+    bad = {k: int((~torch.isfinite(t)).reshape(n, -1).any(1).sum()) for k, t in params.items() if n}
+    if any(bad.values()):
+        raise ValueError(f"{path} holds non-finite values (Gaussians per parameter: "
+                         + ", ".join(f"{k} {c}" for k, c in bad.items() if c) + ")")
     side = cue_type_path(path)
     if side.is_file():
         types, source = np.load(side), side

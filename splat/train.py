@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from geocues.atomic import atomic_path
+from geocues.atomic import atomic_path, check_output_dir
 from geocues.cue_io import CueCloud, read_cues_ply
 from geocues.depth_align import load_alignments
 from geocues.scene import Scene
@@ -281,8 +281,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     work = staging_dir(out_dir)
     if (out_dir / "report.json").is_file() and not overwrite:
         raise ValueError(f"{out_dir} holds a finished run; pass --overwrite to replace it")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValueError(f"the output path {out_dir} is a file, not a folder")
+    check_output_dir(out_dir)  # a file, or a folder that refuses files: one line, before any work
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)

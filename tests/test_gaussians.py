@@ -174,3 +174,24 @@ def test_load_ply_errors(tmp_path):
     write_cues_ply(tmp_path / "cues.ply", mixed_cloud())
     with pytest.raises(ValueError, match="not a 3DGS Gaussian PLY"):
         load_ply(tmp_path / "cues.ply")
+
+
+def test_load_ply_refuses_truncated_and_non_finite_files(tmp_path):
+    """Bad-input table rows: a Gaussian PLY cut in its data or header, or with NaN values, is one
+    ValueError naming the file (plyfile reads what it can otherwise; NaN would train or render NaN)."""
+    n = 10
+    g = torch.Generator().manual_seed(0)
+    params = {"means": torch.randn(n, 3, generator=g), "quats": torch.randn(n, 4, generator=g),
+              "scales": torch.randn(n, 3, generator=g), "opacities": torch.randn(n, generator=g),
+              "sh0": torch.randn(n, 1, 3, generator=g), "shN": torch.zeros(n, 15, 3)}
+    data = save_ply(tmp_path / "g.ply", params).read_bytes()
+    header_end = data.index(b"end_header\n") + len(b"end_header\n")
+    for name, blob in (("data", data[:-300]), ("header", data[:header_end - 30])):
+        (tmp_path / f"cut_{name}.ply").write_bytes(blob)
+        with pytest.raises(ValueError, match=rf"cut_{name}.ply is truncated or damaged"):
+            load_ply(tmp_path / f"cut_{name}.ply")
+    bad = bytearray(data)
+    bad[header_end + 4 * 62 + 4:header_end + 4 * 62 + 8] = np.float32(np.nan).tobytes()  # row 1, y
+    (tmp_path / "nan.ply").write_bytes(bytes(bad))
+    with pytest.raises(ValueError, match=r"nan.ply holds non-finite values \(Gaussians per parameter: means 1\)"):
+        load_ply(tmp_path / "nan.ply")
