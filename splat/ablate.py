@@ -83,8 +83,21 @@ def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, 
                                checkpoints=tuple(checkpoints), mesh=True, mesh_at_checkpoints=True)
 
 
+# TrainConfig fields that never change what a run computes (when and whether it checkpoints, and the
+# numerics guard, which only acts on a non-finite or diverging step and then stops or rolls back a
+# run the report marks): left out of a row's key, so that adding one does not re-run finished rows.
+OPERATIONAL_FIELDS = ("save_every", "keep_ckpt", "guard")
+
+
 def config_key(payload: dict) -> str:
     return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def row_key(spec: dict) -> str:
+    """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`."""
+    payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics", "train_config")}
+    payload["train_config"] = {k: v for k, v in payload["train_config"].items() if k not in OPERATIONAL_FIELDS}
+    return config_key(payload)
 
 
 def _score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsConfig) -> dict:
@@ -105,7 +118,13 @@ def run_row(spec: dict) -> dict:
     from splat.train import TrainConfig, run as train_run
 
     out = Path(spec["out"])
-    if out.exists():  # an unfinished or outdated run of this row: start it again
+    if (out / "score.json").is_file():  # a finished row of another configuration: kept aside, not lost
+        aside = out.with_name(out.name + ".outdated")
+        shutil.rmtree(aside, ignore_errors=True)
+        out.rename(aside)
+        log.warning("%s holds a finished row of another configuration: moved to %s, running it again",
+                    out, aside)
+    elif out.exists():  # an unfinished run of this row: start it again
         shutil.rmtree(out)
     out.mkdir(parents=True)
     cfg = config_from_dict(TrainConfig, spec["train_config"])
@@ -188,7 +207,7 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
             spec = {"row": row, "seed": s, "scene": str(scene_dir), "cues": str(cues),
                     "gt": str(cfg.gt) if cfg.gt else None, "metrics": asdict(cfg.metrics),
                     "train_config": asdict(tcfg), "out": str(out_dir / "rows" / f"{row}_s{s}")}
-            spec["key"] = config_key({k: spec[k] for k in ("scene", "cues", "gt", "metrics", "train_config")})
+            spec["key"] = row_key(spec)
             specs.append(spec)
     return specs, na
 

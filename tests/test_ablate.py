@@ -142,6 +142,13 @@ def test_a_killed_ablation_resumes_and_skips_finished_rows(tiny, ablation, monke
     run(AblateConfig(rows=("full",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
         tiny[1], tiny[2], out, TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
     assert ran == ["full"]
+    outdated = json.loads((out / "rows" / "full_s0.outdated" / "score.json").read_text())  # kept aside
+    assert outdated["key"] != json.loads((out / "rows" / "full_s0" / "score.json").read_text())["key"]
+    # options that never change what a run computes (checkpointing, the guard) are not a new row
+    ran.clear()
+    run(AblateConfig(rows=("full",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
+        tiny[1], tiny[2], out, TRAIN_ARGS + ["--loss.lambda-nc", "0.2", "--save-every", "7", "--guard.max-rollbacks", "2"])
+    assert ran == []
 
 
 def test_seeds_give_mean_and_spread(tiny):
