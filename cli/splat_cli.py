@@ -12,6 +12,7 @@ from cli._dispatch import dispatch
 from splat.ablate import AblateConfig
 from splat.bench import BenchConfig
 from splat.presets import PRESETS, load_config_file, preset_config
+from splat.render_run import RenderConfig
 from splat.train import TrainConfig
 
 
@@ -137,8 +138,28 @@ _ablate_args.__doc__ = ablate.__doc__
 ablate.run_argv = ablate_main
 
 
+def render(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
+           out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+           overwrite: bool = False,
+           cfg: Annotated[RenderConfig, tyro.conf.arg(name="")] = RenderConfig()) -> int:
+    """Render a finished run's views: RGB, colour-mapped depth, normals and alpha, with GT and priors
+    beside them in OUT/panels/, and with --video an MP4 along the camera path.
+
+    Args:
+        run: a finished `splat train` folder.
+        out: output folder (default RUN/renders).
+        overwrite: replace earlier renders in OUT.
+        cfg: what to render.
+    """
+    from splat.render_run import run as render_run
+
+    done = render_run(cfg, run, out, overwrite=overwrite)
+    print(f"wrote {done}/panels/" + (f" and {done}/video.mp4" if cfg.video else ""))
+    return 0
+
+
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate}
+COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate, "render": render}
 
 
 def main(argv: list[str] | None = None) -> int:

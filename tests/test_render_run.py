@@ -1,0 +1,108 @@
+"""`splat render`: decodable PNGs of every chosen view at the camera's size, panels with GT and priors,
+an MP4 with the expected frame count, camera paths and files, and the errors a user meets."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from cues_synth import make_room_scene
+from geocues.scene import Scene
+from splat.export import camera_to_json
+from splat.gaussians import save_ply
+from splat.render_run import RenderConfig, ViewCam, camera_path, cameras_from_json, run
+
+W, H = 64, 48
+
+
+@pytest.fixture(scope="module")
+def fake_run(tmp_path_factory):
+    """A finished-run folder: Gaussians spread over the room's SfM points, report.json naming the scene."""
+    base = tmp_path_factory.mktemp("render")
+    root = make_room_scene(base / "room", n_views=8, w=W, h=H, priors="all")
+    scene = Scene.load(root, test_every=4, check_priors=False)
+    pts = torch.as_tensor(scene.points.xyz, dtype=torch.float32)
+    n = len(pts)
+    g = torch.Generator().manual_seed(0)
+    params = {"means": pts, "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+              "scales": torch.full((n, 3), -2.5), "opacities": torch.full((n,), 2.0),
+              "sh0": torch.rand(n, 1, 3, generator=g), "shN": torch.zeros(n, 0, 3)}
+    run_dir = base / "run"
+    save_ply(run_dir / "point_cloud.ply", params)
+    (run_dir / "report.json").write_text(json.dumps({"scene": str(root), "config": {
+        "downscale": 1.0, "test_every": 4, "sh_degree": 0, "background": [0.0, 0.0, 0.0]}}))
+    return run_dir, scene
+
+
+def test_views_panels_and_video(fake_run, capsys):
+    from cli.splat_cli import main
+
+    run_dir, scene = fake_run
+    assert main(["render", str(run_dir), "--video", "--frames", "10", "--fps", "5"]) == 0
+    out = run_dir / "renders"
+    names = [p.stem for p in sorted((out / "rgb").glob("*.png"))]
+    assert len(names) == len(scene.test_indices) == 2
+    for sub in ("rgb", "depth", "normal", "alpha"):
+        for name in names:
+            img = iio.imread(out / sub / f"{name}.png")
+            assert img.shape == (H, W, 3) and img.dtype == np.uint8, (sub, img.shape)
+    # GT | render | depth | normals | alpha, then GT depth, depth prior, normal prior where they exist
+    i = scene.test_indices[0]
+    extra = [(scene.root / "gt" / "depth").is_dir(), scene.depth_prior_path(i) is not None,
+             scene.normal_prior_path(i) is not None]
+    assert extra[1], "the fixture scene has depth priors"
+    panel = iio.imread(out / "panels" / f"{names[0]}.png")
+    assert panel.shape == (H, W * (5 + sum(extra)), 3)
+    assert iio.imread(out / "rgb" / f"{names[0]}.png").std() > 5  # the Gaussians are in view
+    frames = iio.imread(out / "video.mp4")  # every frame, decoded by ffmpeg
+    assert frames.shape == (10, H, 2 * W, 3)
+    assert json.loads((out / "views.json").read_text())["video_frames"] == 10
+    # a second run into the same folder needs --overwrite; the renders stay
+    assert main(["render", str(run_dir)]) == 1
+    assert "pass --overwrite" in capsys.readouterr().err
+    assert (out / "video.mp4").is_file()
+
+
+def test_views_from_a_cameras_json(fake_run, tmp_path):
+    run_dir, scene = fake_run
+    cams = [camera_to_json(i, scene.cameras[i]) for i in (0, 3, 5)]
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps(cams))
+    parsed = cameras_from_json(path)
+    for c, i in zip(parsed, (0, 3, 5)):
+        np.testing.assert_allclose(c.R, scene.cameras[i].R, atol=1e-9)
+        np.testing.assert_allclose(c.t, scene.cameras[i].t, atol=1e-9)
+        assert (c.width, c.height) == (W, H)
+    out = run(RenderConfig(views=str(path)), run_dir, tmp_path / "out")
+    assert len(list((out / "rgb").glob("*.png"))) == 3
+    assert iio.imread(out / "panels" / f"{cams[0]['img_name']}.png").shape == (H, 4 * W, 3)  # no GT: 4 tiles
+
+
+def test_camera_path_hits_its_keys_and_stays_a_rotation():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    keys = [ViewCam(f"k{i}", K, Rotation.random(random_state=i).as_matrix(), rng.normal(size=3), W, H)
+            for i in range(3)]
+    path = camera_path(keys, 9)  # keys at frames 0, 4, 8
+    for k, f in ((0, 0), (1, 4), (2, 8)):
+        np.testing.assert_allclose(path[f].R, keys[k].R, atol=1e-9)
+        np.testing.assert_allclose(-path[f].R.T @ path[f].t, -keys[k].R.T @ keys[k].t, atol=1e-9)
+    for v in path:
+        np.testing.assert_allclose(v.R @ v.R.T, np.eye(3), atol=1e-9)
+
+
+def test_bad_inputs_are_named(fake_run, tmp_path):
+    run_dir, _ = fake_run
+    with pytest.raises(ValueError, match="--views must be"):
+        run(RenderConfig(views="every"), run_dir, tmp_path / "a")
+    with pytest.raises(FileNotFoundError, match="holds no report.json"):
+        run(RenderConfig(), tmp_path, tmp_path / "b")
+    (tmp_path / "bad.json").write_text(json.dumps([{"position": [0, 0, 0]}]))
+    with pytest.raises(ValueError, match=r"bad.json: camera 0 lacks"):
+        cameras_from_json(tmp_path / "bad.json")
