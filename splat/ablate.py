@@ -94,9 +94,11 @@ def config_key(payload: dict) -> str:
 
 
 def row_key(spec: dict) -> str:
-    """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`."""
+    """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`
+    and without options left unset (None), so that an option added later, unset, keeps the key."""
     payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics", "train_config")}
-    payload["train_config"] = {k: v for k, v in payload["train_config"].items() if k not in OPERATIONAL_FIELDS}
+    payload["train_config"] = {k: v for k, v in payload["train_config"].items()
+                               if k not in OPERATIONAL_FIELDS and v is not None}
     return config_key(payload)
 
 

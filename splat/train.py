@@ -38,7 +38,7 @@ from geocues.types import CueType
 from splat import checkpoint
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
-from splat.gaussians import InitConfig, init_from_cues, save_ply, scene_scale
+from splat.gaussians import InitConfig, init_from_cues, load_ply, save_ply, scene_scale
 from splat.guard import GuardConfig, NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
 from splat.mesh import TSDFConfig, clean_mesh, fuse_views, write_mesh
@@ -86,6 +86,9 @@ class TrainConfig:
     init_from: str = "cues"
     """Seed the Gaussians from "cues" (CUES/cues.ply, typed) or "sfm" (the scene's own COLMAP points,
     all SFM-typed, no outlier removal: the 3DGS / RaDe-GS baseline)."""
+    init_ply: str | None = None
+    """Start from the Gaussians of this PLY instead (this project's, the 3DGS reference's or gsplat's
+    export; cue types from its cue_type.npy sidecar, else all SFM). Overrides init_from."""
     device: str = "auto"
     """"cpu", "cuda" or "auto" (CUDA when available)."""
     backend: str = "auto"
@@ -263,6 +266,24 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
 
 
+def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict[str, Tensor], Tensor, np.ndarray]:
+    """(params, cue_type [N], seed points [N, 3]) to start from: the Gaussians of ``cfg.init_ply``, or
+    Gaussians initialised from :func:`load_init_cloud` (paper §4.2)."""
+    if cfg.init_ply is None:
+        cloud = load_init_cloud(cfg, scene, cues_ply)
+        params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
+        return params, cue_type, cloud.xyz
+    params, cue_type = load_ply(cfg.init_ply, sh_degree=cfg.sh_degree)
+    n = len(params["means"])
+    if n == 0:
+        raise ValueError(f"--init-ply {cfg.init_ply} holds no Gaussians")
+    if cue_type is None:
+        log.info("--init-ply %s has no cue types (no cue_type.npy beside it): all %d Gaussians are SFM", cfg.init_ply, n)
+        cue_type = torch.full((n,), CueType.SFM.value, dtype=torch.int64)
+    log.info("starting from the %d Gaussians of %s", n, cfg.init_ply)
+    return params, cue_type, params["means"].numpy().astype(np.float64)
+
+
 def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, resume: bool = False) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
@@ -316,9 +337,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
-    cloud = load_init_cloud(cfg, scene, cues_ply)
-    scale = scene_scale(train_views.camera_centers(), cloud.xyz)
-    init_params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
+    init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply)
+    scale = scene_scale(train_views.camera_centers(), seeds)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
     optimizers = make_optimizers(params, cfg.lr, scale)
     strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters))
@@ -326,7 +346,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     state = strategy.initialize_state(scale)
     state["cue_type"] = cue_type.to(device)
     strategy.check_sanity(params, optimizers)
-    guard = NumericsGuard(cfg.guard, torch.as_tensor(np.median(cloud.xyz, 0), dtype=torch.float32, device=device),
+    guard = NumericsGuard(cfg.guard, torch.as_tensor(np.median(seeds, 0), dtype=torch.float32, device=device),
                           scale)
     timings["load_and_init_s"] = time.perf_counter() - t_start
     log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, device %s",

@@ -163,3 +163,32 @@ def test_anchored_depth_pulls_an_offset_surface_back(tmp_path):
     msg = f"PLANE Gaussians to the surface: {without:.4f} m without L_a, {with_anchor:.4f} m with"
     assert without > 0.06, msg  # the offset survives training without L_a (measured 0.073)
     assert with_anchor < 0.5 * without, msg  # measured 0.027
+
+
+def test_init_ply_continues_from_a_runs_gaussians(trained, tmp_path):
+    """`--init-ply`: start from a PLY's Gaussians (types from its sidecar; none: all SFM)."""
+    import shutil
+    from dataclasses import replace
+
+    from splat.train import TrainConfig, run
+
+    out, _ = trained
+    report = json.loads((out / "report.json").read_text())
+    params, cue_type = load_ply(out / "point_cloud.ply")
+    cfg = TrainConfig(iters=10, checkpoints=(1.0,), log_every=5, sh_degree=1, mesh=False,
+                      init_ply=str(out / "point_cloud.ply"))
+    again = json.loads((run(cfg, report["scene"], report["cues"], tmp_path / "again") / "report.json").read_text())
+    assert again["gaussians_init"] == report["gaussians_final"]
+    # 10 more iterations from a trained model keep its quality; a fresh init after 10 is far worse
+    assert again["test_metrics"]["psnr"] > report["test_metrics"]["psnr"] - 1.0
+    fresh = json.loads((run(replace(cfg, init_ply=None), report["scene"], report["cues"], tmp_path / "fresh")
+                        / "report.json").read_text())
+    assert fresh["test_metrics"]["psnr"] < again["test_metrics"]["psnr"] - 2.0, (fresh["test_metrics"], again["test_metrics"])
+    bare = tmp_path / "bare.ply"  # a PLY from another tool: no cue_type sidecar
+    shutil.copy(out / "point_cloud.ply", bare)
+    cfg = TrainConfig(iters=2, checkpoints=(1.0,), sh_degree=1, mesh=False, init_ply=str(bare))
+    typed = json.loads((run(cfg, report["scene"], report["cues"], tmp_path / "bare") / "report.json").read_text())
+    assert typed["gaussians_init"] == {"SFM": len(params["means"]), "LINE": 0, "PLANE": 0}
+    with pytest.raises(FileNotFoundError, match="no Gaussian PLY"):
+        run(TrainConfig(iters=2, init_ply=str(tmp_path / "missing.ply")), report["scene"], report["cues"],
+            tmp_path / "missing")
