@@ -80,8 +80,8 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
               f"mean reprojection error {pts.error.mean():.3f} px")
     else:
         print("points     0  (run `geocues sfm` to triangulate them)")
-    print(f"priors     depth {n_depth}/{len(s)}  normal {n_normal}/{len(s)}"
-          + (f" ({s.normal_axes} axes)" if n_normal else ""))
+    print(f"priors     depth {n_depth}/{len(s)}" + (f" ({s.depth_kind})" if n_depth else "")
+          + f"  normal {n_normal}/{len(s)}" + (f" ({s.normal_axes} axes)" if n_normal else ""))
     away = s.normals_facing_away()
     if away is not None and away > 0.5:
         print(f"warning    {away:.0%} of the normal-prior pixels face away from the camera: the priors look like "
@@ -103,7 +103,8 @@ def extract(scene: tyro.conf.Positional[Path],
         scene: scene folder (images/, sparse/0, optional priors/).
         out: output folder CUES/ (its cache/ is reused by later runs).
         overwrite: replace cues already in OUT (the per-image cache is still reused).
-        cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off.
+        cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off;
+            --prior-kind disparity reads the depth priors as inverse depth (Depth-Anything, MiDaS).
     """
     from geocues.extract import run
 

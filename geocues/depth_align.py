@@ -6,6 +6,13 @@ depths of the line and SfM cues seen in the image; we fit scale *and* shift robu
 (:func:`fit_scale_shift`): a two-point RANSAC for a first guess, an occlusion check against that
 guess (an anchor farther than the surface the prior sees is hidden behind it), then Huber IRLS.
 
+A prior is either *depth* (z up to scale and shift) or *disparity* (inverse depth up to scale and
+shift, as monocular estimators such as Depth-Anything and MiDaS write it): a disparity prior p is
+fitted as 1/z = s·p + b, with the same RANSAC, occlusion check and Huber IRLS, its residuals measured
+in metres. Each alignment records its ``kind``, so :meth:`DepthAlignment.apply` converts correctly.
+Every fit is also compared with a fit of the other kind; a prior that the other kind explains much
+better is flagged (``looks_like``), and ``geocues extract`` says so naming ``--prior-kind``.
+
 Anchors that fall on depth discontinuities of the prior are not used (the prior is blurred there
 and a line cue on an occluding edge may belong to either side). Images with too few anchors are
 skipped with the reason; every per-image result carries residuals (metres) for ``report.json``.
@@ -20,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from geocues.anchors import Anchors  # noqa: F401  (re-exported: its historical home)
+from geocues.depth_warp import fit_warp, monomials, norm_uv
 from geocues.scene import Camera
 
 log = logging.getLogger(__name__)
@@ -57,15 +66,20 @@ class DepthAlignConfig:
     """Fits with a scale below this (or not finite) are rejected as degenerate."""
 
 
+PRIOR_KINDS = ("depth", "disparity")
+
+
 @dataclass
 class DepthAlignment:
-    """Result for one image."""
+    """Result for one image. kind "depth": aligned depth = s·p + b (b in metres); kind
+    "disparity": aligned depth = 1 / (s·p + b) (b in 1/metres), p the prior as stored."""
 
     index: int  # camera index
     ok: bool
     reason: str = ""  # why it was skipped ("" when ok)
+    kind: str = "depth"  # what the prior was fitted as: "depth" or "disparity" (see the class doc)
     scale: float = float("nan")
-    shift: float = float("nan")  # metres
+    shift: float = float("nan")  # metres (depth) or 1/metres (disparity)
     n_candidates: int = 0  # anchors projected into the image in front of the camera
     n_anchors: int = 0  # anchors used in the fit (after edge / invalid-prior tests)
     n_inliers: int = 0  # anchors within the inlier threshold of the final fit
@@ -79,24 +93,28 @@ class DepthAlignment:
     residual_p90_m: float = float("nan")
     residual_rel_median: float = float("nan")  # median |r| / z_anchor
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> anchors not used
+    looks_like: str = ""  # the other kind when a fit of that kind explains the anchors much better
+    inlier_share: float = float("nan")  # share of anchors within inlier_rel of this kind's fit
+    other_inlier_share: float = float("nan")  # the same for a fit of the other kind (NaN: it failed)
 
     def apply(self, depth: np.ndarray, warp_max: float = 0.1) -> np.ndarray:
-        """Aligned depth (s·d + b)·(1 + w(u, v)), keeping 0 (invalid) where the prior is invalid or
-        the result is <= 0. w is the warp correction (zero without one). ``depth`` may be the prior
-        resized to another resolution (a downscaled training run): w is then evaluated at the
-        centres of its pixels mapped into the image the fit was made on."""
+        """Aligned depth (s·d + b)·(1 + w(u, v)) -- 1 / (s·d + b)·(1 + w) for a disparity prior --,
+        keeping 0 (invalid) where the prior is invalid (<= 0) or the result is <= 0. w is the warp
+        correction (zero without one). ``depth`` is the prior as stored (disparity for that kind),
+        possibly resized to another resolution (a downscaled training run): w is then evaluated at
+        the centres of its pixels mapped into the image the fit was made on."""
         if not self.ok:
             raise ValueError(f"image {self.index}: no alignment ({self.reason})")
         if depth.ndim != 2:
             raise ValueError(f"depth must be [H, W], got shape {depth.shape}")
-        out = self.scale * depth + self.shift
+        out = _to_depth(depth, self.scale, self.shift, self.kind)
         if self.warp_degree > 0:
             h, w = depth.shape
             if self.width <= 0 or self.height <= 0 or abs(w / self.width - h / self.height) > 0.02 * w / self.width:
                 raise ValueError(f"depth has shape {depth.shape}, not a resize of the "
                                  f"({self.height}, {self.width}) image the alignment was fit on")
             j, i = np.meshgrid((np.arange(w) + 0.5) * self.width / w, (np.arange(h) + 0.5) * self.height / h)
-            A = _monomials(*_norm_uv(np.stack([j.ravel(), i.ravel()], 1), self.width, self.height),
+            A = monomials(*norm_uv(np.stack([j.ravel(), i.ravel()], 1), self.width, self.height),
                            self.warp_degree)
             w = np.clip(A @ np.asarray(self.warp_coeffs), -warp_max, warp_max).reshape(depth.shape)
             out = out * (1.0 + w)
@@ -112,6 +130,10 @@ class DepthAlignment:
         names = {f.name: f for f in fields(cls)}
         kw = {k: (float("nan") if v is None and isinstance(names[k].default, float) else v)
               for k, v in d.items() if k in names}
+        kind = kw.setdefault("kind", "depth")  # reports written before the kind was recorded: depth
+        if kind not in PRIOR_KINDS:
+            raise ValueError(f"alignment of image {kw.get('index')}: unknown prior kind {kind!r} "
+                             f"(known: {', '.join(PRIOR_KINDS)})")
         return cls(**kw)
 
 
@@ -132,175 +154,113 @@ def load_alignments(report: str | Path) -> dict[str, DepthAlignment]:
     return out
 
 
-@dataclass
-class Anchors:
-    """3D cue points (line samples and SfM points) that anchor depth priors and prior-free planes."""
-
-    xyz: np.ndarray  # [P, 3] world, metres
-    cue_type: np.ndarray  # [P] uint8 CueType
-    group: np.ndarray  # [P] int64: line index for line samples, -1 - point index for SfM points
-    views: dict[int, np.ndarray] = field(default_factory=dict)  # camera -> anchors known visible
-    unknown: np.ndarray | None = None  # [P] bool: visibility unknown, test by projection in all views
-
-    def __post_init__(self) -> None:
-        p = len(self.xyz)
-        self.xyz = np.asarray(self.xyz, np.float64).reshape(p, 3)
-        if self.cue_type.shape != (p,) or self.group.shape != (p,):
-            raise ValueError(f"anchors: cue_type {self.cue_type.shape} / group {self.group.shape} "
-                             f"do not match xyz ({p}, 3)")
-        if self.unknown is None:
-            self.unknown = np.zeros(p, bool)
-
-    def __len__(self) -> int:
-        return len(self.xyz)
-
-    def candidates(self, cam_index: int) -> np.ndarray:
-        """Indices of anchors that may be seen by camera ``cam_index``: its known-visible anchors
-        plus every anchor whose visibility is unknown."""
-        known = self.views.get(cam_index, np.zeros(0, np.int64))
-        return np.union1d(known, np.flatnonzero(self.unknown)).astype(np.int64)
-
-    @staticmethod
-    def build(sfm_xyz: np.ndarray | None = None, sfm_views: dict[int, np.ndarray] | None = None,
-              line_points: np.ndarray | None = None, line_of_point: np.ndarray | None = None,
-              line_views: list[np.ndarray] | None = None) -> "Anchors":
-        """Anchors from SfM cues (``sfm_views``: camera -> row indices into ``sfm_xyz``; empty or
-        None = unknown visibility) and line samples (``line_views[l]``: cameras supporting line l)."""
-        from geocues.types import CueType
-
-        parts_xyz, parts_type, parts_group, parts_unknown = [], [], [], []
-        views: dict[int, list[np.ndarray]] = {}
-        off = 0
-        if sfm_xyz is not None and len(sfm_xyz):
-            n = len(sfm_xyz)
-            parts_xyz.append(np.asarray(sfm_xyz, np.float64).reshape(n, 3))
-            parts_type.append(np.full(n, int(CueType.SFM), np.uint8))
-            parts_group.append(-1 - np.arange(n, dtype=np.int64))
-            has = bool(sfm_views) and any(len(v) for v in sfm_views.values())
-            parts_unknown.append(np.full(n, not has))
-            for cam, idx in (sfm_views or {}).items():
-                views.setdefault(cam, []).append(np.asarray(idx, np.int64) + off)
-            off += n
-        if line_points is not None and len(line_points):
-            n = len(line_points)
-            lp = np.asarray(line_of_point, np.int64).reshape(n)
-            parts_xyz.append(np.asarray(line_points, np.float64).reshape(n, 3))
-            parts_type.append(np.full(n, int(CueType.LINE), np.uint8))
-            parts_group.append(lp)
-            parts_unknown.append(np.full(n, line_views is None))
-            if line_views is not None:
-                order = np.argsort(lp, kind="stable")
-                starts = np.searchsorted(lp[order], np.arange(len(line_views) + 1))
-                for li, cams in enumerate(line_views):
-                    pts = order[starts[li]:starts[li + 1]] + off
-                    for cam in np.asarray(cams, np.int64):
-                        views.setdefault(int(cam), []).append(pts)
-            off += n
-        if not parts_xyz:
-            return Anchors(np.zeros((0, 3)), np.zeros(0, np.uint8), np.zeros(0, np.int64))
-        return Anchors(np.concatenate(parts_xyz), np.concatenate(parts_type),
-                       np.concatenate(parts_group),
-                       {c: np.unique(np.concatenate(v)) for c, v in views.items()},
-                       np.concatenate(parts_unknown))
-
-
-def _norm_uv(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates -> isotropic coordinates centred on the image, x in [-1, 1]."""
-    half = width / 2.0
-    return (uv[:, 0] - half) / half, (uv[:, 1] - height / 2.0) / half
-
-
-def _monomials(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
-    """[N, T] monomials x^a y^b with 1 <= a + b <= degree (no constant: the affine fit has it)."""
-    cols = [x ** a * y ** (k - a) for k in range(1, degree + 1) for a in range(k, -1, -1)]
-    return np.stack(cols, axis=1) if cols else np.zeros((len(x), 0))
-
-
-def fit_warp(x: np.ndarray, y: np.ndarray, ratio: np.ndarray, degree: int, cfg: "DepthAlignConfig"
-             ) -> np.ndarray:
-    """Smooth warp correction of an aligned prior (our addition for low-frequency prior errors).
-
-        z_i / (s·d_i + b) − 1 ≈ w(x_i, y_i) = Σ_{1 ≤ a+b ≤ D} c_ab x_i^a y_i^b
-
-    fitted by Huber IRLS (δ = huber_rel) with a ridge penalty ``warp_ridge`` · N · ‖c‖². x, y: [N]
-    normalised image coordinates of the anchors, ratio: [N] z / (s d + b). Returns c [T]."""
-    A = _monomials(x, y, degree)
-    e = ratio - 1.0
-    c = np.zeros(A.shape[1])
-    lam = cfg.warp_ridge * len(e)
-    for _ in range(10):
-        r = A @ c - e
-        w = np.minimum(1.0, cfg.huber_rel / np.maximum(np.abs(r), 1e-12))
-        Aw = A * w[:, None]
-        c_new = np.linalg.solve(A.T @ Aw + lam * np.eye(A.shape[1]), Aw.T @ e)
-        if np.max(np.abs(c_new - c)) < 1e-7:
-            c = c_new
-            break
-        c = c_new
-    return c
+def _to_depth(d: np.ndarray, s: float, b: float, kind: str) -> np.ndarray:
+    """Aligned depth of prior values d: s·d + b (depth), 1 / (s·d + b) (disparity; 0 where s·d + b
+    <= 0, i.e. at or beyond infinity)."""
+    if kind == "depth":
+        return s * d + b
+    w = s * d + b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(w > 0, 1.0 / np.where(w > 0, w, 1.0), 0.0)
 
 
 def fit_scale_shift(d: np.ndarray, z: np.ndarray, cfg: DepthAlignConfig,
-                    rng: np.random.Generator) -> tuple[float, float, np.ndarray]:
+                    rng: np.random.Generator, kind: str = "depth") -> tuple[float, float, np.ndarray]:
     """Robust depth alignment (paper §4.1, "estimate a per-image depth scale by linear regression").
 
-        (s, b) = argmin_{s, b} Σ_i ρ_δ(s · d_i + b − z_i)
+        depth:      (s, b) = argmin_{s, b} Σ_i ρ_δ(s · d_i + b − z_i)
+        disparity:  (s, b) = argmin_{s, b} Σ_i ρ_δ(z_i² · (s · d_i + b − 1 / z_i))
 
-    d: [N] prior depths at the anchors' pixels, z: [N] the anchors' depths in the camera (metres);
+    d: [N] prior values at the anchors' pixels, z: [N] the anchors' depths in the camera (metres);
     ρ_δ is the Huber loss with δ = huber_rel · median(z), minimised by IRLS from a two-point RANSAC
-    start. Anchors farther than (1 + inlier_rel) times the RANSAC surface are occluded and left out.
-    With ``fit_shift`` False, b = 0 (the paper's scale-only regression). Returns (s, b, used [N]).
+    start. A disparity residual is weighted by z² so that it is, to first order, the depth residual
+    in metres: both kinds share thresholds. Anchors farther than (1 + inlier_rel) times the RANSAC
+    surface are occluded and left out. With ``fit_shift`` False, b = 0 (the paper's scale-only
+    regression). Returns (s, b, used [N]).
     """
     d = np.asarray(d, np.float64)
     z = np.asarray(z, np.float64)
+    if kind not in PRIOR_KINDS:
+        raise ValueError(f"unknown prior kind {kind!r} (known: {', '.join(PRIOR_KINDS)})")
     if d.shape != z.shape or d.ndim != 1:
         raise ValueError(f"d and z must be [N] of equal shape, got {d.shape} and {z.shape}")
     n = len(d)
     if n < 2:
         raise ValueError(f"need at least 2 anchors to fit, got {n}")
-    shift = cfg.fit_shift and np.std(d) > 0.02 * np.mean(d)  # b is unobservable on a flat range
+    y = z if kind == "depth" else 1.0 / z  # what the affine map of the prior predicts
+    shift = cfg.fit_shift and np.std(d) > 0.02 * abs(np.mean(d))  # b is unobservable on a flat range
     tol = cfg.inlier_rel * z
+    min_s = cfg.min_scale if kind == "depth" else 0.0  # a disparity scale has no fixed unit
 
     # ---- two-point (one-point without shift) RANSAC: the hypothesis with the most inliers.
-    best, best_count = (np.median(z / d), 0.0), -1
+    best, best_count = (np.median(y / d), 0.0), -1
     for _ in range(cfg.ransac_iters):
         if shift:
             i, j = rng.choice(n, size=2, replace=False)
-            if abs(d[i] - d[j]) < 1e-6 * max(d[i], 1e-6):
+            if abs(d[i] - d[j]) < 1e-6 * max(abs(d[i]), 1e-6):
                 continue
-            s = (z[i] - z[j]) / (d[i] - d[j])
-            b = z[i] - s * d[i]
+            s = (y[i] - y[j]) / (d[i] - d[j])
+            b = y[i] - s * d[i]
         else:
             i = rng.integers(n)
-            s, b = z[i] / d[i], 0.0
-        if not (np.isfinite(s) and s > cfg.min_scale):
+            s, b = y[i] / d[i], 0.0
+        if not (np.isfinite(s) and s > min_s):
             continue
-        count = np.count_nonzero(np.abs(s * d + b - z) < tol)
+        count = np.count_nonzero(np.abs(_to_depth(d, s, b, kind) - z) < tol)
         if count > best_count:
             best, best_count = (s, b), count
     s, b = best
     # ---- occlusion check: an anchor behind the surface seen by the prior is hidden there.
-    used = (z - (s * d + b)) < tol
+    used = (z - _to_depth(d, s, b, kind)) < tol
+    if kind == "disparity":  # beyond infinity (0) is no surface: not an occluder either
+        used &= _to_depth(d, s, b, kind) > 0
     # ---- Huber IRLS on the visible anchors.
-    s, b = _irls_affine(d, z, used, s, b, shift, cfg.huber_rel * float(np.median(z)))
+    s, b = _refit(d, z, used, s, b, shift, cfg.huber_rel * float(np.median(z)), kind)
     return float(s), float(b), used
 
 
+def _refit(d: np.ndarray, z: np.ndarray, used: np.ndarray, s: float, b: float, shift: bool,
+           delta: float, kind: str) -> tuple[float, float]:
+    """Huber IRLS of the prior's affine map to the depths z of the ``used`` anchors, residuals in
+    metres (a disparity residual is weighted by z²)."""
+    if kind == "depth":
+        return _irls_affine(d, z, used, s, b, shift, delta)
+    return _irls_affine(d, 1.0 / z, used, s, b, shift, delta, gain=z * z)
+
+
 def _irls_affine(d: np.ndarray, z: np.ndarray, used: np.ndarray, s: float, b: float, shift: bool,
-                 delta: float) -> tuple[float, float]:
-    """Huber IRLS of z ≈ s d + b (b = 0 without ``shift``) over the ``used`` anchors from (s, b)."""
+                 delta: float, gain: np.ndarray | None = None) -> tuple[float, float]:
+    """Huber IRLS of z ≈ s d + b (b = 0 without ``shift``) over the ``used`` anchors from (s, b).
+    ``gain`` [N]: each residual is multiplied by it before the Huber test and in the squares."""
     A = np.stack([d, np.ones_like(d)], axis=1) if shift else d[:, None]
     for _ in range(30):
         r = s * d + b - z
+        if gain is not None:
+            r = r * gain
         w = np.where(used, np.minimum(1.0, delta / np.maximum(np.abs(r), 1e-12)), 0.0)
-        sw = np.sqrt(w)
+        sw = np.sqrt(w) if gain is None else np.sqrt(w) * gain
         sol, *_ = np.linalg.lstsq(A * sw[:, None], z * sw, rcond=None)
         s_new, b_new = (float(sol[0]), float(sol[1])) if shift else (float(sol[0]), 0.0)
-        done = abs(s_new - s) < 1e-9 * abs(s) + 1e-12 and abs(b_new - b) < 1e-9
+        done = abs(s_new - s) < 1e-9 * abs(s) + 1e-12 and abs(b_new - b) < 1e-9 * (1.0 if gain is None else
+                                                                               abs(b) + 1e-12)
         s, b = s_new, b_new
         if done:
             break
     return s, b
+
+
+def _degenerate(s: float, b: float, d: np.ndarray, z: np.ndarray, kind: str, cfg: DepthAlignConfig) -> bool:
+    """A fit that cannot be a depth map: non-finite, or its scale <= min_scale (for disparity, a
+    unitless scale: s · std(d) / std(1/z), 1 for an exact fit, ~0 for a flat one)."""
+    if not (np.isfinite(s) and np.isfinite(b)):
+        return True
+    if kind == "depth":
+        return not s > cfg.min_scale
+    return not (s > 0 and s * np.std(d) >= cfg.min_scale * np.std(1.0 / z))
+
+
+def _inlier_share(d: np.ndarray, z: np.ndarray, s: float, b: float, kind: str, cfg: DepthAlignConfig) -> float:
+    return float(np.mean(np.abs(_to_depth(d, s, b, kind) - z) < cfg.inlier_rel * z))
 
 
 def _edge_mask(depth: np.ndarray, radius: int, rel: float) -> np.ndarray:
@@ -314,16 +274,48 @@ def _edge_mask(depth: np.ndarray, radius: int, rel: float) -> np.ndarray:
     return (lo >= 1e9) | (hi > (1.0 + rel) * lo)
 
 
+def kind_warning(fits: list[DepthAlignment], scene_json: Path, inlier_rel: float) -> str | None:
+    """One line naming ``--prior-kind`` when the priors of at least half of the images that were
+    fitted look like the other kind (``looks_like``); None otherwise."""
+    fitted = [a for a in fits if a.n_anchors >= 2 and np.isfinite(a.inlier_share)]
+    odd = [a for a in fitted if a.looks_like]
+    if not odd or 2 * len(odd) < len(fitted):
+        return None
+    kind, other = odd[0].kind, odd[0].looks_like
+    failed = sum(not a.ok for a in odd)
+    share = float(np.median([a.other_inlier_share for a in odd]))
+    return (f"the depth priors of {len(odd)} of {len(fitted)} images look like {other}, not {kind}: a {other} "
+            f"fit keeps a median {share:.0%} of their anchors within {inlier_rel:.0%} of depth, the {kind} fit "
+            + (f"failed on {failed} of them" if failed else "keeps fewer")
+            + f"; pass --prior-kind {other} or set {{\"priors\": {{\"depth_kind\": \"{other}\"}}}} in {scene_json}")
+
+
+def _compare_kinds(res: DepthAlignment, d: np.ndarray, z: np.ndarray, s: float, b: float,
+                   cfg: DepthAlignConfig, seed: int) -> None:
+    """Fit the prior as the other kind too (its own random stream: this kind's fit is unchanged)
+    and flag it (``res.looks_like``) when that fit keeps at least half of the anchors within
+    inlier_rel and a quarter more of them than this kind's fit (a failed fit keeps none)."""
+    other = "disparity" if res.kind == "depth" else "depth"
+    res.inlier_share = 0.0 if _degenerate(s, b, d, z, res.kind, cfg) else _inlier_share(d, z, s, b, res.kind, cfg)
+    so, bo, _ = fit_scale_shift(d, z, cfg, np.random.default_rng([seed, 1]), other)
+    if not _degenerate(so, bo, d, z, other, cfg):
+        res.other_inlier_share = _inlier_share(d, z, so, bo, other, cfg)
+        if res.other_inlier_share >= max(0.5, res.inlier_share + 0.25):
+            res.looks_like = other
+
+
 def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
-                      cfg: DepthAlignConfig, seed: int = 0) -> DepthAlignment:
-    """Fit ``depth`` [H, W] (prior of camera ``cam``) to the anchors ``anchors_xyz`` [P, 3] (world,
-    metres) that may be visible in it. Never raises on too little data: returns ``ok=False`` with a
-    reason."""
+                      cfg: DepthAlignConfig, seed: int = 0, kind: str = "depth") -> DepthAlignment:
+    """Fit ``depth`` [H, W] (prior of camera ``cam``, z-depth or, with ``kind`` "disparity",
+    inverse depth; <= 0 = invalid) to the anchors ``anchors_xyz`` [P, 3] (world, metres) that may be
+    visible in it. Never raises on too little data: returns ``ok=False`` with a reason."""
+    if kind not in PRIOR_KINDS:
+        raise ValueError(f"unknown prior kind {kind!r} (known: {', '.join(PRIOR_KINDS)})")
     if depth.shape != (cam.height, cam.width):
         raise ValueError(f"depth prior of {cam.name} has shape {depth.shape}, expected "
                          f"({cam.height}, {cam.width})")
     X = np.asarray(anchors_xyz, np.float64).reshape(-1, 3)
-    res = DepthAlignment(index=cam.index, ok=False)
+    res = DepthAlignment(index=cam.index, ok=False, kind=kind)
     rej: dict[str, int] = {}
     uv, z = cam.project(X)
     front = z > 1e-6
@@ -357,16 +349,17 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     if cfg.fit_shift and spread < cfg.min_depth_spread:  # scale and shift are not separable
         res.reason = f"anchor depths too narrow to fit a shift (spread {spread:.3f} < {cfg.min_depth_spread})"
         return res
-    s, b, used = fit_scale_shift(d, z, cfg, rng)
-    if not (np.isfinite(s) and np.isfinite(b) and s > cfg.min_scale):
+    s, b, used = fit_scale_shift(d, z, cfg, rng, kind)
+    _compare_kinds(res, d, z, s, b, cfg, seed + cam.index)
+    if _degenerate(s, b, d, z, kind, cfg):
         res.reason = f"degenerate fit (scale {s:.4g}, shift {b:.4g})"
         return res
-    base = s * d + b  # [N] affine-aligned prior at the anchors
+    base = _to_depth(d, s, b, kind)  # [N] affine-aligned prior at the anchors, metres
     tol = cfg.inlier_rel * z
     res.residual_affine_median_m = float(np.median(np.abs(base - z)[(z - base) < tol]))
-    x, y = _norm_uv(uv, cam.width, cam.height)
+    x, y = norm_uv(uv, cam.width, cam.height)
     degree = cfg.warp_degree
-    while degree > 0 and (len(d) < 15 * len(_monomials(x[:1], y[:1], degree).ravel())
+    while degree > 0 and (len(d) < 15 * len(monomials(x[:1], y[:1], degree).ravel())
                           or min(np.std(x), np.std(y)) < 0.15 * degree):
         degree -= 1  # too few anchors, or too clustered in the image, for this degree
     warp = np.zeros(len(d))
@@ -376,10 +369,10 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
         for _ in range(4):  # each round also redoes the occlusion check with the corrected depth
             vis = (z - base * (1.0 + warp)) < tol
             coeffs = fit_warp(x[vis], y[vis], z[vis] / base[vis], degree, cfg)
-            warp = np.clip(_monomials(x, y, degree) @ coeffs, -cfg.warp_max, cfg.warp_max)
-            s, b = _irls_affine(d, z / (1.0 + warp), vis, s, b, shift, cfg.huber_rel * float(np.median(z)))
-            base = s * d + b
-        if not (np.isfinite(s) and s > cfg.min_scale):
+            warp = np.clip(monomials(x, y, degree) @ coeffs, -cfg.warp_max, cfg.warp_max)
+            s, b = _refit(d, z / (1.0 + warp), vis, s, b, shift, cfg.huber_rel * float(np.median(z)), kind)
+            base = _to_depth(d, s, b, kind)
+        if _degenerate(s, b, d, z, kind, cfg):
             res.reason = f"degenerate fit with the warp correction (scale {s:.4g})"
             return res
     r = base * (1.0 + warp) - z

@@ -22,20 +22,22 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from tqdm import tqdm
 
+from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
-from geocues.depth_align import Anchors, DepthAlignConfig, align_depth_prior
+from geocues.depth_align import DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning
 from geocues.lines import LineConfig, LineCues
-from geocues.plane_merge import consolidate_planes, multiview_conflict, multiview_support, voxel_downsample
+from geocues.plane_merge import merge_plane_points
 from geocues.plane_regions import split_regions_by_lines
 from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
 from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
-from geocues.texture import TextureConfig, config_key, load_or_compute, tree_stamp
+from geocues.texture import TextureConfig, config_key, file_stamp, load_or_compute, tree_stamp
 from geocues.types import CueType
 
 log = logging.getLogger(__name__)
@@ -53,6 +55,8 @@ class ExtractConfig:
     """Run the plane-like-cue stage (weak-texture regions -> planes)."""
     priors: bool = True
     """Use depth priors where the scene has them (False: a prior-free run for every image)."""
+    prior_kind: Literal["scene", "depth", "disparity"] = "scene"
+    """Depth priors hold depth, or disparity (inverse depth: Depth-Anything, MiDaS); scene: scene.json's choice."""
     prior_free_fallback: bool = True
     """Images without a usable prior (missing, or alignment skipped) get prior-free plane cues."""
     downscale: float = 1.0
@@ -123,39 +127,6 @@ def _per_image_seconds(rows: list[dict], timings: dict[str, float], n_img: int) 
     return out
 
 
-def _merge_planes(scene: Scene, cfg: PlaneConfig, xyz: list, rgb: list, nrm: list, pid: list,
-                  planes: list, plane_view: list) -> tuple[CueCloud, dict[str, int]]:
-    """All images' plane points -> fused planes (optional) -> voxel grid -> PLANE cloud."""
-    rej: dict[str, int] = {}
-    if not xyz:
-        return CueCloud.empty(), rej
-    X, C, N = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(nrm)
-    P, PL, PV = np.concatenate(pid), np.concatenate(planes), np.concatenate(plane_view)
-    if cfg.fuse_planes and len(PL):
-        centers = np.array([c.center for c in scene.cameras])
-        X, N, cluster_views = consolidate_planes(X, P, PL, PV, centers, cfg.fuse_angle_deg,
-                                                 cfg.fuse_dist, cfg.min_ray_cos)
-        lone = cluster_views < cfg.min_plane_views
-        if lone.any():
-            rej["points_on_planes_seen_in_too_few_images"] = int(lone.sum())
-            X, C, N, P = X[~lone], C[~lone], N[~lone], P[~lone]
-    view = PV[P]
-    drop = np.zeros(len(X), bool)  # multi-view consistency of the planes of different images:
-    if cfg.min_views > 1:  # enough images put the same plane there ...
-        few = multiview_support(X, view, cfg.support_radius, cfg.voxel_size, normal=N,
-                                max_angle_deg=cfg.support_angle_deg) < cfg.min_views
-        rej["points_seen_by_fewer_images"] = int(few.sum())
-        drop |= few
-    if cfg.conflict_radius > 0:  # ... and no more images put the surface elsewhere (votes of all images)
-        agree, disagree = multiview_conflict(X, view, N, cfg.conflict_radius, cfg.support_radius,
-                                             cfg.support_angle_deg, cfg.voxel_size)
-        rej["points_outvoted_by_other_images"] = int((~drop & (agree < disagree)).sum())
-        drop |= agree < disagree
-    X, C, N, view = X[~drop], C[~drop], N[~drop], view[~drop]
-    vx, vc, vn, nv = voxel_downsample(X, C, N, view, cfg.voxel_size)
-    return CueCloud.make(vx, vc, CueType.PLANE, normal=vn, confidence=np.minimum(1.0, nv / 3.0)), rej
-
-
 def _run_lines(scene: Scene, cfg: ExtractConfig, cache_dir: Path) -> LineCues:
     from geocues.lines import extract_line_cues  # lazy: the heaviest stage
 
@@ -179,8 +150,11 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
         raise ValueError(f"downscale must be > 0, got {cfg.downscale}")
     cfg.line.validate()
     check_output_dir(out_dir)
+    scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
+    kind = _prior_kind(cfg, scene)
     # the scene's content, not only its path: a scene regenerated in place is extracted again
-    key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")))
+    key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")),
+                     file_stamp(scene.root / "scene.json"))
     report_path = out_dir / "report.json"
     if report_path.is_file() and not overwrite:
         old = json.loads(report_path.read_text())
@@ -193,7 +167,6 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()
     cache = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
-    scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
     away = scene.normals_facing_away()
     if away is not None and away > 0.5:
         log.warning("%.0f%% of the normal-prior pixels face away from the camera: the priors look like OpenGL "
@@ -249,8 +222,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
     if cfg.planes:
-        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, anchors, plane_ok, lines, cache,
-                                                               timings, notes)
+        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines,
+                                                               cache, timings, notes)
         rejections.update(pr)
 
     # ---- merge and write
@@ -276,6 +249,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
         "scene": str(scene_dir), "n_images": n_img, "config_key": key, "config": asdict(cfg),
         "counts": cues.counts(), "n_points": len(cues), "n_lines": len(lc),
         "stages": {"sfm": cfg.sfm, "lines": cfg.lines, "planes": cfg.planes, "priors": cfg.priors},
+        "prior_kind": kind,
         "rejections": rejections, "seconds": timings,
         "line_timings": dict(lc.timings),
         "planes": plane_stats, "per_image_seconds": _per_image_seconds(per_image, timings, n_img),
@@ -292,7 +266,19 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     return out_dir
 
 
-def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, plane_ok: np.ndarray,
+def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:
+    """What the depth priors hold: ``cfg.prior_kind``, or scene.json's priors.depth_kind for "scene"."""
+    if cfg.prior_kind not in ("scene", "depth", "disparity"):
+        raise ValueError(f"prior_kind must be 'scene', 'depth' or 'disparity', got {cfg.prior_kind!r}")
+    if cfg.prior_kind == "scene":
+        return scene.depth_kind
+    if scene.depth_kind != cfg.prior_kind and "depth_kind" in (scene.metadata.get("priors") or {}):
+        log.warning("--prior-kind %s overrides priors.depth_kind %r of %s", cfg.prior_kind,
+                    scene.depth_kind, scene.root / "scene.json")
+    return cfg.prior_kind
+
+
+def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str]
                  ) -> tuple[CueCloud, list[dict], dict[str, dict], dict]:
@@ -309,6 +295,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, plane_ok: n
         timings.setdefault(k, 0.0)
     cache_hits = 0
     n_prior = n_aligned = 0
+    fits: list[DepthAlignment] = []
     has_priors = scene.has_depth_priors
     strict = anchors.cue_type == int(CueType.SFM)  # SfM anchors count only inside a region
     lines_of: dict[int, list[int]] = {}  # camera -> lines it supports (they cut its regions)
@@ -333,8 +320,9 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, plane_ok: n
         aligned = None
         if depth is not None:
             n_prior += 1
-            al = align_depth_prior(cam, depth, anchors.xyz[cand], cfg.align, seed=cfg.seed)
+            al = align_depth_prior(cam, depth, anchors.xyz[cand], cfg.align, seed=cfg.seed, kind=kind)
             row["alignment"] = al.to_dict()
+            fits.append(al)
             if al.ok:
                 n_aligned += 1
                 aligned = al.apply(depth, cfg.align.warp_max)
@@ -384,7 +372,8 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, plane_ok: n
         row["planes_s"] = t3 - t2
         rows.append(row)
     t0 = time.perf_counter()
-    cloud, merge_rej = _merge_planes(scene, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
+    centers = np.array([c.center for c in scene.cameras])
+    cloud, merge_rej = merge_plane_points(centers, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
     rej_plane.update(merge_rej)
     timings["planes_merge"] = time.perf_counter() - t0
     timings["planes"] += timings["planes_merge"]
@@ -399,6 +388,10 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, anchors: Anchors, plane_ok: n
         if n_aligned < n_prior:
             notes.append(f"depth alignment skipped for {n_prior - n_aligned} of {n_prior} images: "
                          + ", ".join(f"{k} x{v}" for k, v in rej_align.items()))
+        warning = kind_warning(fits, scene.root / "scene.json", cfg.align.inlier_rel)
+        if warning:
+            log.warning("%s", warning)
+            notes.append(warning)
     notes.append(f"texture cache: {cache_hits} of {n_img} images reused")
     stats = {"texture_cache_hits": cache_hits, "images_with_prior": n_prior, "images_aligned": n_aligned,
              "plane_modes": {m: sum(r["plane_mode"] == m for r in rows)

@@ -4,12 +4,21 @@
 (the PLANE cues' confidence). Before that, the planes of different images check each other:
 :func:`multiview_support` (enough images put the same plane -- position and orientation -- near a
 point) and :func:`multiview_conflict` (no more images put the surface elsewhere there);
-:func:`consolidate_planes` optionally fuses the planes of one surface.
+:func:`consolidate_planes` optionally fuses the planes of one surface. :func:`merge_plane_points`
+chains them for ``geocues extract``.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+from geocues.cue_io import CueCloud
+from geocues.types import CueType
+
+if TYPE_CHECKING:
+    from geocues.planes import PlaneConfig
 
 
 def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, normal: np.ndarray, view: np.ndarray,
@@ -197,3 +206,37 @@ def multiview_conflict(xyz: np.ndarray, view: np.ndarray, normal: np.ndarray, ra
     agree = _distinct(np.where(valid & same, cview[nn], -1))
     disagree = _distinct(np.where(valid & ~same, cview[nn], -1))
     return agree[inv], disagree[inv]
+
+
+def merge_plane_points(centers: np.ndarray, cfg: PlaneConfig, xyz: list, rgb: list, nrm: list, pid: list,
+                       planes: list, plane_view: list) -> tuple[CueCloud, dict[str, int]]:
+    """All images' plane points -> fused planes (optional) -> multi-view support and vote -> voxel
+    grid -> PLANE cloud. centers: [V, 3] camera centres; the lists hold one array per image
+    (points, colours, normals, plane ids, planes, the view of each plane)."""
+    rej: dict[str, int] = {}
+    if not xyz:
+        return CueCloud.empty(), rej
+    X, C, N = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(nrm)
+    P, PL, PV = np.concatenate(pid), np.concatenate(planes), np.concatenate(plane_view)
+    if cfg.fuse_planes and len(PL):
+        X, N, cluster_views = consolidate_planes(X, P, PL, PV, centers, cfg.fuse_angle_deg,
+                                                 cfg.fuse_dist, cfg.min_ray_cos)
+        lone = cluster_views < cfg.min_plane_views
+        if lone.any():
+            rej["points_on_planes_seen_in_too_few_images"] = int(lone.sum())
+            X, C, N, P = X[~lone], C[~lone], N[~lone], P[~lone]
+    view = PV[P]
+    drop = np.zeros(len(X), bool)  # multi-view consistency of the planes of different images:
+    if cfg.min_views > 1:  # enough images put the same plane there ...
+        few = multiview_support(X, view, cfg.support_radius, cfg.voxel_size, normal=N,
+                                max_angle_deg=cfg.support_angle_deg) < cfg.min_views
+        rej["points_seen_by_fewer_images"] = int(few.sum())
+        drop |= few
+    if cfg.conflict_radius > 0:  # ... and no more images put the surface elsewhere (votes of all images)
+        agree, disagree = multiview_conflict(X, view, N, cfg.conflict_radius, cfg.support_radius,
+                                             cfg.support_angle_deg, cfg.voxel_size)
+        rej["points_outvoted_by_other_images"] = int((~drop & (agree < disagree)).sum())
+        drop |= agree < disagree
+    X, C, N, view = X[~drop], C[~drop], N[~drop], view[~drop]
+    vx, vc, vn, nv = voxel_downsample(X, C, N, view, cfg.voxel_size)
+    return CueCloud.make(vx, vc, CueType.PLANE, normal=vn, confidence=np.minimum(1.0, nv / 3.0)), rej

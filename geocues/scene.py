@@ -4,7 +4,9 @@ Layout of a scene folder::
 
     SCENE/images/<name>             RGB images (names as in the model)
     SCENE/sparse/0/cameras|images|points3D.{bin,txt}   (or SCENE/sparse/)
-    SCENE/priors/depth/<stem>.npy   optional monocular depth (H x W float32, metres, 0 = invalid)
+    SCENE/priors/depth/<stem>.npy   optional monocular depth (H x W float32, metres, 0 = invalid), or
+                                    disparity (inverse depth up to scale and shift) with scene.json
+                                    {"priors": {"depth_kind": "disparity"}}
                          <stem>.png 16-bit, divided by scene.json "depth_png_scale" (units per metre)
     SCENE/priors/normal/<stem>.npy  optional normals (H x W x 3 float32, camera frame, facing camera)
                           <stem>.png 8/16-bit, [0, max] mapped to [-1, 1]
@@ -267,7 +269,8 @@ class Scene:
         return any(self.normal_prior_path(i) is not None for i in range(len(self.cameras)))
 
     def depth_prior(self, i: int) -> np.ndarray | None:
-        """Depth prior of camera ``i`` at the scene's scale, [H, W] float32 metres (0 = invalid)."""
+        """Depth prior of camera ``i`` at the scene's scale, [H, W] float32 (0 = invalid), as stored:
+        z-depth (metres up to scale and shift), or disparity when :attr:`depth_kind` says so."""
         import cv2
 
         path = self.depth_prior_path(i)
@@ -319,15 +322,28 @@ class Scene:
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
         return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
+    def _prior_option(self, key: str, allowed: tuple[str, ...]) -> str:
+        """scene.json ``{"priors": {key: value}}``, one of ``allowed`` (the first is the default)."""
+        priors = self.metadata.get("priors")
+        value = priors.get(key, allowed[0]) if isinstance(priors, dict) else allowed[0]
+        if value not in allowed:
+            raise ValueError(f"{self.root / 'scene.json'}: priors.{key} must be "
+                             f"{' or '.join(map(repr, allowed))}, got {value!r}")
+        return value
+
     @property
     def normal_axes(self) -> str:
         """Camera axes of the normal priors: "opencv" (default) or "opengl" (scene.json
         ``{"priors": {"normal_axes": "opengl"}}``), converted to OpenCV when loaded."""
-        axes = (self.metadata.get("priors") or {}).get("normal_axes", "opencv") \
-            if isinstance(self.metadata.get("priors"), dict) else "opencv"
-        if axes not in ("opencv", "opengl"):
-            raise ValueError(f"{self.root / 'scene.json'}: priors.normal_axes must be 'opencv' or 'opengl', got {axes!r}")
-        return axes
+        return self._prior_option("normal_axes", ("opencv", "opengl"))
+
+    @property
+    def depth_kind(self) -> str:
+        """What the depth priors hold: "depth" (z-depth up to scale and shift, the default) or
+        "disparity" (inverse depth up to scale and shift, as Depth-Anything and MiDaS write it;
+        scene.json ``{"priors": {"depth_kind": "disparity"}}``). The maps are loaded as stored;
+        the depth alignment fits each kind its own way (geocues.depth_align)."""
+        return self._prior_option("depth_kind", ("depth", "disparity"))
 
     def normals_facing_away(self, max_images: int = 5) -> float | None:
         """Share of valid normal-prior pixels (of up to ``max_images`` images, as loaded) that face
