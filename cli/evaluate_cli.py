@@ -21,6 +21,8 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
          renders: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
          test_every: int = 8,
          lpips: Annotated[Path | None, tyro.conf.arg(metavar="WEIGHTS")] = None,
+         align_to: Annotated[Path | None, tyro.conf.arg(metavar="GT_SCENE")] = None,
+         icp: bool = False,
          cfg: Annotated[MeshMetricsConfig, tyro.conf.arg(name="")] = MeshMetricsConfig()) -> int:
     """Mesh metrics (accuracy, completeness, Chamfer-L1, F-score, normal consistency) of a mesh,
     and with --renders the PSNR / SSIM of rendered held-out views.
@@ -34,12 +36,30 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
             OUT/test_renders); needs --scene.
         test_every: the held-out split the renders were made for (every n-th image).
         lpips: a TorchScript LPIPS network you made (no weights are downloaded); adds LPIPS.
+        align_to: the GT scene of a reconstruction made in its own frame (e.g. `geocues sfm --mode
+            map`): the mesh (in the frame of --scene) is moved into GT_SCENE's frame by the similarity
+            of the camera centres both share (Umeyama), then scored against GT_SCENE's GT mesh
+            (or --gt) culled to GT_SCENE's cameras. Needs --scene.
+        icp: after --align-to, refine with ICP (rotation, translation and scale) against the GT mesh.
     """
     import json as _json
 
     if renders is not None and scene is None:
         raise SystemExit("--renders needs --scene (the test images are the scene's)")
-    result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
+    if align_to is not None:
+        if scene is None:
+            raise ValueError("--align-to needs --scene SCENE: the scene whose frame the mesh is in")
+        from evaluation.align import evaluate_aligned
+
+        result = evaluate_aligned(pred_mesh, scene, align_to, gt, cfg, icp=icp)
+        a = result.protocol["alignment"]
+        print(f"aligned to {align_to}: scale {a['scale']:.4f} from {a['shared_images']} shared images, camera "
+              f"centre residual median {a['centre_residual_m']['median']:.4f} m, max {a['centre_residual_m']['max']:.4f} m"
+              + (f"; ICP {a['icp']['rotation_deg']:.3f} deg, {a['icp']['translation_m']:.4f} m" if a["icp"] else ""))
+    else:
+        if icp:
+            raise ValueError("--icp refines an --align-to alignment; pass --align-to GT_SCENE")
+        result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
     print(format_table(result))
     images = None
     if renders is not None:

@@ -1,0 +1,126 @@
+"""`evaluate --align-to`: a reconstruction in its own frame (scale, rotation, offset) is moved into the
+GT frame through the shared camera centres (Umeyama), optionally refined by ICP, then scored."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cues_synth import make_room_scene, room_mesh
+from evaluation.align import Similarity, align_scenes, evaluate_aligned, umeyama
+from geocues.colmap_io import find_model_dir, read_model, write_model
+
+
+def test_umeyama_recovers_a_similarity_and_refuses_degenerate_sets():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(20, 3))
+    truth = Similarity(2.5, Rotation.random(random_state=1).as_matrix(), np.array([1.0, -2.0, 0.5]))
+    est = umeyama(src, truth.apply(src))
+    assert est.s == pytest.approx(2.5, rel=1e-12)
+    np.testing.assert_allclose(est.R, truth.R, atol=1e-12)
+    np.testing.assert_allclose(est.t, truth.t, atol=1e-12)
+    assert np.linalg.det(est.R) == pytest.approx(1.0)
+    # a mirrored target still gives a rotation (det +1), never a reflection
+    assert np.linalg.det(umeyama(src, src * [1, 1, -1]).R) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="at least 3"):
+        umeyama(src[:2], src[:2])
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="collinear"):
+        umeyama(line, line + 1)
+
+
+def _moved_scene(src_root, dst_root, T: Similarity, noise_m: float = 0.0, seed: int = 0):
+    """A copy of the scene whose world is x' = s R x + t (what an images-only SfM might return)."""
+    shutil.copytree(src_root, dst_root)
+    model = find_model_dir(dst_root)
+    images, points = read_model(model)
+    rng = np.random.default_rng(seed)
+    for im in images:
+        R_new = im.R @ T.R.T
+        im.t = T.s * im.t - R_new @ T.t + R_new @ rng.normal(0, noise_m, 3) * T.s
+        im.R = R_new
+    points.xyz = T.apply(points.xyz)
+    shutil.rmtree(model)
+    write_model(model, images, points)
+    return dst_root
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    base = tmp_path_factory.mktemp("align")
+    gt_root = make_room_scene(base / "gt", n_views=10, w=64, h=48, priors="none")
+    V, F, _ = room_mesh()
+    (gt_root / "gt").mkdir(exist_ok=True)
+    o3d.io.write_triangle_mesh(str(gt_root / "gt" / "mesh.ply"),
+                               o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F)))
+    T = Similarity(0.37, Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix(),
+                   np.array([3.0, -1.0, 7.0]))
+    pred_root = _moved_scene(gt_root, base / "pred", T)
+    gt_mesh = o3d.io.read_triangle_mesh(str(gt_root / "gt" / "mesh.ply"))
+    moved = o3d.geometry.TriangleMesh(gt_mesh)
+    moved.transform(T.matrix())
+    o3d.io.write_triangle_mesh(str(base / "pred_mesh.ply"), moved)
+    return base, gt_root, pred_root, T
+
+
+def _self_score(gt_root):
+    from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene
+
+    return evaluate_with_scene(gt_root / "gt" / "mesh.ply", None, gt_root, MeshMetricsConfig(n_samples=50_000))
+
+
+def test_align_scenes_inverts_the_frame_change(scenes):
+    _, gt_root, pred_root, T = scenes
+    a = align_scenes(pred_root, gt_root)
+    assert a.transform.s == pytest.approx(1 / T.s, rel=1e-6)
+    assert a.residuals_m.max() < 1e-6 and len(a.shared) == 10
+    np.testing.assert_allclose(a.transform.apply(T.apply(np.eye(3))), np.eye(3), atol=1e-6)
+
+
+def test_evaluate_align_to_scores_the_mesh_as_in_the_gt_frame(scenes, capsys):
+    from cli.evaluate_cli import main
+
+    base, gt_root, pred_root, _ = scenes
+    out = base / "m.json"
+    assert main([str(base / "pred_mesh.ply"), "--scene", str(pred_root), "--align-to", str(gt_root),
+                 "--json", str(out), "--n-samples", "50000"]) == 0
+    m = json.loads(out.read_text())
+    same = _self_score(gt_root)  # the GT mesh against itself: the protocol's sampling noise
+    assert abs(m["chamfer_l1"] - same.chamfer_l1) < 1e-3 and m["f_score"] > 0.99, (m, same.chamfer_l1)
+    assert m["protocol"]["alignment"]["centre_residual_m"]["max"] < 1e-6
+    assert "shared images" in capsys.readouterr().out
+
+
+def test_icp_refines_a_noisy_camera_alignment(scenes):
+    base, gt_root, _, T = scenes
+    noisy = _moved_scene(gt_root, base / "noisy", T, noise_m=0.01, seed=3)
+    from evaluation.mesh_metrics import MeshMetricsConfig
+
+    cfg = MeshMetricsConfig(n_samples=50_000)
+    plain = evaluate_aligned(base / "pred_mesh.ply", noisy, gt_root, cfg=cfg)
+    refined = evaluate_aligned(base / "pred_mesh.ply", noisy, gt_root, cfg=cfg, icp=True)
+    assert plain.protocol["alignment"]["centre_residual_m"]["rms"] > 0.005
+    assert refined.protocol["alignment"]["icp"]["fitness"] > 0.9
+    same = _self_score(gt_root)
+    assert refined.chamfer_l1 < plain.chamfer_l1 - 0.002, (plain.chamfer_l1, refined.chamfer_l1)
+    assert refined.chamfer_l1 < same.chamfer_l1 + 0.002, (refined.chamfer_l1, same.chamfer_l1)
+
+
+def test_too_few_shared_images_is_named(scenes, tmp_path):
+    _, gt_root, _, _ = scenes
+    other = shutil.copytree(gt_root, tmp_path / "other")
+    model = find_model_dir(other)
+    images, points = read_model(model)
+    for im in images:
+        im.name = "renamed_" + im.name
+    shutil.rmtree(model)
+    write_model(model, images, points)
+    for p in (other / "images").iterdir():
+        p.rename(p.with_name("renamed_" + p.name))
+    with pytest.raises(ValueError, match="at least 3 images registered in both"):
+        align_scenes(other, gt_root)
