@@ -59,7 +59,7 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     """Print a summary of SCENE: cameras, image sizes, points, priors, train/test split.
 
     Args:
-        scene: scene folder (or a COLMAP model folder).
+        scene: scene folder (or a COLMAP model folder, or a nerfstudio transforms.json).
         downscale: divide image sizes and intrinsics by this factor.
         test_every: hold out every n-th image (index % n == 0) as a test view; 0 = none.
     """
@@ -100,7 +100,7 @@ def extract(scene: tyro.conf.Positional[Path],
     """Extract line, SfM and plane-like cues of SCENE into OUT (cues.ply, lines3d.npz, report.json).
 
     Args:
-        scene: scene folder (images/, sparse/0, optional priors/).
+        scene: scene folder (images/, sparse/0, optional priors/; or a nerfstudio transforms.json).
         out: output folder CUES/ (its cache/ is reused by later runs).
         overwrite: replace cues already in OUT (the per-image cache is still reused).
         cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off;

@@ -154,7 +154,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     kind = _prior_kind(cfg, scene)
     # the scene's content, not only its path: a scene regenerated in place is extracted again
     key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")),
-                     file_stamp(scene.root / "scene.json"))
+                     file_stamp(scene.root / "scene.json", *scene.sources))
     report_path = out_dir / "report.json"
     if report_path.is_file() and not overwrite:
         old = json.loads(report_path.read_text())

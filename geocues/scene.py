@@ -13,6 +13,10 @@ Layout of a scene folder::
     SCENE/gt/mesh.ply               optional ground-truth mesh
     SCENE/scene.json                optional metadata (priors' provenance, PNG scales, ...)
 
+A nerfstudio scene is read too: a folder with ``transforms.json`` (and no COLMAP model), or that
+file itself; its cameras are converted once, in geocues.nerfstudio_io, and its frames' depth files
+are the depth priors (priors/ is still read for the others).
+
 Conventions (docs/conventions.md): metres, world-to-camera OpenCV cameras, COLMAP pixel centres.
 """
 
@@ -26,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
+from geocues.nerfstudio_io import find_transforms, read_transforms
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +109,14 @@ def _read_image_size(path: Path) -> tuple[int, int]:
         raise ValueError(f"cannot read the image {path} ({'empty file' if size == 0 else type(exc).__name__})") from None
 
 
+def _has_colmap_model(root: Path) -> bool:
+    try:
+        find_model_dir(root)
+        return True
+    except (FileNotFoundError, ValueError):
+        return False
+
+
 def _load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray:
     """np.load with an error that names the file (truncated or foreign .npy files)."""
     try:
@@ -113,38 +126,49 @@ def _load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray
 
 
 class Scene:
-    """A posed scene read from a COLMAP model. Build it with :meth:`Scene.load`."""
+    """A posed scene read from a COLMAP model or a nerfstudio transforms.json; build it with :meth:`Scene.load`."""
 
     def __init__(self, root: Path, cameras: list[Camera], points: Points3D, metadata: dict,
-                 test_every: int, downscale: float, model_dir: Path):
+                 test_every: int, downscale: float, model_dir: Path,
+                 depth_files: dict[int, Path] | None = None, sources: list[Path] | None = None):
         self.root, self.cameras, self.points, self.metadata = root, cameras, points, metadata
         self.test_every, self.downscale, self.model_dir = test_every, downscale, model_dir
+        self.depth_files = depth_files or {}  # camera index -> depth prior named by the scene file
+        self.sources = sources or []  # files outside images/, priors/, sparse/ the scene was read from
 
     # ------------------------------------------------------------------ loading
     @classmethod
     def load(cls, root: str | Path, *, downscale: float = 1.0, test_every: int = 8,
              images_dir: str | Path | None = None, check_priors: bool = True) -> "Scene":
-        """Read ``root`` (a scene folder). ``downscale`` divides image size and intrinsics;
-        every ``test_every``-th image in name order (index % test_every == 0) is a test view
-        (0 = no test views). Raises FileNotFoundError / ValueError naming the bad path."""
+        """Read ``root`` (a scene folder, or a nerfstudio transforms.json). ``downscale`` divides
+        image size and intrinsics; every ``test_every``-th image in name order (index % test_every
+        == 0) is a test view (0 = no test views). Raises FileNotFoundError / ValueError naming the
+        bad path."""
         root = Path(root)
         if downscale <= 0:
             raise ValueError(f"downscale must be > 0, got {downscale}")
         if test_every < 0 or test_every == 1:
             raise ValueError(f"test_every must be 0 (no test views) or >= 2, got {test_every}")
-        model_dir = find_model_dir(root)
-        scene_root = root
-        if model_dir == root:  # a model folder given directly: the scene is the folder above sparse/
-            scene_root = next((p for p in (root, root.parent, root.parent.parent)
-                               if (p / "images").is_dir()), root)
-        raw_images, raw_points = read_model(model_dir)
+        ns, transforms = None, find_transforms(root) if root.exists() else None
+        if transforms is not None and (transforms == root or not _has_colmap_model(root)):
+            ns = read_transforms(transforms)
+            model_dir, scene_root, raw_images, raw_points = transforms, transforms.parent, ns.images, ns.points
+        else:
+            model_dir = find_model_dir(root)
+            scene_root = root
+            if model_dir == root:  # a model folder given directly: the scene is the folder above sparse/
+                scene_root = next((p for p in (root, root.parent, root.parent.parent)
+                                   if (p / "images").is_dir()), root)
+            raw_images, raw_points = read_model(model_dir)
         if not raw_images:
             raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
         img_dir = Path(images_dir) if images_dir is not None else scene_root / "images"
-        if not img_dir.is_dir():
+        if not img_dir.is_dir() and (ns is None or images_dir is not None):
             raise FileNotFoundError(f"no images folder at {img_dir}")
         meta_path = scene_root / "scene.json"
         metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        if ns is not None and ns.depth_paths and "depth_png_scale" not in metadata:
+            metadata["depth_png_scale"] = 1000.0  # nerfstudio's depth_unit_scale_factor: millimetres
 
         cameras: list[Camera] = []
         for k, im in enumerate(raw_images):
@@ -152,7 +176,7 @@ class Scene:
                 raise ValueError(
                     f"image {im.name} in {model_dir} uses the distorted camera model {im.model}; "
                     f"undistort the scene first: `geocues undistort {scene_root} -o OUT`")
-            path = img_dir / im.name
+            path = ns.image_paths[k] if ns is not None and images_dir is None else img_dir / im.name
             if not path.is_file():
                 raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: {path}")
             w, h = _read_image_size(path)
@@ -166,7 +190,10 @@ class Scene:
             cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path,
                                   width=nw, height=nh, K=S @ im.K, R=im.R, t=im.t))
         points = cls._points_from_raw(raw_points, cameras)
-        scene = cls(scene_root, cameras, points, metadata, test_every, downscale, model_dir)
+        depth_files = {} if ns is None else {c.index: ns.depth_paths[c.name] for c in cameras
+                                              if c.name in ns.depth_paths}
+        scene = cls(scene_root, cameras, points, metadata, test_every, downscale, model_dir, depth_files,
+                    [] if ns is None else ns.sources)
         if check_priors:
             scene._check_priors(raw_images)
         log.info("scene %s: %d images (%d train / %d test), %d points, priors: depth %d, normal %d",
@@ -248,6 +275,8 @@ class Scene:
 
     # ------------------------------------------------------------------ priors
     def _prior_path(self, kind: str, i: int) -> Path | None:
+        if kind == "depth" and i in self.depth_files:  # named by transforms.json (depth_file_path)
+            return self.depth_files[i]
         base = self.root / "priors" / kind / self.cameras[i].stem
         for ext in (".npy", ".png"):
             if base.with_suffix(ext).is_file():
