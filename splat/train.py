@@ -284,6 +284,21 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
     return params, cue_type, params["means"].numpy().astype(np.float64)
 
 
+def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict, str]:
+    """(per-image depth alignments for L_a — empty when it is off —, the depth priors' kind) from the
+    report `geocues extract` wrote beside the cues (the kind: its ``prior_kind``, else scene.json's)."""
+    report = cues_ply.parent / "report.json"
+    data = json.loads(report.read_text()) if report.is_file() else {}
+    kind = data.get("prior_kind", scene.depth_kind)
+    alignments = {}
+    if cfg.loss.lambda_anchor > 0 or kind == "disparity":  # L_a, or depth for L_d from disparity
+        alignments = load_alignments(report) if report.is_file() else {}
+        if not alignments and scene.has_depth_priors and cfg.loss.lambda_anchor > 0:
+            log.warning("%s records no depth alignments (the extract ran without priors?): the "
+                        "anchored-depth term L_a is off", report)
+    return alignments, kind  # with lambda_anchor 0 the anchors cost nothing: L_a is skipped
+
+
 def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, resume: bool = False) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
@@ -326,14 +341,9 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     timings: dict[str, float] = {}
 
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
-    alignments = {}
-    if cfg.loss.lambda_anchor > 0:  # L_a needs the cue-aligned priors recorded by geocues extract
-        report = cues_ply.parent / "report.json"
-        alignments = load_alignments(report) if report.is_file() else {}
-        if not alignments and scene.has_depth_priors:
-            log.warning("%s records no depth alignments (the extract ran without priors?): the "
-                        "anchored-depth term L_a is off", report)
-    train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments)
+    alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
+    train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
+                          prior_kind=prior_kind)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")

@@ -58,7 +58,7 @@ class ViewSet:
 
     def __init__(self, scene: Scene, indices: list[int], device: torch.device | str = "cpu",
                  load_priors: bool = True, desc: str = "views",
-                 alignments: dict[str, DepthAlignment] | None = None):
+                 alignments: dict[str, DepthAlignment] | None = None, prior_kind: str = "depth"):
         self.scene, self.indices, self.device = scene, list(indices), torch.device(device)
         self._rgb: list[Tensor] = []
         self._depth: list[Tensor | None] = []
@@ -73,10 +73,16 @@ class ViewSet:
             self._rgb.append(torch.from_numpy(rgb))
             d = scene.depth_prior(i) if load_priors else None
             n = scene.normal_prior(i) if load_priors else None
+            al = (alignments or {}).get(cam.name) if d is not None else None
+            aligned = None if al is None else al.apply(d)
+            if d is not None and prior_kind == "disparity":
+                # L_d's correlation is blind to scale and shift, not to inverse: it gets depth, the
+                # aligned one where the cues aligned it, else 1/p (exact up to scale for shift-free
+                # disparity, the form Depth-Anything and MiDaS write)
+                d = aligned if aligned is not None else np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
             self._depth.append(None if d is None else _compact(d))
             self._normal.append(None if n is None else torch.from_numpy(n).half())  # unit: fits
-            al = (alignments or {}).get(cam.name) if d is not None else None
-            self._anchor.append(None if al is None else _compact(al.apply(d)))
+            self._anchor.append(None if aligned is None else _compact(aligned))
             self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)

@@ -183,3 +183,23 @@ class TestExtract:
     def test_bad_kind_from_python_is_named(self, room, tmp_path):
         with pytest.raises(ValueError, match="prior_kind must be"):
             ex.run(room[0].root, tmp_path / "c", ex.ExtractConfig(prior_kind="inverse"))
+
+
+def test_training_views_get_depth_from_a_disparity_prior(room):
+    """L_d compares rendered depth with the prior by correlation, which is blind to scale and shift
+    but not to inversion: from a disparity prior the trainer takes the aligned depth, or 1/p."""
+    from geocues.depth_align import DepthAlignment
+    from splat.views import ViewSet
+
+    scene, depths = room
+    al = DepthAlignment(index=0, ok=True, kind="disparity", scale=1 / A, shift=-B / A)  # exact inverse
+    views = ViewSet(scene, [0, 1], alignments={scene.cameras[0].name: al}, prior_kind="disparity")
+    valid = depths[0] > 0
+    got = views[0].depth_prior.numpy()
+    np.testing.assert_allclose(got[valid], depths[0][valid], rtol=2e-3)  # float16 storage
+    np.testing.assert_allclose(views[0].depth_anchor.numpy()[valid], depths[0][valid], rtol=2e-3)
+    p, valid1 = _disparity(depths[1]), depths[1] > 0
+    np.testing.assert_allclose(views[1].depth_prior.numpy()[valid1], (1 / p)[valid1], rtol=2e-3)
+    assert views[1].depth_anchor is None
+    raw = ViewSet(scene, [0])  # kind depth: the prior as stored
+    np.testing.assert_allclose(raw[0].depth_prior.numpy()[valid], _disparity(depths[0])[valid], rtol=2e-3)
