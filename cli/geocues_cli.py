@@ -11,6 +11,7 @@ import tyro
 
 from cli._dispatch import dispatch
 from geocues.extract import ExtractConfig
+from geocues.mvs import MvsConfig
 from geocues.sfm import SfmConfig
 from geocues.undistort import UndistortConfig
 
@@ -115,7 +116,28 @@ def extract(scene: tyro.conf.Positional[Path],
 
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort, "extract": extract}
+def mvs(scene: tyro.conf.Positional[Path],
+        out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+        overwrite: bool = False,
+        cfg: tyro.conf.OmitArgPrefixes[MvsConfig] = MvsConfig()) -> int:
+    """Weight-free dense depth priors from the posed images (plane-sweep NCC stereo, forward-backward
+    consistency): OUT becomes a scene folder (images, model, GT linked) with priors/depth/*.npy in
+    metres and priors/depth_conf/*.npy; run `geocues extract OUT` next. An extension (docs/geocues.md).
+
+    Args:
+        scene: scene folder with images/ and a posed COLMAP model (SfM points set the depth range).
+        out: the new scene folder.
+        overwrite: compute the priors again into an OUT that has them.
+        cfg: MVS options.
+    """
+    from geocues.mvs import run
+
+    done = run(cfg, scene, out, overwrite=overwrite)
+    print(f"wrote {done}/priors/depth and {done}/mvs_report.json")
+    return 0
+
+
+COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort, "mvs": mvs, "extract": extract}
 
 
 def main(argv: list[str] | None = None) -> int:
