@@ -87,6 +87,12 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     if away is not None and away > 0.5:
         print(f"warning    {away:.0%} of the normal-prior pixels face away from the camera: the priors look like "
               "OpenGL camera axes (y up, z back); set {\"priors\": {\"normal_axes\": \"opengl\"}} in scene.json")
+    from geocues.rescale import metric_warning, scene_extent
+
+    print(f"extent     {scene_extent(s):.3g} units (5-95 % box of the {'points' if len(pts) >= 10 else 'cameras'})")
+    warn = metric_warning(s)
+    if warn:
+        print(f"warning    {warn}")
     print(f"split      {len(s.train_indices)} train / {len(s.test_indices)} test (every {test_every})")
     print(f"gt mesh    {s.gt_mesh_path or 'none'}")
     if s.metadata:
@@ -137,7 +143,31 @@ def mvs(scene: tyro.conf.Positional[Path],
     return 0
 
 
-COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort, "mvs": mvs, "extract": extract}
+def rescale(scene: tyro.conf.Positional[Path],
+            out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+            scale: float | None = None,
+            from_priors: bool = False,
+            overwrite: bool = False) -> int:
+    """Make a scene metric: OUT is SCENE with camera translations and SfM points multiplied by --scale,
+    or by the factor its metric depth priors give (--from-priors); images, priors and GT linked.
+    `geocues info` shows a scene's extent and warns when it is far from metric.
+
+    Args:
+        scene: scene folder with a COLMAP model.
+        out: the new scene folder.
+        scale: metres per scene unit.
+        from_priors: estimate the factor from the depth priors (median ratio at the SfM points).
+        overwrite: replace an existing OUT.
+    """
+    from geocues.rescale import run
+
+    done = run(scene, out, scale, from_priors, overwrite=overwrite)
+    print(f"wrote {done} (scale in {done}/scene.json)")
+    return 0
+
+
+COMMANDS: dict = {"info": info, "sfm": sfm, "undistort": undistort, "mvs": mvs, "rescale": rescale,
+                  "extract": extract}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
+from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
 from geocues.depth_align import DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning
 from geocues.lines import LineConfig, LineCues
@@ -151,6 +152,9 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     cfg.line.validate()
     check_output_dir(out_dir)
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
+    far = metric_warning(scene)
+    if far:
+        log.warning("%s", far)
     kind = _prior_kind(cfg, scene)
     # the scene's content, not only its path: a scene regenerated in place is extracted again
     key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")),

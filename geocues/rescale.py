@@ -1,0 +1,101 @@
+"""Metric scale: every threshold of this toolkit is in metres (a 2 cm plane tolerance, a 5 cm F-score,
+voxels of 2 cm), but an images-only SfM has an arbitrary scale. This module measures how far a scene
+is from metric and writes a rescaled copy (`geocues rescale`).
+
+``scene_extent`` is the size of the scene in its own units (the 5th–95th percentile box of the SfM
+points, or of the camera centres without points). A room measures 2–30 m; ``metric_warning`` says
+so when a scene is far outside 0.5–200 units. ``scale_from_priors`` estimates the factor from metric
+depth priors (a depth sensor, or a metric monocular network a user brings): the median over views of
+median(prior depth at the SfM points) / median(SfM point depth), robust to outliers and holes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from geocues.atomic import check_output_dir
+from geocues.colmap_io import find_model_dir, read_model, write_model
+from geocues.scene import Scene
+
+log = logging.getLogger(__name__)
+
+ROOM_RANGE = (0.5, 200.0)  # plausible extents (metres) of an indoor capture, with a wide margin
+
+
+def scene_extent(scene: Scene) -> float:
+    """Largest side (scene units) of the 5th–95th percentile box of the SfM points (else the cameras,
+    plus nothing: a capture whose cameras stand still has extent ~0)."""
+    pts = scene.points.xyz if len(scene.points) >= 10 else np.stack([c.center for c in scene.cameras])
+    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
+    return float((hi - lo).max())
+
+
+def metric_warning(scene: Scene) -> str | None:
+    """A sentence when the scene's extent is far from an indoor capture's in metres, else None."""
+    ext = scene_extent(scene)
+    if ROOM_RANGE[0] <= ext <= ROOM_RANGE[1] or len(scene.points) < 10:
+        return None
+    return (f"the scene spans {ext:.3g} units, not the 0.5-200 m of an indoor capture: every threshold here is "
+            f"in metres; make it metric with `geocues rescale SCENE -o OUT --scale S` (or --from-priors)")
+
+
+def scale_from_priors(scene: Scene, min_points: int = 20) -> tuple[float, int]:
+    """(metric / scene-unit factor, views used) from the depth priors at the SfM points each view sees."""
+    ratios = []
+    for i, cam in enumerate(scene.cameras):
+        d = scene.depth_prior(i)
+        if d is None:
+            continue
+        X = scene.points.xyz @ cam.R.T + cam.t
+        front = X[:, 2] > 0
+        uv = (X[front] @ cam.K.T)[:, :2] / X[front, 2:3]
+        col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        inside = (col >= 0) & (col < d.shape[1]) & (row >= 0) & (row < d.shape[0])
+        z, p = X[front, 2][inside], d[row[inside], col[inside]]
+        ok = p > 0
+        if ok.sum() >= min_points:
+            ratios.append(float(np.median(p[ok]) / np.median(z[ok])))
+    if not ratios:
+        raise ValueError(f"--from-priors: no view of {scene.root} has a depth prior at {min_points}+ of its SfM points")
+    return float(np.median(ratios)), len(ratios)
+
+
+def run(scene_dir: str | Path, out_dir: str | Path, scale: float | None = None, from_priors: bool = False,
+        *, overwrite: bool = False) -> Path:
+    """Write ``out_dir``: the scene with camera translations and SfM points multiplied by the factor
+    (``scale``, or estimated ``from_priors``); images, priors and GT linked (priors and GT are
+    already metric). Returns ``out_dir``."""
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
+    if (scale is None) == (not from_priors):
+        raise ValueError("give either --scale S or --from-priors")
+    if scale is not None and not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"--scale must be a positive number, got {scale}")
+    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
+        raise ValueError(f"{out_dir} already exists; pass --overwrite to replace it")
+    check_output_dir(out_dir)
+    scene = Scene.load(scene_dir, check_priors=False)
+    used = None
+    if from_priors:
+        scale, used = scale_from_priors(scene)
+    images, points = read_model(find_model_dir(scene_dir))
+    for im in images:
+        im.t = im.t * scale
+    points.xyz = points.xyz * scale
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    write_model(out_dir / "sparse" / "0", images, points)
+    for rel in ("images", "priors", "gt"):
+        if (scene_dir / rel).exists():
+            (out_dir / rel).symlink_to((scene_dir / rel).resolve())
+    meta = json.loads((scene_dir / "scene.json").read_text()) if (scene_dir / "scene.json").is_file() else {}
+    meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used}
+    (out_dir / "scene.json").write_text(json.dumps(meta, indent=1))
+    log.info("rescaled %s by %.6g%s: extent %.3g -> %.3g m", scene_dir, scale,
+             f" (from the depth priors of {used} views)" if used else "", scene_extent(scene),
+             scene_extent(scene) * scale)
+    return out_dir

@@ -1,0 +1,63 @@
+"""Metric scale: the extent is reported, a far-from-metric scene is warned about, and `geocues
+rescale` makes it metric by a given factor or from metric depth priors (round trip to 1e-9)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cues_synth import make_room_scene, render
+from geocues.rescale import metric_warning, run, scale_from_priors, scene_extent
+from geocues.scene import Scene
+
+
+@pytest.fixture(scope="module")
+def rooms(tmp_path_factory):
+    base = tmp_path_factory.mktemp("rescale")
+    root = make_room_scene(base / "room", n_views=6, w=64, h=48, priors="none", n_outliers=0)
+    scene = Scene.load(root, check_priors=False)
+    (root / "priors" / "depth").mkdir(parents=True)
+    for cam in scene.cameras:  # metric priors (a depth sensor): the exact depth
+        np.save(root / "priors" / "depth" / f"{cam.stem}.npy",
+                render(cam.K, cam.R, cam.t, cam.width, cam.height)[1].astype(np.float32))
+    small = run(root, base / "small", scale=0.01)  # what an images-only SfM might return
+    return base, root, small
+
+
+def test_extent_and_the_warning(rooms, capsys):
+    from cli.geocues_cli import main
+
+    _, root, small = rooms
+    big, tiny = Scene.load(root, check_priors=False), Scene.load(small, check_priors=False)
+    assert 2 < scene_extent(big) < 6 and scene_extent(tiny) == pytest.approx(scene_extent(big) / 100)
+    assert metric_warning(big) is None
+    assert "geocues rescale" in metric_warning(tiny)
+    assert main(["info", str(small)]) == 0
+    out = capsys.readouterr().out
+    assert "extent" in out and "not the 0.5-200 m" in out
+
+
+def test_from_priors_recovers_the_scale_and_round_trips(rooms):
+    base, root, small = rooms
+    s, used = scale_from_priors(Scene.load(small, check_priors=False))
+    assert s == pytest.approx(100, rel=0.01) and used >= 4  # views with 20+ SfM points in view
+    back = run(small, base / "back", from_priors=True)
+    assert json.loads((back / "scene.json").read_text())["rescaled"]["scale"] == pytest.approx(s)
+    a, b = Scene.load(root, check_priors=False), Scene.load(back, check_priors=False)
+    for ca, cb in zip(a.cameras, b.cameras):
+        np.testing.assert_allclose(cb.R, ca.R, atol=1e-9)
+        np.testing.assert_allclose(cb.t, ca.t, rtol=0.01, atol=1e-6)
+    np.testing.assert_allclose(b.points.xyz, a.points.xyz, rtol=0.01, atol=1e-3)
+
+
+def test_bad_options_are_named(rooms, tmp_path):
+    _, root, _ = rooms
+    with pytest.raises(ValueError, match="either --scale S or --from-priors"):
+        run(root, tmp_path / "x")
+    with pytest.raises(ValueError, match="positive"):
+        run(root, tmp_path / "x", scale=-2.0)
+    plain = make_room_scene(tmp_path / "plain", n_views=4, w=64, h=48, priors="none")
+    with pytest.raises(ValueError, match="no view of .* has a depth prior"):
+        run(plain, tmp_path / "y", from_priors=True)
