@@ -14,6 +14,7 @@ from splat.bench import BenchConfig
 from splat.presets import PRESETS, load_config_file, preset_config
 from splat.render_run import RenderConfig
 from splat.train import TrainConfig
+from splat.viewer import ViewConfig
 
 
 def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
@@ -158,8 +159,45 @@ def render(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
     return 0
 
 
+def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
+         screenshot: Annotated[Path | None, tyro.conf.arg(metavar="PNG")] = None,
+         size: tuple[int, int] = (1280, 720),
+         cfg: Annotated[ViewConfig, tyro.conf.arg(name="")] = ViewConfig()) -> int:
+    """Look at a finished run in the browser (viser): Gaussians, mesh, cues by type, 3D lines and
+    cameras, each behind a checkbox; serves until Ctrl-C.
+
+    Args:
+        run: a finished `splat train` folder.
+        screenshot: instead of serving, save the page as headless Chromium draws it (software WebGL)
+            to this PNG and exit.
+        size: width and height of --screenshot.
+        cfg: what to show and where to serve.
+    """
+    from splat.viewer import LAST_GUI_TEXT, serve, stop, url_of
+    from splat.viewer import run as view_run
+
+    try:
+        server = view_run(cfg, run, block=False)
+    except KeyboardInterrupt:
+        print("viewer stopped while loading")
+        return 130
+    if screenshot is None:
+        print(f"viewer of {run} at {url_of(server)} (Ctrl-C to stop)", flush=True)
+        serve(server)
+        print("viewer stopped")
+        return 0
+    from splat.browser_shot import screenshot as take
+
+    try:
+        take(url_of(server), screenshot, width=size[0], height=size[1], wait_for_text=LAST_GUI_TEXT)
+    finally:
+        stop(server)
+    print(f"wrote {screenshot}")
+    return 0
+
+
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate, "render": render}
+COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate, "render": render, "view": view}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,199 @@
+"""`splat view`: the layers built from a finished run's files, the errors a user meets, the served
+page as headless Chromium draws it (software WebGL), and Ctrl-C ending the server with one line."""
+
+from __future__ import annotations
+
+import json
+import re
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from cues_synth import make_room_scene, room_edges, room_mesh
+from geocues.cue_io import CUE_TYPE_COLORS, CueCloud, write_cues_ply, write_lines_ply
+from geocues.scene import Scene
+from geocues.types import CueType
+from splat.browser_shot import find_chromium
+from splat.gaussians import save_ply
+from splat.sh import SH_C0
+from splat.viewer import ViewConfig, load_lines, load_splats, run, stop, url_of
+
+MAGENTA = np.array([1.0, 0.0, 1.0])  # every splat's colour: easy to count in a screenshot
+needs_chromium = pytest.mark.skipif(find_chromium() is None,
+                                    reason="no Chromium on PATH (Debian: apt-get install chromium; scripts/test.sh does)")
+
+
+@pytest.fixture(scope="module")
+def fake_run(tmp_path_factory):
+    """A finished-run folder: magenta Gaussians on the room's SfM points, the room mesh, a cue folder
+    (cues.ply of every type, lines3d.ply) and report.json naming the scene and the cues."""
+    import open3d as o3d
+
+    base = tmp_path_factory.mktemp("view")
+    root = make_room_scene(base / "room", n_views=8, w=64, h=48, priors="none")
+    scene = Scene.load(root, test_every=4, check_priors=False)
+    pts = torch.as_tensor(scene.points.xyz, dtype=torch.float32)
+    n = len(pts)
+    sh0 = torch.as_tensor((MAGENTA - 0.5) / SH_C0, dtype=torch.float32).repeat(n, 1, 1)
+    params = {"means": pts, "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+              "scales": torch.full((n, 3), -2.5), "opacities": torch.full((n,), 4.0),
+              "sh0": sh0, "shN": torch.zeros(n, 0, 3)}
+    run_dir = base / "run"
+    save_ply(run_dir / "point_cloud.ply", params)
+    V, T, _ = room_mesh()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
+    o3d.io.write_triangle_mesh(str(run_dir / "mesh.ply"), mesh)
+    cues = base / "cues"
+    xyz = scene.points.xyz
+    cloud = CueCloud.concat([CueCloud.make(xyz[k::3], np.full((len(xyz[k::3]), 3), 0.5), t)
+                             for k, t in enumerate(CueType)])
+    write_cues_ply(cues / "cues.ply", cloud)
+    write_lines_ply(cues / "lines3d.ply", room_edges(), np.tile(np.uint8([214, 39, 40]), (len(room_edges()), 1)))
+    (run_dir / "report.json").write_text(json.dumps({"scene": str(root), "cues": str(cues / "cues.ply")}))
+    return run_dir, scene, cloud
+
+
+class TestLayers:
+    def test_splats_covariance_colour_opacity(self, tmp_path):
+        from scipy.spatial.transform import Rotation
+
+        rng = np.random.default_rng(0)
+        n = 50
+        q = rng.normal(size=(n, 4))
+        log_s = rng.uniform(-4, -1, size=(n, 3))
+        sh0 = rng.normal(size=(n, 1, 3))
+        f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+        save_ply(tmp_path / "point_cloud.ply", {
+            "means": f32(rng.normal(size=(n, 3))), "quats": f32(q), "scales": f32(log_s),
+            "opacities": f32(rng.normal(size=n)), "sh0": f32(sh0), "shN": torch.zeros(n, 0, 3)})
+        s = load_splats(tmp_path / "point_cloud.ply", max_splats=n)
+        assert s.centers.shape == (n, 3) and s.covariances.shape == (n, 3, 3), s.covariances.shape
+        assert s.rgbs.shape == (n, 3) and s.opacities.shape == (n, 1) and s.total == n
+        R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # scipy is xyzw
+        expected = R @ (np.exp(2 * log_s)[:, :, None] * R.transpose(0, 2, 1))
+        np.testing.assert_allclose(s.covariances, expected, rtol=1e-4, atol=1e-9)
+        np.testing.assert_allclose(s.rgbs, np.clip(0.5 + SH_C0 * sh0[:, 0], 0, 1), atol=1e-5)
+        assert ((s.opacities > 0) & (s.opacities < 1)).all()
+        sub = load_splats(tmp_path / "point_cloud.ply", max_splats=20)
+        assert len(sub.centers) == 20 and sub.total == n
+        assert np.isin(sub.centers[:, 0], s.centers[:, 0]).all()  # a subset, not new points
+
+    def test_lines_from_ply_and_npz(self, fake_run, tmp_path):
+        from geocues.cue_io import write_lines_npz
+
+        run_dir, _, _ = fake_run
+        seg, rgb = load_lines(Path(json.loads((run_dir / "report.json").read_text())["cues"]).parent)
+        np.testing.assert_allclose(seg, room_edges(), atol=1e-5)
+        assert (rgb == [214, 39, 40]).all()
+        assert load_lines(tmp_path) is None
+        segs = room_edges()[:3]
+        write_lines_npz(tmp_path / "lines3d.npz", segs, np.full(3, 2), [np.array([0, 1])] * 3,
+                        np.zeros((3, 3), np.uint8))
+        np.testing.assert_allclose(load_lines(tmp_path)[0], segs, atol=1e-5)
+
+    def test_every_layer_is_served(self, fake_run):
+        run_dir, scene, _ = fake_run
+        server = run(ViewConfig(port=0), run_dir, block=False)
+        try:
+            with urllib.request.urlopen(url_of(server), timeout=30) as r:
+                assert r.status == 200 and b"<html" in r.read().lower()
+        finally:
+            stop(server)
+
+
+class TestErrors:
+    def test_bad_run_folders_are_named(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match=re.escape(f"no run folder at {tmp_path / 'nope'}")):
+            run(ViewConfig(port=0), tmp_path / "nope", block=False)
+        with pytest.raises(FileNotFoundError, match="holds no point_cloud.ply"):
+            run(ViewConfig(port=0), tmp_path, block=False)
+        with pytest.raises(ValueError, match="unknown layers"):
+            run(ViewConfig(port=0, show=("splats", "walls")), tmp_path, block=False)
+
+    def test_cli_prints_one_line(self, tmp_path, capsys):
+        from cli.splat_cli import main
+
+        assert main(["view", str(tmp_path / "nope"), "--port", "0"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"splat view: error: no run folder at {tmp_path / 'nope'}"], err
+
+    def test_missing_scene_and_cues_leave_their_layers_out(self, fake_run, tmp_path, caplog):
+        import shutil
+
+        run_dir, _, _ = fake_run
+        lone = tmp_path / "run"
+        lone.mkdir()
+        shutil.copy(run_dir / "point_cloud.ply", lone)
+        (lone / "report.json").write_text(json.dumps({"scene": str(tmp_path / "gone"), "cues": None}))
+        from splat.viewer import _resolve
+
+        files = _resolve(lone, ViewConfig())
+        assert files["scene"] is None and files["cues"] is None and files["mesh"] is None
+        assert "does not exist" in caplog.text and "no mesh.ply" in caplog.text
+        (lone / "mesh.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n\x00")
+        stop(run(ViewConfig(port=0), lone, block=False))  # splats alone; the damaged mesh is named
+        assert f"could not read the mesh {lone / 'mesh.ply'}" in caplog.text
+
+
+def _near(img: np.ndarray, rgb, tol: int = 40) -> np.ndarray:
+    return (np.abs(img[..., :3].astype(int) - np.asarray(rgb)).max(-1) <= tol)
+
+
+@needs_chromium
+def test_browser_draws_the_splats(fake_run, tmp_path):
+    """The page served by `splat view` as Chromium draws it with software WebGL: the magenta splats
+    fill part of the canvas; with only the cue layer on, the cue-type colours show instead."""
+    from cli.splat_cli import main
+
+    run_dir, _, _ = fake_run
+    png = tmp_path / "view.png"
+    assert main(["view", str(run_dir), "--screenshot", str(png), "--size", "640", "480", "--port", "0"]) == 0
+    img = iio.imread(png)
+    assert img.shape[:2] == (480, 640), img.shape
+    canvas = img[:, :400]  # the GUI panel is on the right
+    assert canvas.std() > 10, "blank page"
+    magenta = _near(canvas, 255 * MAGENTA).mean()
+    assert magenta > 0.02, f"only {magenta:.1%} of the canvas is the splats' magenta"
+
+    png2 = tmp_path / "cues.png"
+    assert main(["view", str(run_dir), "--screenshot", str(png2), "--size", "640", "480", "--port", "0",
+                 "--show", "cues"]) == 0
+    canvas = iio.imread(png2)[:, :400]
+    assert _near(canvas, 255 * MAGENTA).mean() < 0.001, "splats shown though unchecked"
+    for t in CueType:
+        share = _near(canvas, CUE_TYPE_COLORS[t]).mean()
+        assert share > 1e-4, f"no {t.name} cue colour {CUE_TYPE_COLORS[t]} in the picture ({share:.2%})"
+
+
+def test_ctrl_c_ends_with_one_line(fake_run):
+    """`splat view RUN` prints its URL, serves the page and on SIGINT exits 0 with one line, no traceback."""
+    run_dir, _, _ = fake_run
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "cli.splat_cli", "view", str(run_dir), "--port", "0", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            cwd=Path(__file__).resolve().parents[1])
+    try:
+        first = proc.stdout.readline()
+        assert " at http://127.0.0.1:" in first, first
+        url = first.split(" at ")[1].split()[0]
+        with urllib.request.urlopen(url, timeout=30) as r:
+            assert r.status == 200
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert out.strip().splitlines() == ["viewer stopped"], out
+    assert "Traceback" not in err, err
