@@ -72,7 +72,7 @@ def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, 
     then the ablation's iterations (times the preset's factor), seed offset and checkpoints."""
     import tyro
 
-    from splat.train import TrainConfig
+    from splat.train_config import TrainConfig
 
     if any(a == "--iters" or a.startswith("--iters=") for a in train_args):
         raise ValueError("give the iterations as `splat ablate --iters N` (rows scale it), not as a train option")
@@ -263,7 +263,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     check_output_dir(out_dir)
     specs, na = plan(cfg, scene_dir, cues, out_dir, train_args)
     out_dir.mkdir(parents=True, exist_ok=True)
-    from splat.train import TrainConfig
+    from splat.train_config import TrainConfig
 
     example = (config_from_dict(TrainConfig, specs[0]["train_config"]) if specs
                else train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))

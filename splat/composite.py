@@ -48,10 +48,11 @@ median_features=None) -> CompositeOut`` taking tensors already checked by
 from __future__ import annotations
 
 import logging
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+from splat.contracts import CompositeOut, check_composite_inputs  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -60,15 +61,6 @@ BACKENDS = ("torch", "cpu", "cuda", "auto")
 # name -> the imported backend module (None: not tried yet or failed), and why it failed
 _modules: dict[str, object | None] = {"cpu": None, "cuda": None}
 _errors: dict[str, str | None] = {"cpu": None, "cuda": None}
-
-
-class CompositeOut(NamedTuple):
-    """What a compositing backend returns for one view."""
-
-    features: Tensor  # [H, W, C] blended channels, background included
-    alpha: Tensor  # [H, W] 1 - final transmittance, in [0, 1]
-    median: Tensor | None  # [H, W, M] median_features of the Gaussian where T crosses 0.5 (0 if none)
-    n_contrib: Tensor  # [H, W] int32 number of Gaussians blended at the pixel
 
 
 def _load_backend(name: str):
@@ -136,40 +128,6 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | Non
             log.warning("backend 'cpu' requested but unavailable (%s); using torch", _errors["cpu"])
         return "torch"
     return "cpu"
-
-
-def check_composite_inputs(
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    features: Tensor,
-    depths: Tensor,
-    radii: Tensor,
-    width: int,
-    height: int,
-    background: Tensor | None,
-    median_features: Tensor | None,
-) -> None:
-    """Raise ValueError with expected vs actual shapes when the inputs do not fit the contract."""
-    if features.dim() != 2:
-        raise ValueError(f"features must be [N, C], got shape {tuple(features.shape)}")
-    n, c = features.shape
-    expected = {
-        "means2d": (means2d, (n, 2)),
-        "conics": (conics, (n, 3)),
-        "opacities": (opacities, (n,)),
-        "depths": (depths, (n,)),
-        "radii": (radii, (n,)),
-    }
-    for name, (tensor, shape) in expected.items():
-        if tuple(tensor.shape) != shape:
-            raise ValueError(f"{name} must have shape {shape}, got {tuple(tensor.shape)}")
-    if background is not None and tuple(background.shape) != (c,):
-        raise ValueError(f"background must have shape ({c},), got {tuple(background.shape)}")
-    if median_features is not None and (median_features.dim() != 2 or median_features.shape[0] != n):
-        raise ValueError(f"median_features must be [{n}, M], got {tuple(median_features.shape)}")
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"image size must be positive, got width={width}, height={height}")
 
 
 def composite(

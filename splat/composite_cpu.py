@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from splat.composite import CompositeOut, check_composite_inputs
+from splat.contracts import CompositeOut, check_composite_inputs
 from splat.cpu_ext import ext as _ext
 
 

@@ -27,7 +27,7 @@ import logging
 import torch
 from torch import Tensor
 
-from splat.composite import CompositeOut, check_composite_inputs
+from splat.contracts import CompositeOut, check_composite_inputs
 
 log = logging.getLogger(__name__)
 

@@ -100,7 +100,7 @@ def apply_overrides(cfg: Any, overrides: dict[str, Any]) -> Any:
 
 def preset_config(name: str, base: Any = None) -> Any:
     """The TrainConfig of preset ``name`` (on top of ``base``, default TrainConfig())."""
-    from splat.train import TrainConfig
+    from splat.train_config import TrainConfig
 
     preset = get_preset(name)
     cfg = apply_overrides(TrainConfig() if base is None else base, preset.overrides)
@@ -133,7 +133,7 @@ def load_config_file(path: str | Path) -> Any:
     """The TrainConfig stored in a run's ``config.yaml`` (``splat train --load-config``)."""
     import yaml
 
-    from splat.train import TrainConfig
+    from splat.train_config import TrainConfig
 
     path = Path(path)
     if not path.is_file():

@@ -19,7 +19,7 @@ from torch.autograd.function import once_differentiable
 
 from splat.camera import Camera
 from splat.cpu_ext import ext as _ext
-from splat.projection import Projected, ProjectionConfig
+from splat.contracts import Projected, ProjectionConfig
 
 
 class _ProjectCPU(torch.autograd.Function):

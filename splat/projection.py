@@ -17,48 +17,18 @@ Numerical care (every case below has a test in tests/test_render_hard_cases.py):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from splat.camera import Camera
+from splat.contracts import Projected, ProjectionConfig  # noqa: F401  (re-exported)
 from splat.composite import cpu_backend_available
 from splat.sh import num_sh_bases, sh_degree_of, sh_to_rgb
 
 PARAM_KEYS = ("means", "quats", "scales", "opacities", "sh0", "shN")
 FLAT_VARIANCE = 1e-8  # RaDe-GS: smallest variance (m^2) below which a Gaussian is treated as flat
 MAX_RADIUS = 1e8  # pixel radii are capped here (int32 safety); such Gaussians cover any image
-
-
-@dataclass
-class ProjectionConfig:
-    """Options of the EWA projection."""
-
-    near: float = 0.01
-    """Gaussians with view-space z at or below this (metres) are culled."""
-    far: float = 1e10
-    """Gaussians with view-space z at or beyond this (metres) are culled."""
-    eps2d: float = 0.3
-    """Low-pass filter added to the 2D covariance diagonal, in pixels^2 (3DGS)."""
-    antialiased: bool = False
-    """Scale opacity by sqrt(det(cov2d) / det(cov2d + eps2d I)) (Mip-Splatting / gsplat 'antialiased')."""
-    min_plane_cos: float = 0.01
-    """Clamp of cos(view ray, plane normal) in the depth-plane slope (edge-on Gaussians)."""
-
-
-class Projected(NamedTuple):
-    """Per-Gaussian image-space quantities for one view (N = all Gaussians; culled have radii 0)."""
-
-    means2d: Tensor  # [N, 2] pixel coordinates (COLMAP centres)
-    conics: Tensor  # [N, 3] (a, b, c) inverse of the low-passed 2D covariance
-    depths: Tensor  # [N] view-space z in metres (1.0 stand-in where culled by depth)
-    radii: Tensor  # [N] int32 pixel radius, 0 = culled
-    opacities: Tensor  # [N] in (0, 1)
-    colors: Tensor  # [N, 3] SH colour for this view
-    depth_slopes: Tensor  # [N, 2] d(depth)/d(pixel x, pixel y) of the RaDe-GS depth plane
-    normals: Tensor  # [N, 3] unit camera-frame normal facing the camera (0 if undefined)
 
 
 def check_params(params: dict[str, Tensor]) -> int:

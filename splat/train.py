@@ -22,7 +22,7 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,119 +38,16 @@ from geocues.types import CueType
 from splat import checkpoint
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
-from splat.gaussians import InitConfig, init_from_cues, load_ply, save_ply, scene_scale
-from splat.guard import GuardConfig, NumericsGuard, TrainingDiverged
+from splat.gaussians import init_from_cues, load_ply, save_ply, scene_scale
+from splat.guard import NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
-from splat.mesh import TSDFConfig, clean_mesh, fuse_views, write_mesh
+from splat.mesh import clean_mesh, fuse_views, write_mesh
 from splat.rasterize import render
-from splat.strategy import PAPER_ITERS, IndoorStrategy, IndoorStrategyConfig
+from splat.strategy import PAPER_ITERS, IndoorStrategy
+from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.views import View, ViewSet
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class LearningRates:
-    """Adam learning rates per parameter (3DGS defaults; positions scale with the scene)."""
-
-    means: float = 1.6e-4
-    """Initial position learning rate, times the scene scale."""
-    means_final: float = 1.6e-6
-    """Final position learning rate (exponential decay over the run), times the scene scale."""
-    scales: float = 5e-3
-    """Log-scale learning rate."""
-    quats: float = 1e-3
-    """Rotation learning rate."""
-    opacities: float = 5e-2
-    """Opacity-logit learning rate."""
-    sh0: float = 2.5e-3
-    """SH DC learning rate."""
-    shN: float = 2.5e-3 / 20
-    """Higher SH bands' learning rate."""
-
-
-@dataclass
-class TrainConfig:
-    """Options of `splat train`."""
-
-    iters: int = 30_000
-    """Training iterations (the paper's 30k; every schedule of the paper scales with this)."""
-    downscale: float = 1.0
-    """Divide image size and intrinsics by this (2 = half resolution)."""
-    test_every: int = 8
-    """Every n-th image (name order) is a held-out test view (3DGS); 0 = none."""
-    sh_degree: int = 3
-    """Final SH degree of the colours (raised by one every iters/30 iterations, 3DGS: 1000 of 30k)."""
-    cue_types: tuple[str, ...] = ("SFM", "LINE", "PLANE")
-    """Cue types that seed Gaussians (the paper's ablations drop some)."""
-    init_from: str = "cues"
-    """Seed the Gaussians from "cues" (CUES/cues.ply, typed) or "sfm" (the scene's own COLMAP points,
-    all SFM-typed, no outlier removal: the 3DGS / RaDe-GS baseline)."""
-    init_ply: str | None = None
-    """Start from the Gaussians of this PLY instead (this project's, the 3DGS reference's or gsplat's
-    export; cue types from its cue_type.npy sidecar, else all SFM). Overrides init_from."""
-    device: str = "auto"
-    """"cpu", "cuda" or "auto" (CUDA when available)."""
-    backend: str = "auto"
-    """Rasterizer backend: "auto" (C++ on the CPU, torch on CUDA), "cpu", "torch"."""
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Background colour behind the Gaussians."""
-    checkpoints: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
-    """Fractions of the run after which test views are evaluated (accuracy against time)."""
-    log_every: int = 50
-    """Write a train_log.jsonl line every this many iterations."""
-    mesh: bool = True
-    """Fuse a TSDF mesh from the rendered median depth of the training views at the end."""
-    mesh_at_checkpoints: bool = False
-    """Also fuse a mesh at every checkpoint (OUT/checkpoints/mesh_STEP.ply), for accuracy against time."""
-    mesh_every: int = 1
-    """Use every n-th training view for the TSDF fusion."""
-    seed: int = 0
-    """Seed of the view order, the loss patches and the density control."""
-    save_every: float = 300.0
-    """Write OUT.partial/ckpt/last.pt every this many seconds of training (0: only when stopped by
-    SIGINT / SIGTERM); `--resume` continues from it."""
-    keep_ckpt: bool = False
-    """Keep OUT/ckpt/last.pt (the final state) after a finished run."""
-    lr: LearningRates = field(default_factory=LearningRates)
-    init: InitConfig = field(default_factory=InitConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    strategy: IndoorStrategyConfig = field(default_factory=IndoorStrategyConfig)
-    tsdf: TSDFConfig = field(default_factory=TSDFConfig)
-    guard: GuardConfig = field(default_factory=GuardConfig)
-
-    def validate(self) -> None:
-        """Raise ValueError naming the first impossible option."""
-        def finite_pos(name: str, value: float, zero_ok: bool = False) -> None:
-            if not (math.isfinite(value) and (value >= 0 if zero_ok else value > 0)):
-                raise ValueError(f"--{name} must be a finite number {'>= 0' if zero_ok else '> 0'}, got {value}")
-
-        if self.iters <= 0:
-            raise ValueError(f"--iters must be positive, got {self.iters}")
-        finite_pos("downscale", self.downscale)
-        if not 0 <= self.sh_degree <= 3:
-            raise ValueError(f"--sh-degree must be in 0..3, got {self.sh_degree}")
-        bad = [t for t in self.cue_types if t not in CueType.__members__]
-        if bad:
-            raise ValueError(f"--cue-types: unknown cue types {bad}; choose from {list(CueType.__members__)}")
-        for name, value in asdict(self.lr).items():
-            finite_pos(f"lr.{name.replace('_', '-')}", value)
-        if not 0 < self.init.init_opacity < 1:
-            raise ValueError(f"--init.init-opacity must be in (0, 1), got {self.init.init_opacity}")
-        for name in ("min_scale", "flat_ratio", "max_scale_mult"):
-            finite_pos(f"init.{name.replace('_', '-')}", getattr(self.init, name))
-        if self.init.knn < 1:
-            raise ValueError(f"--init.knn must be >= 1, got {self.init.knn}")
-        for name, value in asdict(self.loss).items():
-            if isinstance(value, float):
-                finite_pos(f"loss.{name.replace('_', '-')}", value, zero_ok=True)
-        if not all(0 < c <= 1 for c in self.checkpoints):
-            raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
-        finite_pos("save-every", self.save_every, zero_ok=True)
-        if self.log_every < 1 or self.mesh_every < 1:
-            raise ValueError("--log-every and --mesh-every must be >= 1")
-        self.tsdf.validate()
-        self.guard.validate()
 
 
 def resolve_device(name: str) -> torch.device:

@@ -1,0 +1,53 @@
+"""No import cycles between the project's modules (STYLE.md): every `from geocues/splat/evaluation/cli
+... import` — module-level or inside a function, but not under TYPE_CHECKING — forms a DAG."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("geocues", "splat", "evaluation", "cli")
+
+
+def _imports() -> dict[str, set[str]]:
+    graph = {}
+    for pkg in PACKAGES:
+        for path in (REPO / pkg).rglob("*.py"):
+            name = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+            tree = ast.parse(path.read_text())
+            skip = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+                    and "TYPE_CHECKING" in ast.unparse(node.test) for n in ast.walk(node)}
+            deps = set()
+            for node in ast.walk(tree):
+                if id(node) in skip:
+                    continue
+                if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                    deps.add(node.module)
+                elif isinstance(node, ast.Import):
+                    deps.update(a.name for a in node.names)
+            graph[name] = {d for d in deps if d.split(".")[0] in PACKAGES and d != name}
+    return graph
+
+
+def test_no_import_cycles():
+    graph = _imports()
+    assert "splat.train" in graph and "splat.contracts" in graph
+    state: dict[str, int] = {}  # 1 = on the stack, 2 = done
+    cycles = []
+
+    def visit(node, stack):
+        state[node] = 1
+        for dep in sorted(graph.get(node, ())):
+            if dep not in graph:
+                continue
+            if state.get(dep) == 1:
+                cycles.append(stack[stack.index(dep):] + [dep])
+            elif dep not in state:
+                visit(dep, stack + [dep])
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+    assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
