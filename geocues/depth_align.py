@@ -137,21 +137,49 @@ class DepthAlignment:
         return cls(**kw)
 
 
-def load_alignments(report: str | Path) -> dict[str, DepthAlignment]:
-    """The successful per-image alignments recorded by ``geocues extract`` in CUES/report.json
-    (``report`` is that file or its folder), keyed by image name. Empty when the extract ran
-    without priors or its depth-alignment stage was off."""
-    path = Path(report)
-    path = path / "report.json" if path.is_dir() else path
-    if not path.is_file():
-        raise FileNotFoundError(f"no cue report at {path} (run `geocues extract SCENE -o CUES` first)")
-    rows = json.loads(path.read_text()).get("per_image", [])
-    out = {}
-    for row in rows:
-        al = row.get("alignment")
-        if al and al.get("ok") and "name" in row:
-            out[row["name"]] = DepthAlignment.from_dict(al)
-    return out
+ALIGNMENTS_FILE = "depth_alignments.json"  # CUES/depth_alignments.json: what `splat train` reads
+
+
+def write_alignments(out_dir: str | Path, per_image: list[dict], kind: str) -> Path:
+    """CUES/depth_alignments.json: ``{"prior_kind": kind, "alignments": {image name: alignment}}``
+    of the successful fits (the data a later stage reads travels in its own file; report.json is
+    for people)."""
+    from geocues.atomic import atomic_path
+
+    rows = {row["name"]: row["alignment"] for row in per_image
+            if row.get("alignment") and row["alignment"].get("ok") and "name" in row}
+    path = Path(out_dir) / ALIGNMENTS_FILE
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({"prior_kind": kind, "alignments": rows}, indent=1))
+    return path
+
+
+def load_alignments(cues: str | Path) -> dict[str, DepthAlignment]:
+    """The successful per-image alignments of ``geocues extract``, keyed by image name, from
+    CUES/depth_alignments.json (``cues`` is the folder or a file in it); cue folders written before
+    that file existed are read from their report.json. Empty when the extract ran without priors."""
+    return {name: DepthAlignment.from_dict(al) for name, al in _alignment_rows(cues)[0].items()}
+
+
+def load_prior_kind(cues: str | Path, default: str = "depth") -> str:
+    """What the extract took the depth priors for ("depth" / "disparity"); ``default`` if unrecorded."""
+    return _alignment_rows(cues)[1] or default
+
+
+def _alignment_rows(cues: str | Path) -> tuple[dict[str, dict], str | None]:
+    path = Path(cues)
+    folder = path if path.is_dir() or not path.suffix else path.parent  # CUES, or a file in it
+    if (folder / ALIGNMENTS_FILE).is_file():
+        data = json.loads((folder / ALIGNMENTS_FILE).read_text())
+        return data.get("alignments", {}), data.get("prior_kind")
+    report = folder / "report.json"
+    if not report.is_file():
+        raise FileNotFoundError(f"no {ALIGNMENTS_FILE} or report.json in {folder} "
+                                "(run `geocues extract SCENE -o CUES` first)")
+    data = json.loads(report.read_text())
+    rows = {row["name"]: row["alignment"] for row in data.get("per_image", [])
+            if row.get("alignment") and row["alignment"].get("ok") and "name" in row}
+    return rows, data.get("prior_kind")
 
 
 def _to_depth(d: np.ndarray, s: float, b: float, kind: str) -> np.ndarray:

@@ -9,7 +9,8 @@ Stages (each can be switched off for the paper's ablations, each is timed):
               points with or without the prior (geocues.planes); then a voxel merge.
 
 Outputs: ``CUES/cues.ply`` (typed points), ``CUES/lines3d.npz``, ``CUES/lines3d.ply`` and
-``CUES/cues_by_type.ply`` (to look at in MeshLab / CloudCompare), ``CUES/report.json`` (counts per
+``CUES/cues_by_type.ply`` (to look at in MeshLab / CloudCompare), ``CUES/depth_alignments.json``
+(the per-image prior alignments `splat train` reads), ``CUES/report.json`` (counts per
 type, rejections with reasons, seconds per stage and per image, alignment residuals, notes on hard
 cases) and ``CUES/cache/`` (per-image texture results and the line stage's cache, reused by later
 runs). Every file is written atomically.
@@ -31,7 +32,8 @@ from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
-from geocues.depth_align import DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning
+from geocues.depth_align import (DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning,
+                                  write_alignments)
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_merge import merge_plane_points
 from geocues.plane_regions import split_regions_by_lines
@@ -262,7 +264,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
     if sfm is not None:
         report["sfm"] = {"n_input": sfm.n_input, "n_kept": len(sfm.kept), "n_removed": sfm.n_removed,
                          "sor_threshold_m": sfm.sor_threshold if np.isfinite(sfm.sor_threshold) else None}
-    with atomic_path(report_path) as tmp:
+    write_alignments(out_dir, json.loads(json.dumps(per_image, default=_json_default)), kind)
+    with atomic_path(report_path) as tmp:  # last: its config key marks a finished extract
         tmp.write_text(json.dumps(report, indent=1, default=_json_default))
     for line in notes:
         log.info("extract: %s", line)

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.cue_io import CueCloud, read_cues_ply
-from geocues.depth_align import load_alignments
+from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat import checkpoint
@@ -182,17 +182,22 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
 
 
 def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict, str]:
-    """(per-image depth alignments for L_a — empty when it is off —, the depth priors' kind) from the
-    report `geocues extract` wrote beside the cues (the kind: its ``prior_kind``, else scene.json's)."""
-    report = cues_ply.parent / "report.json"
-    data = json.loads(report.read_text()) if report.is_file() else {}
-    kind = data.get("prior_kind", scene.depth_kind)
+    """(per-image depth alignments for L_a — empty when it is off —, the depth priors' kind) from
+    CUES/depth_alignments.json that `geocues extract` wrote beside the cues (older cue folders: their
+    report.json; the kind, where unrecorded: scene.json's)."""
+    try:
+        kind = load_prior_kind(cues_ply.parent, default=scene.depth_kind)
+    except FileNotFoundError:  # a bare cues.ply without its extract folder
+        kind = scene.depth_kind
     alignments = {}
     if cfg.loss.lambda_anchor > 0 or kind == "disparity":  # L_a, or depth for L_d from disparity
-        alignments = load_alignments(report) if report.is_file() else {}
+        try:
+            alignments = load_alignments(cues_ply.parent)
+        except FileNotFoundError:
+            alignments = {}
         if not alignments and scene.has_depth_priors and cfg.loss.lambda_anchor > 0:
             log.warning("%s records no depth alignments (the extract ran without priors?): the "
-                        "anchored-depth term L_a is off", report)
+                        "anchored-depth term L_a is off", cues_ply.parent)
     return alignments, kind  # with lambda_anchor 0 the anchors cost nothing: L_a is skipped
 
 

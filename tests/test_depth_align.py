@@ -135,9 +135,16 @@ class TestAlignDepthPrior:
                                 {"index": 0, "name": "skipped.png", "alignment": {"ok": False, "scale": None}},
                                 {"index": 2, "name": "no_prior.png"}]}
         (tmp_path / "report.json").write_text(json.dumps(report))
-        loaded = load_alignments(tmp_path)
+        loaded = load_alignments(tmp_path)  # a cue folder from before depth_alignments.json
         assert list(loaded) == [cam.name] and np.array_equal(loaded[cam.name].apply(prior), full)
-        with pytest.raises(FileNotFoundError, match="no cue report"):
+        from geocues.depth_align import load_prior_kind, write_alignments
+
+        assert load_prior_kind(tmp_path) == "depth"
+        write_alignments(tmp_path, report["per_image"], "depth")  # what geocues extract writes now
+        (tmp_path / "report.json").write_text("{}")  # ... and it is what train reads
+        loaded = load_alignments(tmp_path / "cues.ply")
+        assert list(loaded) == [cam.name] and np.array_equal(loaded[cam.name].apply(prior), full)
+        with pytest.raises(FileNotFoundError, match="no depth_alignments.json or report.json"):
             load_alignments(tmp_path / "missing")
 
     def test_too_few_anchors_is_skipped_with_reason(self, room):

@@ -51,7 +51,7 @@ def _no_nan(out):
 class TestRun:
     def test_outputs_and_accuracy(self, scenes, tmp_path):
         out = ex.run(scenes["all"], tmp_path / "cues")
-        for f in ("cues.ply", "lines3d.npz", "report.json"):
+        for f in ("cues.ply", "lines3d.npz", "report.json", "depth_alignments.json"):
             assert (out / f).is_file()
         cues = _no_nan(out)
         rep = _report(out)
@@ -64,6 +64,9 @@ class TestRun:
             assert r["plane_mode"] == ("prior" if r["alignment"]["ok"] else "prior_free")
             assert r["alignment"]["ok"] or "too narrow" in r["alignment"]["reason"]
         assert all(r["alignment"]["residual_median_m"] < 0.01 for r in aligned)
+        from geocues.depth_align import load_alignments
+
+        assert sorted(load_alignments(out)) == sorted(r["name"] for r in aligned)  # train's input file
         assert rep["rejections"]["sfm"]["sor_outlier"] > 0
         plane = cues.of_type(CueType.PLANE)
         assert np.mean(distance_to_surface(plane.xyz) < 0.03) > 0.95
