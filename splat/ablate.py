@@ -83,9 +83,10 @@ def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, 
                                checkpoints=tuple(checkpoints), mesh=True, mesh_at_checkpoints=True)
 
 
-# TrainConfig fields that never change what a run computes (when and whether it checkpoints, and the
-# numerics guard, which only acts on a non-finite or diverging step and then stops or rolls back a
-# run the report marks): left out of a row's key, so that adding one does not re-run finished rows.
+# TrainConfig fields (dotted paths) that never change what a run computes (when and whether it
+# checkpoints; the numerics guard, which only acts on a non-finite or diverging step and then stops
+# or rolls back a run the report marks): left out of a row's key, so that adding one does not re-run
+# finished rows. The TSDF device enters the key in one spelling ("cpu" and Open3D's "CPU:0" agree).
 OPERATIONAL_FIELDS = ("save_every", "keep_ckpt", "guard")
 
 
@@ -97,8 +98,18 @@ def row_key(spec: dict) -> str:
     """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`
     and without options left unset (None), so that an option added later, unset, keeps the key."""
     payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics", "train_config")}
-    payload["train_config"] = {k: v for k, v in payload["train_config"].items()
-                               if k not in OPERATIONAL_FIELDS and v is not None}
+    tc = json.loads(json.dumps(payload["train_config"]))
+    for dotted in OPERATIONAL_FIELDS:
+        *parents, leaf = dotted.split(".")
+        node = tc
+        for key in parents:
+            node = node.get(key, {})
+        node.pop(leaf, None)
+    if isinstance(tc.get("tsdf"), dict) and "device" in tc["tsdf"]:
+        from splat.mesh import open3d_device
+
+        tc["tsdf"]["device"] = open3d_device(tc["tsdf"]["device"])
+    payload["train_config"] = {k: v for k, v in tc.items() if v is not None}
     return config_key(payload)
 
 

@@ -21,7 +21,7 @@ iteration already exceeded ``max_iter_s`` on a smaller problem skips the larger 
 Timings on a machine shared with other processes vary several-fold: the result records the load
 average before and after, and each run's process gets ``OMP_WAIT_POLICY=PASSIVE`` by default
 (spin-waiting OpenMP threads are many times slower when a core is taken by someone else). With
-more runnable processes than cores, ``--threads 1`` can beat the default thread count.
+more runnable processes than cores, ``--num-threads 1`` can beat the default thread count.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ class BenchConfig:
     """A backend slower than this per iteration skips every larger configuration."""
     timeout_s: float = 600.0
     """A configuration's process is stopped after this many seconds (reported as skipped)."""
-    threads: int = 0
+    num_threads: int = 0
     """torch / OpenMP threads in each run (0: torch's default, all cores)."""
     omp_wait_policy: str = "passive"
     """OMP_WAIT_POLICY of each run ("passive": idle threads sleep, which a shared machine needs;
@@ -262,8 +262,8 @@ def time_config(backend: str, width: int, height: int, n: int, cfg: BenchConfig)
     from splat.composite import available_backends
     from splat.rasterize import render
 
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
+    if cfg.num_threads > 0:
+        torch.set_num_threads(cfg.num_threads)
     device = torch.device("cuda" if backend in ("torch-cuda", "cuda") else "cpu")
     name = "torch" if backend == "torch-cuda" else backend
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -364,7 +364,7 @@ def run_bench(cfg: BenchConfig = BenchConfig(), json_out: Path | None = None) ->
     result = {
         "config": asdict(cfg),
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                    "torch": torch.__version__, "threads": cfg.threads or torch.get_num_threads(),
+                    "torch": torch.__version__, "threads": cfg.num_threads or torch.get_num_threads(),
                     "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
                     "loadavg_start": os.getloadavg()},
         "memory_note": "peak_rss_mb = ru_maxrss after the timed iterations minus ru_maxrss after "

@@ -67,8 +67,9 @@ class TSDFConfig:
     """marching cubes keeps voxels seen by more than this many views (Open3D's default); lowered to n - 1 when only n <= it views had valid depth."""
     block_count: int = 1000
     """initial capacity of the block hash map (16^3 voxels, 80 kB each, allocated up front); it grows as needed."""
-    device: str = "CPU:0"
-    """Open3D device of the voxel grid ("CPU:0", or "CUDA:0" with a CUDA build of Open3D)."""
+    device: str = "cpu"
+    """device of the voxel grid, spelled as everywhere in the toolkit: "cpu", "cuda" or "cuda:N"
+    ("cuda" needs a CUDA build of Open3D; Open3D's own "CPU:0" / "CUDA:0" are accepted too)."""
     min_component_diag: float = 0.05
     """clean_mesh removes connected components whose bounding-box diagonal is below this fraction of the whole mesh's (0 keeps all)."""
 
@@ -90,8 +91,17 @@ class TSDFConfig:
             raise ValueError(f"weight_threshold must be >= 0, got {self.weight_threshold}")
         if self.block_count < 1:
             raise ValueError(f"block_count must be >= 1, got {self.block_count}")
+        open3d_device(self.device)
         if not 0.0 <= self.min_component_diag < 1.0:
             raise ValueError(f"min_component_diag must be in [0, 1), got {self.min_component_diag}")
+
+
+def open3d_device(name: str) -> str:
+    """The toolkit's device spelling ("cpu", "cuda", "cuda:1") as Open3D's ("CPU:0", "CUDA:1")."""
+    kind, _, index = name.strip().lower().partition(":")
+    if kind not in ("cpu", "cuda") or (index and not index.isdigit()):
+        raise ValueError(f"--tsdf.device must be cpu, cuda or cuda:N, got {name!r}")
+    return f"{kind.upper()}:{index or 0}"
 
 
 def _as_depth(depth: np.ndarray, where: str) -> np.ndarray:
@@ -170,7 +180,7 @@ class TSDFFuser:
         import open3d as o3d
         self.cfg = cfg or TSDFConfig()
         self.cfg.validate()
-        self.device = o3d.core.Device(self.cfg.device)
+        self.device = o3d.core.Device(open3d_device(self.cfg.device))
         f32 = o3d.core.float32
         self.grid = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight", "color"), attr_dtypes=(f32, f32, f32),

@@ -288,6 +288,14 @@ class TestInputs:
             TSDFConfig(voxel_size=0.0).validate()
         assert TSDFConfig(voxel_size=0.03).trunc == pytest.approx(0.12)
 
+    def test_one_device_spelling(self):
+        from splat.mesh import open3d_device
+
+        assert [open3d_device(d) for d in ("cpu", "CPU:0", "cuda", "cuda:1")] == ["CPU:0", "CPU:0", "CUDA:0", "CUDA:1"]
+        with pytest.raises(ValueError, match="--tsdf.device must be cpu, cuda or cuda:N"):
+            TSDFConfig(device="gpu").validate()
+        assert TSDFFuser(TSDFConfig(device="cpu")).device == TSDFFuser(TSDFConfig(device="CPU:0")).device
+
 
 class TestWrite:
     def test_round_trip_open3d_and_pymeshlab(self, tmp_path):
