@@ -17,7 +17,7 @@ from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, form
 def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="PRED_MESH")],
          gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
          scene: Annotated[Path | None, tyro.conf.arg(metavar="SCENE")] = None,
-         json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
+         json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
          renders: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
          test_every: int = 8,
          lpips: Annotated[Path | None, tyro.conf.arg(metavar="WEIGHTS")] = None,
@@ -81,7 +81,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
 def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CUES")],
          scene: Annotated[Path, tyro.conf.arg(metavar="SCENE")],
          gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
-         json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
+         json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
          cfg: Annotated[CueMetricsConfig, tyro.conf.arg(name="")] = CueMetricsConfig()) -> int:
     """Accuracy (distance to GT per cue type) and coverage of `geocues extract` output.
 

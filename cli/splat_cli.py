@@ -17,7 +17,7 @@ from splat.train import TrainConfig
 from splat.viewer import ViewConfig
 
 
-def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT")] = None,
+def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
           cfg: Annotated[BenchConfig, tyro.conf.arg(name="")] = BenchConfig()) -> int:
     """Time render() forward + backward per compositing backend, image size and Gaussian count.
 
