@@ -19,6 +19,7 @@ from geocues.undistort import UndistortConfig
 def sfm(scene: tyro.conf.Positional[Path],
         out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
         overwrite: bool = False,
+        recompute: bool = False,
         cfg: tyro.conf.OmitArgPrefixes[SfmConfig] = SfmConfig()) -> int:
     """3D points for SCENE with pycolmap: known-pose triangulation, or incremental mapping (--mode map).
 
@@ -28,12 +29,13 @@ def sfm(scene: tyro.conf.Positional[Path],
     Args:
         scene: scene folder with images/ (and sparse/0 for triangulation).
         out: output scene folder (default: write SCENE/sparse/0 in place).
-        overwrite: recompute features and matches even if cached.
+        overwrite: replace a finished run in OUT (without it, a finished OUT is an error).
+        recompute: recompute features and matches even if cached.
         cfg: SfM options.
     """
     from geocues.sfm import run
 
-    report = run(scene, out, cfg, overwrite=overwrite)
+    report = run(scene, out, cfg, overwrite=overwrite, recompute=recompute)
     print(json.dumps({k: v for k, v in report.items() if k != "config"}, indent=2))
     return 0
 

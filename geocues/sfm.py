@@ -12,7 +12,7 @@ Two modes:
   model is aligned to its camera centres (similarity) so it lives in the scene's frame.
 
 The database is cached in ``OUT/cache/sfm/`` with the parameters that made it; a re-run reuses the
-features (and the matches) unless ``overwrite`` or the parameters changed. The model is written
+features (and the matches) unless ``recompute`` or the parameters changed. The model is written
 atomically; the report goes to ``OUT/sfm_report.json``.
 """
 
@@ -165,11 +165,13 @@ def distance_to_mesh_stats(xyz: np.ndarray, mesh_path: Path) -> dict:
 
 
 def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig(),
-        overwrite: bool = False) -> dict:
+        overwrite: bool = False, recompute: bool = False) -> dict:
     """Fill a scene's 3D points (triangulate) or reconstruct it from images (map); return the report.
 
     ``out_dir=None`` writes ``SCENE/sparse/0`` in place; otherwise OUT becomes a complete scene
-    folder (images/priors/gt linked, scene.json copied, OUT/sparse/0 the new model).
+    folder (images/priors/gt linked, scene.json copied, OUT/sparse/0 the new model). An OUT that
+    holds a finished run (``sfm_report.json``) is replaced only with ``overwrite``; ``recompute``
+    discards the cached features and matches.
     """
     import pycolmap
 
@@ -194,6 +196,9 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
     if in_place and not os.access(scene_dir, os.W_OK):
         raise ValueError(f"{scene_dir} is not writable: pass an output folder (-o OUT) to write a new scene")
     check_output_dir(root)
+    if not in_place and (root / "sfm_report.json").is_file() and not overwrite:
+        raise ValueError(f"{root} holds a finished `geocues sfm` run; pass --overwrite to replace it "
+                         "(its cached features are reused; --recompute discards them)")
     log.info("sfm %s -> %s (mode %s) config %s", scene_dir, root, mode, asdict(cfg))
 
     U.quiet_pycolmap()
@@ -223,9 +228,9 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
     extract_key = _key({"names": names, "cams": cams, "size": cfg.max_image_size,
                         "n": cfg.max_num_features, "peak": cfg.peak_threshold})
     state = json.loads(state_path.read_text()) if state_path.is_file() else {}
-    if overwrite or state.get("extract") != extract_key:
+    if recompute or state.get("extract") != extract_key:
         if db_path.exists():
-            log.info("sfm: discarding cached database %s (overwrite or parameters changed)", db_path)
+            log.info("sfm: discarding cached database %s (--recompute or parameters changed)", db_path)
         db_path.unlink(missing_ok=True)
         state = {}
 

@@ -201,6 +201,13 @@ class TestTriangulate:
         np.testing.assert_allclose(p0.xyz[o0], p1.xyz[o1], rtol=1e-9, atol=1e-9)
         np.testing.assert_array_equal(p0.track_length[o0], p1.track_length[o1])
 
+    def test_a_finished_out_needs_overwrite(self, tiny, triangulated, capsys):
+        out, rep = triangulated
+        before = (out / "sfm_report.json").read_text()
+        assert geocues_main(["sfm", str(tiny), "-o", str(out)]) == 1
+        assert "pass --overwrite to replace it" in capsys.readouterr().err
+        assert (out / "sfm_report.json").read_text() == before  # untouched
+
     def test_rerun_reuses_cache_and_in_place_write(self, triangulated, tmp_path: Path):
         src, rep = triangulated
         out = tmp_path / "copy"
