@@ -17,6 +17,7 @@ timings per stage, test-view PSNR/SSIM at each checkpoint against training secon
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -181,6 +182,15 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
     return params, cue_type, params["means"].numpy().astype(np.float64)
 
 
+def _live_view(cfg: TrainConfig, scene: Scene):
+    """The `--view` server (splat/viewer.py), or None."""
+    if not cfg.view:
+        return None
+    from splat.viewer import LiveView
+
+    return LiveView(scene, port=cfg.view_port)
+
+
 def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict, str]:
     """(per-image depth alignments for L_a — empty when it is off —, the depth priors' kind) from
     CUES/depth_alignments.json that `geocues extract` wrote beside the cues (older cue folders: their
@@ -299,8 +309,10 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     ckpt_path = work / checkpoint.CKPT_NAME
     last_save = train_s
     step = step0
+    live = _live_view(cfg, scene)
     with open(log_path, "a") as log_file, SignalCatcher() as signals, \
-            tqdm(total=cfg.iters, initial=step0, desc="splat train", unit="it") as bar:
+            tqdm(total=cfg.iters, initial=step0, desc="splat train", unit="it") as bar, \
+            contextlib.closing(live) if live else contextlib.nullcontext():
         while step < cfg.iters:
             t0 = time.perf_counter()
             for key, opt in optimizers.items():
@@ -333,6 +345,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
             train_s += time.perf_counter() - t0
             step += 1
             bar.update(1)
+            if live and (step % cfg.view_every == 0 or step == cfg.iters):
+                live.update(params, step, float(loss))
             if (step - 1) % cfg.log_every == 0 or step == cfg.iters or density:
                 row = {"step": step - 1, "train_s": round(train_s, 3), "loss": float(loss), **terms,
                        "n": len(state["cue_type"]), **_type_counts(state["cue_type"])}

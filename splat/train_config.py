@@ -57,6 +57,12 @@ class TrainConfig:
     init_ply: str | None = None
     """Start from the Gaussians of this PLY instead (this project's, the 3DGS reference's or gsplat's
     export; cue types from its cue_type.npy sidecar, else all SFM). Overrides init_from."""
+    view: bool = False
+    """Show the training live in the browser (viser, like `splat view`) at http://127.0.0.1:VIEW_PORT."""
+    view_port: int = 8080
+    """Port of the live view (0: any free port)."""
+    view_every: int = 100
+    """Refresh the live view every this many iterations."""
     device: str = "auto"
     """"cpu", "cuda" or "auto" (CUDA when available)."""
     backend: str = "auto"
@@ -115,7 +121,9 @@ class TrainConfig:
         if not all(0 < c <= 1 for c in self.checkpoints):
             raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
         finite_pos("save-every", self.save_every, zero_ok=True)
-        if self.log_every < 1 or self.mesh_every < 1:
-            raise ValueError("--log-every and --mesh-every must be >= 1")
+        if self.log_every < 1 or self.mesh_every < 1 or self.view_every < 1:
+            raise ValueError("--log-every, --mesh-every and --view-every must be >= 1")
+        if not 0 <= self.view_port < 65536:
+            raise ValueError(f"--view-port must be in 0..65535, got {self.view_port}")
         self.tsdf.validate()
         self.guard.validate()

@@ -92,17 +92,24 @@ def _subset(n: int, k: int, seed: int) -> np.ndarray:
 def load_splats(path: Path, max_splats: int, seed: int = 0) -> Splats:
     """RUN/point_cloud.ply -> :class:`Splats`: covariance R diag(exp(s)^2) R^T, opacity sigmoid(o),
     colour 0.5 + SH_C0 * sh0 clipped to [0, 1] (view-dependent bands are left out)."""
+    from splat.gaussians import load_ply
+
+    params, _ = load_ply(path)
+    return splats_from_params(params, max_splats, seed)
+
+
+def splats_from_params(params, max_splats: int, seed: int = 0) -> Splats:
+    """Gaussian parameters (splat.gaussians contract, any device) -> :class:`Splats`."""
     import torch
 
-    from splat.gaussians import load_ply
     from splat.projection import quat_to_rotmat
     from splat.sh import SH_C0
 
-    params, _ = load_ply(path)
+    params = {k: v.detach().cpu() for k, v in params.items()}
     n = len(params["means"])
     keep = _subset(n, max_splats, seed)
     if len(keep) < n:
-        log.info("sending %d of the %d Gaussians (--max-splats)", len(keep), n)
+        log.debug("sending %d of the %d Gaussians (--max-splats)", len(keep), n)
     rows = torch.from_numpy(keep)
     p = {k: v[rows].double().numpy() for k, v in params.items()}
     R = quat_to_rotmat(params["quats"][rows].double()).numpy()  # [K, 3, 3]
@@ -325,3 +332,32 @@ def serve(server) -> None:
         pass
     finally:
         stop(server)
+
+
+class LiveView:
+    """`splat train --view`: the Gaussians of a running training in the browser, refreshed every
+    ``every`` iterations (the step, loss and counts beside them); the cameras as in `splat view`."""
+
+    def __init__(self, scene, port: int = 8080, host: str = "127.0.0.1", max_splats: int = 100_000):
+        import viser
+
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.max_splats = max_splats
+        self.server.gui.configure_theme(show_share_button=False)
+        self.status = self.server.gui.add_markdown("starting")
+        self.handle = None
+        self.updates = 0
+        _add_cameras(self.server, scene)
+        log.info("live view of the training at %s", url_of(self.server))
+
+    def update(self, params, step: int, loss: float) -> None:
+        s = splats_from_params(params, self.max_splats, seed=step)
+        # the same name replaces the node in every connected browser
+        self.handle = self.server.scene.add_gaussian_splats("/splats", s.centers, s.covariances, s.rgbs,
+                                                            s.opacities)
+        self.status.content = f"step {step:,} · loss {loss:.4f} · {s.total:,} Gaussians"
+        self.updates += 1
+
+    def close(self) -> None:
+        stop(self.server)

@@ -192,3 +192,31 @@ def test_init_ply_continues_from_a_runs_gaussians(trained, tmp_path):
     with pytest.raises(FileNotFoundError, match="no Gaussian PLY"):
         run(TrainConfig(iters=2, init_ply=str(tmp_path / "missing.ply")), report["scene"], report["cues"],
             tmp_path / "missing")
+
+
+def test_live_view_serves_and_refreshes_during_training(trained, tmp_path, monkeypatch):
+    """`splat train --view`: a viser page during the run, refreshed every --view-every iterations,
+    stopped when the run ends."""
+    import urllib.request
+
+    import splat.viewer as viewer
+    from splat.train import TrainConfig, run
+
+    out, _ = trained
+    report = json.loads((out / "report.json").read_text())
+    seen = []
+    real = viewer.LiveView.update
+
+    def update(self, params, step, loss):
+        real(self, params, step, loss)
+        with urllib.request.urlopen(viewer.url_of(self.server), timeout=30) as r:
+            seen.append((step, r.status, self.status.content))
+
+    monkeypatch.setattr(viewer.LiveView, "update", update)
+    stopped = []
+    monkeypatch.setattr(viewer.LiveView, "close", lambda self: stopped.append(1) or viewer.stop(self.server))
+    cfg = TrainConfig(iters=10, checkpoints=(1.0,), sh_degree=1, mesh=False, view=True, view_port=0, view_every=5)
+    run(cfg, report["scene"], report["cues"], tmp_path / "live")
+    assert [(s, code) for s, code, _ in seen] == [(5, 200), (10, 200)]
+    assert seen[-1][2].startswith("step 10 · loss") and "Gaussians" in seen[-1][2]
+    assert stopped == [1]
