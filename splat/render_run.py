@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -235,8 +234,6 @@ def _write_video(path: Path, path_cams: list[ViewCam], draw, fps: int) -> None:
     import imageio.v2 as iio2
     from tqdm.auto import tqdm
 
-    if shutil.which("ffmpeg") is None:
-        import imageio_ffmpeg  # noqa: F401  (bundles its own ffmpeg binary)
     writer = iio2.get_writer(str(path), fps=fps, codec="libx264", quality=8, macro_block_size=1,
                              ffmpeg_log_level="error", pixelformat="yuv420p")
     depth_lo_hi = None
