@@ -182,8 +182,12 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
         print("viewer stopped while loading")
         return 130
     if screenshot is None:
-        print(f"viewer of {run} at {url_of(server)} (Ctrl-C to stop)", flush=True)
-        serve(server)
+        try:  # a Ctrl-C between the print and serve()'s own handler must stop the server too,
+            # or its threads keep the process alive
+            print(f"viewer of {run} at {url_of(server)} (Ctrl-C to stop)", flush=True)
+            serve(server)
+        except KeyboardInterrupt:
+            stop(server)
         print("viewer stopped")
         return 0
     from splat.browser_shot import screenshot as take

@@ -49,6 +49,10 @@ class AblateConfig:
     """Repeat every row with seeds 0..K-1 (added to --seed); the report gives mean and spread."""
     jobs: int = 1
     """Rows run in this many processes at once (the cores are shared between them)."""
+    num_threads: int = 0
+    """torch threads per row (0: all cores for --jobs 1, cores / jobs otherwise, 1 per Ray task).
+    The same count gives the same rows wherever they run; reductions over another count differ in
+    the last bits, which a training amplifies."""
     ray: str | None = None
     """Send every row to a Ray cluster ("auto", "local" or an address); needs `pip install .[ray]`."""
     gt: Path | None = None
@@ -122,12 +126,23 @@ def _score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsCo
 
 def run_row(spec: dict) -> dict:
     """Train and score one row (a plain function of a JSON-able spec: it runs in a worker process
-    or a Ray task as well as here). Writes ``spec["out"]/score.json`` last and returns it."""
-    threads = spec.get("threads")
-    if threads:
-        import torch
+    or a Ray task as well as here) with ``spec["threads"]`` torch and Open3D threads if given (the
+    caller's counts are restored after). Writes ``spec["out"]/score.json`` last and returns it."""
+    import open3d as o3d
+    import torch
 
-        torch.set_num_threads(int(threads))
+    before = torch.get_num_threads(), o3d.utility.get_max_threads()
+    if spec.get("threads"):  # torch's and Open3D's pools (TSDF fusion, mesh metrics) alike
+        torch.set_num_threads(int(spec["threads"]))
+        o3d.utility.set_max_threads(int(spec["threads"]))
+    try:
+        return _run_row(spec)
+    finally:
+        torch.set_num_threads(before[0])
+        o3d.utility.set_max_threads(before[1])
+
+
+def _run_row(spec: dict) -> dict:
     from splat.train import TrainConfig, run as train_run
 
     out = Path(spec["out"])
@@ -206,6 +221,8 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
     unknown = [r for r in cfg.rows if r not in PRESETS]
     if unknown:
         raise ValueError(f"unknown rows {unknown}; choose from {', '.join(PRESETS)}")
+    if cfg.num_threads < 0:
+        raise ValueError(f"--num-threads must be >= 0, got {cfg.num_threads}")
     if cfg.seeds < 1 or cfg.jobs < 1 or cfg.iters < 1:
         raise ValueError(f"--seeds, --jobs and --iters must be >= 1 (got {cfg.seeds}, {cfg.jobs}, {cfg.iters})")
     scene = Scene.load(scene_dir, check_priors=False)
@@ -233,8 +250,9 @@ def _execute(cfg: AblateConfig, todo: list[dict], on_done) -> None:
 
         if not ray.is_initialized():
             ray.init(address=None if cfg.ray == "local" else cfg.ray)
-        remote = ray.remote(num_cpus=1)(run_row)
-        pending = {remote.remote(spec): spec for spec in todo}
+        threads = cfg.num_threads or 1
+        remote = ray.remote(num_cpus=threads)(run_row)
+        pending = {remote.remote({**spec, "threads": threads}): spec for spec in todo}
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
             spec = pending.pop(ready[0])
@@ -242,12 +260,12 @@ def _execute(cfg: AblateConfig, todo: list[dict], on_done) -> None:
         return
     if cfg.jobs == 1:
         for spec in todo:
-            on_done(spec, run_row(spec))
+            on_done(spec, run_row({**spec, "threads": cfg.num_threads or None}))
         return
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    threads = max(1, (os.cpu_count() or 1) // cfg.jobs)
+    threads = cfg.num_threads or max(1, (os.cpu_count() or 1) // cfg.jobs)
     with cf.ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=mp.get_context("spawn"),
                                 initializer=_worker_init) as pool:
         futures = {pool.submit(run_row, {**spec, "threads": threads}): spec for spec in todo}
