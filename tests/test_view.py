@@ -178,9 +178,12 @@ def test_ctrl_c_ends_with_one_line(fake_run):
     """`splat view RUN` prints its URL, serves the page and on SIGINT exits 0 with one line, no traceback."""
     run_dir, _, _ = fake_run
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # Ctrl-C as a terminal delivers it: a test run started in the background (`cmd &` without job
+    # control) ignores SIGINT, and a child would inherit that and never see the signal
     proc = subprocess.Popen([sys.executable, "-m", "cli.splat_cli", "view", str(run_dir), "--port", "0", "-q"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=Path(__file__).resolve().parents[1])
+                            cwd=Path(__file__).resolve().parents[1],
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         first = proc.stdout.readline()
         assert " at http://127.0.0.1:" in first, first
