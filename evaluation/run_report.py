@@ -5,7 +5,7 @@ Writes into RUN: ``report.md`` linking ``report_losses.png`` (loss terms against
 PSNR / SSIM and, when a GT mesh is at hand, mesh metrics of the checkpoint meshes against training
 seconds), ``report_views.png`` (held-out views: GT | render | rendered depth | rendered normals |
 depth error against exact GT depth where it exists) and ``report_data.json``, the data every figure
-was drawn from. Rendering goes through splat's public API (``load_ply``, ``render``).
+was drawn from. Rendering goes through splat's public API (``splat.render_run.load_run``, ``render``).
 """
 
 from __future__ import annotations
@@ -70,19 +70,15 @@ def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None)
     return out
 
 
-def contact_sheet(run_dir: Path, scene_dir: Path, report: dict, n_views: int, gt_depth: Path | None) -> dict:
+def contact_sheet(run_dir: Path, scene_dir: Path, n_views: int, gt_depth: Path | None) -> dict:
     """Render ``n_views`` held-out views; returns the panel images and per-view depth errors."""
     import torch
 
-    from geocues.scene import Scene
     from splat.camera import Camera
-    from splat.gaussians import load_ply
     from splat.rasterize import render
+    from splat.render_run import load_run
 
-    cfg = report.get("config", {})
-    scene = Scene.load(scene_dir, downscale=cfg.get("downscale", 1.0), test_every=cfg.get("test_every", 8),
-                       check_priors=False)
-    params, _ = load_ply(run_dir / "point_cloud.ply", sh_degree=cfg.get("sh_degree"))
+    scene, params, cfg = load_run(run_dir, scene_dir)
     indices = scene.test_indices or scene.train_indices
     pick = [indices[k] for k in np.linspace(0, len(indices) - 1, min(n_views, len(indices))).round().astype(int)]
     depth_dir = gt_depth if gt_depth is not None else (scene.root / "gt" / "depth")
@@ -180,7 +176,7 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
         ax.set_xlabel("training seconds"), ax.set_title(title), ax.grid(alpha=0.3)
     _save(fig, run_dir / "report_accuracy.png")
 
-    sheet = contact_sheet(run_dir, scene_dir, report, n_views, Path(gt_depth) if gt_depth else None)
+    sheet = contact_sheet(run_dir, scene_dir, n_views, Path(gt_depth) if gt_depth else None)
     _draw_sheet(sheet, run_dir / "report_views.png")
 
     data = {"run": str(run_dir), "scene": str(scene_dir), "losses": losses, "gaussians": counts,

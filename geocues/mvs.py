@@ -20,7 +20,7 @@ as in COLMAP's fusion and PGSR's filtering).
 Output: ``OUT`` is a scene folder (images, sparse, gt linked to the source scene) whose
 ``priors/depth/<stem>.npy`` are the filtered MVS depths in metres (0 = no depth) at image size and
 ``priors/depth_conf/<stem>.npy`` their scores in [0, 1]; ``geocues extract OUT`` then aligns them,
-builds plane cues from them and `splat train` uses them as depth priors. Cached per image.
+builds plane cues from them and `splat train` uses them as depth priors.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import torch.nn.functional as F
 
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.scene import Scene
+from geocues.sfm import link_scene
 
 log = logging.getLogger(__name__)
 
@@ -86,12 +87,8 @@ def depth_bounds(scene: Scene, i: int) -> tuple[float, float]:
     cam = scene.cameras[i]
     pts = scene.points.xyz
     if len(pts):
-        X = pts @ cam.R.T + cam.t
-        z = X[:, 2]
-        front = z > 1e-3
-        uv = (X[front] @ cam.K.T)[:, :2] / z[front, None]
-        seen = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        z = z[front][seen]
+        uv, z = cam.project(pts)
+        z = z[(z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)]
         if len(z) >= 10:
             return float(np.percentile(z, 1)) * 0.8, float(np.percentile(z, 99)) * 1.2
     centres = np.stack([c.center for c in scene.cameras])
@@ -133,8 +130,7 @@ def ncc(ref: torch.Tensor, src: torch.Tensor, w: int, min_var: float = 1e-9, ref
     in the denominator: one would swamp the faint texture of indoor walls (a patch std of 0.01 is a
     variance of 1e-4). ``ref_stats``: the reference's (mean, variance) patches, computed once."""
     mr, vr = ref_stats if ref_stats is not None else patch_stats(ref, w)
-    ms = _box(src, w)
-    vs = (_box(src * src, w) - ms * ms).clamp_min(0)
+    ms, vs = patch_stats(src, w)
     cov = _box(ref * src, w) - mr * ms
     defined = (vr > min_var) & (vs > min_var)
     denom = torch.sqrt(torch.where(defined, vr * vs, torch.ones_like(vs)))
@@ -162,9 +158,7 @@ def _relative(ref, src) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _rays(cam) -> torch.Tensor:
-    j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-    pix = np.stack([j, i, np.ones_like(j)], -1)
-    return torch.as_tensor(pix @ np.linalg.inv(cam.K).T, dtype=torch.float32)  # [H, W, 3], z = 1
+    return torch.as_tensor(cam.pixel_rays(), dtype=torch.float32)  # [H, W, 3], z = 1
 
 
 def _sample(img: torch.Tensor, uv: torch.Tensor, w: int, h: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -212,7 +206,7 @@ def sweep_view(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float,
                          torch.zeros_like(denom)).clamp(-0.5, 0.5)
     step = (inv[-1] - inv[0]) / (cfg.n_depths - 1)
     depth = 1.0 / (inv[best] + offset * step)
-    texture = torch.sqrt((_box(I_r * I_r, cfg.window) - _box(I_r, cfg.window) ** 2).clamp_min(0))[0, 0]
+    texture = torch.sqrt(stats[1])[0, 0]  # std of the reference patch
     keep = (conf >= cfg.min_ncc) & (texture >= cfg.min_texture) & torch.isfinite(depth) & (depth > 0)
     return (torch.where(keep, depth, torch.zeros_like(depth)).numpy().astype(np.float32),
             conf.clamp(0, 1).numpy().astype(np.float32))
@@ -226,13 +220,15 @@ def consistency_filter(scene: Scene, depths: dict[int, np.ndarray], neighbours: 
         ref = scene.cameras[i]
         d = torch.from_numpy(d_np)
         rays = _rays(ref)
+        pix = torch.stack(torch.meshgrid(torch.arange(ref.height) + 0.5, torch.arange(ref.width) + 0.5,
+                                         indexing="ij")[::-1], -1)  # [H, W, 2] pixel centres (u, v)
         votes = torch.zeros_like(d, dtype=torch.int32)
         for j in neighbours[i]:
             src = scene.cameras[j]
             R_rel, t_rel = _relative(ref, src)
             uv, z = _project(src, R_rel, t_rel, rays, d)
             d_src, inside = _sample(torch.from_numpy(depths[j])[None, None], uv, src.width, src.height)
-            # nearest-like: bilinear mixes 0 (no depth) in; require all four taps valid via a min filter
+            # bilinear mixes 0 (no depth) in: keep only samples whose taps all hold a depth
             valid_src = _sample((torch.from_numpy(depths[j]) > 0).float()[None, None], uv, src.width, src.height)[0]
             d_src = d_src[0, 0]
             R_back, t_back = _relative(src, ref)
@@ -240,34 +236,12 @@ def consistency_filter(scene: Scene, depths: dict[int, np.ndarray], neighbours: 
                                   / torch.as_tensor([src.K[0, 0], src.K[1, 1]], dtype=torch.float32),
                                   torch.ones_like(uv[..., :1])], -1)
             uv_back, z_back = _project(ref, R_back, t_back, rays_src, d_src)
-            pix = torch.stack(torch.meshgrid(torch.arange(ref.height) + 0.5, torch.arange(ref.width) + 0.5,
-                                             indexing="ij")[::-1], -1)
             err = (uv_back - pix).norm(dim=-1)
             ok = (inside & (valid_src[0, 0] > 0.999) & (d > 0) & (z > 1e-3) & (err < cfg.max_reproj_px)
                   & ((z_back - d).abs() < cfg.max_rel_depth * d))
             votes += ok.int()
         out[i] = np.where(votes.numpy() >= cfg.min_consistent, d_np, 0).astype(np.float32)
     return out
-
-
-def _link_scene(src: Path, out: Path) -> None:
-    """OUT as a scene folder whose images, model and GT are links to the source scene."""
-    import shutil
-
-    out.mkdir(parents=True, exist_ok=True)
-    links = {"images": src / "images", "sparse": src / "sparse", "gt": src / "gt"}
-    if not (src / "gt" / "mesh.ply").is_file() and (src / "reference_mesh.ply").is_file():
-        links.pop("gt")
-        (out / "gt").mkdir(exist_ok=True)
-        links["gt/mesh.ply"] = src / "reference_mesh.ply"
-    for rel, target in links.items():
-        link = out / rel
-        if target.exists() and not link.exists() and not link.is_symlink():
-            link.symlink_to(target.resolve())
-    if (src / "scene.json").is_file():
-        meta = json.loads((src / "scene.json").read_text())
-        meta.pop("depth_png_scale", None)  # the MVS priors are .npy in metres
-        (out / "scene.json").write_text(json.dumps(meta, indent=1))
 
 
 def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
@@ -297,7 +271,11 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
         depths[i], conf[i] = sweep_view(scene, i, neighbours[i], bounds[i], cfg, images)
     raw_valid = {i: float((d > 0).mean()) for i, d in depths.items()}
     filtered = consistency_filter(scene, depths, neighbours, cfg) if cfg.min_consistent > 0 else depths
-    _link_scene(scene_dir, out_dir)
+    link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
+    if (out_dir / "scene.json").is_file():
+        meta = json.loads((out_dir / "scene.json").read_text())
+        meta.pop("depth_png_scale", None)  # the MVS priors are .npy in metres
+        (out_dir / "scene.json").write_text(json.dumps(meta, indent=1))
     for i, cam in enumerate(full.cameras):
         size_wh = (cam.width, cam.height)
         for kind, arr in (("depth", filtered[i]), ("depth_conf", np.where(filtered[i] > 0, conf[i], 0))):

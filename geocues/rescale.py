@@ -21,6 +21,7 @@ import numpy as np
 from geocues.atomic import check_output_dir
 from geocues.colmap_io import find_model_dir, read_model, write_model
 from geocues.scene import Scene
+from geocues.sfm import link_scene
 
 log = logging.getLogger(__name__)
 
@@ -51,12 +52,11 @@ def scale_from_priors(scene: Scene, min_points: int = 20) -> tuple[float, int]:
         d = scene.depth_prior(i)
         if d is None:
             continue
-        X = scene.points.xyz @ cam.R.T + cam.t
-        front = X[:, 2] > 0
-        uv = (X[front] @ cam.K.T)[:, :2] / X[front, 2:3]
+        uv, z = cam.project(scene.points.xyz)
+        uv, z = uv[z > 0], z[z > 0]
         col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         inside = (col >= 0) & (col < d.shape[1]) & (row >= 0) & (row < d.shape[0])
-        z, p = X[front, 2][inside], d[row[inside], col[inside]]
+        z, p = z[inside], d[row[inside], col[inside]]
         ok = p > 0
         if ok.sum() >= min_points:
             ratios.append(float(np.median(p[ok]) / np.median(z[ok])))
@@ -89,10 +89,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, scale: float | None = None, 
     if out_dir.exists():
         shutil.rmtree(out_dir)
     write_model(out_dir / "sparse" / "0", images, points)
-    for rel in ("images", "priors", "gt"):
-        if (scene_dir / rel).exists():
-            (out_dir / rel).symlink_to((scene_dir / rel).resolve())
-    meta = json.loads((scene_dir / "scene.json").read_text()) if (scene_dir / "scene.json").is_file() else {}
+    link_scene(scene_dir, out_dir)  # images, priors (metric already), GT
+    meta = json.loads((out_dir / "scene.json").read_text()) if (out_dir / "scene.json").is_file() else {}
     meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used}
     (out_dir / "scene.json").write_text(json.dumps(meta, indent=1))
     log.info("rescaled %s by %.6g%s: extent %.3g -> %.3g m", scene_dir, scale,

@@ -101,12 +101,15 @@ def _list_images(image_dir: Path) -> list[str]:
     return sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTS and p.is_file())
 
 
-def _prepare_out(scene_dir: Path, out_dir: Path) -> None:
-    """Make OUT a complete scene folder whose inputs are links to the source scene."""
+def link_scene(scene_dir: Path, out_dir: Path, parts: tuple[str, ...] = ("images", "priors", "gt")) -> None:
+    """Make OUT a scene folder whose ``parts`` (images, priors, sparse, gt) are links to the source
+    scene's and whose scene.json is a copy of its (the stages that write a new scene from an old
+    one: `geocues sfm -o`, `mvs`, `rescale`). A dataset's reference mesh at the root becomes
+    OUT/gt/mesh.ply; stale links are replaced, real folders never."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    src = scene_dir.resolve()
-    links = {"images": src / "images", "priors": src / "priors", "gt": src / "gt"}
-    if not (src / "gt" / "mesh.ply").is_file() and (src / "reference_mesh.ply").is_file():
+    src = Path(scene_dir).resolve()
+    links = {part: src / part for part in parts}
+    if "gt" in links and not (src / "gt" / "mesh.ply").is_file() and (src / "reference_mesh.ply").is_file():
         links.pop("gt")  # a dataset's reference mesh at the root becomes OUT/gt/mesh.ply
         (out_dir / "gt").mkdir(exist_ok=True)
         links["gt/mesh.ply"] = src / "reference_mesh.ply"
@@ -218,7 +221,7 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
         if len(names) < 2:
             raise ValueError(f"map mode needs at least 2 images in {image_dir}, found {len(names)}")
     if not in_place:
-        _prepare_out(scene_dir, root)
+        link_scene(scene_dir, root)
 
     seconds: dict[str, float] = {}
     cache = root / "cache" / "sfm"

@@ -87,9 +87,9 @@ def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, 
                                checkpoints=tuple(checkpoints), mesh=True, mesh_at_checkpoints=True)
 
 
-# TrainConfig fields (dotted paths) that never change what a run computes (when and whether it
-# checkpoints; the numerics guard, which only acts on a non-finite or diverging step and then stops
-# or rolls back a run the report marks): left out of a row's key, so that adding one does not re-run
+# TrainConfig fields that never change what a run computes (when and whether it checkpoints; the
+# numerics guard, which only acts on a non-finite or diverging step and then stops or rolls back a
+# run the report marks; the live view): left out of a row's key, so that adding one does not re-run
 # finished rows. The TSDF device enters the key in one spelling ("cpu" and Open3D's "CPU:0" agree).
 OPERATIONAL_FIELDS = ("save_every", "keep_ckpt", "guard", "view", "view_port", "view_every")
 
@@ -101,20 +101,12 @@ def config_key(payload: dict) -> str:
 def row_key(spec: dict) -> str:
     """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`
     and without options left unset (None), so that an option added later, unset, keeps the key."""
-    payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics", "train_config")}
-    tc = json.loads(json.dumps(payload["train_config"]))
-    for dotted in OPERATIONAL_FIELDS:
-        *parents, leaf = dotted.split(".")
-        node = tc
-        for key in parents:
-            node = node.get(key, {})
-        node.pop(leaf, None)
-    if isinstance(tc.get("tsdf"), dict) and "device" in tc["tsdf"]:
-        from splat.mesh import open3d_device
+    from splat.mesh import open3d_device
 
-        tc["tsdf"]["device"] = open3d_device(tc["tsdf"]["device"])
-    payload["train_config"] = {k: v for k, v in tc.items() if v is not None}
-    return config_key(payload)
+    payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics")}
+    tc = {k: v for k, v in spec["train_config"].items() if k not in OPERATIONAL_FIELDS and v is not None}
+    tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
+    return config_key(payload | {"train_config": tc})
 
 
 def _score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsConfig) -> dict:

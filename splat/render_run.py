@@ -136,7 +136,9 @@ def _normal_u8(n: np.ndarray) -> np.ndarray:
     return out
 
 
-def _load_run(run_dir: Path, scene_override: str | None):
+def load_run(run_dir: Path, scene_override: str | Path | None = None):
+    """(scene at the run's resolution and split, Gaussians, training config dict) of a finished
+    `splat train` folder; the scene from RUN/report.json unless ``scene_override``."""
     from geocues.scene import Scene
     from splat.gaussians import load_ply
 
@@ -179,7 +181,7 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise ValueError(f"{out} already holds renders; pass --overwrite to replace them")
     check_output_dir(out)
-    scene, params, tcfg = _load_run(run_dir, cfg.scene)
+    scene, params, tcfg = load_run(run_dir, cfg.scene)
     views = _chosen(cfg, scene)
     bg = torch.tensor(tcfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32)
     gt_depth_dir = scene.root / "gt" / "depth"

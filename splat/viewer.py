@@ -346,18 +346,14 @@ class LiveView:
         self.max_splats = max_splats
         self.server.gui.configure_theme(show_share_button=False)
         self.status = self.server.gui.add_markdown("starting")
-        self.handle = None
-        self.updates = 0
         _add_cameras(self.server, scene)
         log.info("live view of the training at %s", url_of(self.server))
 
     def update(self, params, step: int, loss: float) -> None:
         s = splats_from_params(params, self.max_splats, seed=step)
         # the same name replaces the node in every connected browser
-        self.handle = self.server.scene.add_gaussian_splats("/splats", s.centers, s.covariances, s.rgbs,
-                                                            s.opacities)
+        self.server.scene.add_gaussian_splats("/splats", s.centers, s.covariances, s.rgbs, s.opacities)
         self.status.content = f"step {step:,} · loss {loss:.4f} · {s.total:,} Gaussians"
-        self.updates += 1
 
     def close(self) -> None:
         stop(self.server)
