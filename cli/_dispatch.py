@@ -118,4 +118,12 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
             print(f"{sub_prog}: error: {exc}", file=sys.stderr)
             return 1
         raise
+    except KeyboardInterrupt:
+        # Ctrl-C in a command without a checkpoint of its own: every output is written atomically,
+        # so what exists is complete; the same command again redoes the rest.
+        if verbose:
+            raise
+        print(f"{sub_prog}: interrupted; finished outputs are kept, run the same command again to "
+              "redo the rest", file=sys.stderr)
+        return 130
     return int(result) if isinstance(result, int) else 0

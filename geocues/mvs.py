@@ -251,8 +251,6 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
 
     cfg.validate()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
-    if not scene_dir.is_dir():
-        raise FileNotFoundError(f"scene folder does not exist: {scene_dir}")
     if scene_dir.resolve() == out_dir.resolve():
         raise ValueError("geocues mvs writes a new scene folder: pass an OUT other than SCENE")
     report_path = out_dir / "mvs_report.json"

@@ -190,3 +190,20 @@ def test_non_finite_sfm_points_are_dropped_and_poses_refused(room, caplog, capsy
     (find_model_dir(bad) / "images.txt").write_text("\n".join(text) + "\n")
     err = _fails(capsys, geocues, ["info", str(bad)])
     assert "non-finite pose" in err or "could not read COLMAP model" in err
+
+
+def test_ctrl_c_in_any_command_is_one_line(capsys):
+    """A Ctrl-C in a command without a checkpoint of its own (extract, mvs, render, evaluate, ...) ends
+    with one line and exit code 130, not a KeyboardInterrupt traceback."""
+    from cli._dispatch import dispatch
+
+    def slow() -> int:
+        """A command interrupted while it works."""
+        raise KeyboardInterrupt
+
+    assert dispatch("tool", {"slow": slow}, argv=["slow"]) == 130
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == [
+        "tool slow: interrupted; finished outputs are kept, run the same command again to redo the rest"]
+    with pytest.raises(KeyboardInterrupt):  # -v keeps the traceback
+        dispatch("tool", {"slow": slow}, argv=["slow", "-v"])
