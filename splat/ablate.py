@@ -50,7 +50,7 @@ class AblateConfig:
     jobs: int = 1
     """Rows run in this many processes at once (the cores are shared between them)."""
     num_threads: int = 0
-    """torch threads per row (0: all cores for --jobs 1, cores / jobs otherwise, 1 per Ray task).
+    """torch and Open3D threads per row (0: all cores for --jobs 1, cores / jobs otherwise, 1 per Ray task).
     The same count gives the same rows wherever they run; reductions over another count differ in
     the last bits, which a training amplifies."""
     ray: str | None = None
