@@ -144,12 +144,15 @@ def _run_row(spec: dict) -> dict:
         out.rename(aside)
         log.warning("%s holds a finished row of another configuration: moved to %s, running it again",
                     out, aside)
-    elif out.exists():  # an unfinished run of this row: start it again
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
     cfg = config_from_dict(TrainConfig, spec["train_config"])
+    resume = out.exists() and _resumable(out / "train", cfg)
+    if out.exists() and not resume:  # an unfinished run without a usable checkpoint: start again
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if resume:
+        log.info("%s: resuming the unfinished run from its checkpoint", spec["row"])
     t0 = time.perf_counter()
-    train_run(cfg, spec["scene"], spec["cues"], out / "train", overwrite=True)
+    train_run(cfg, spec["scene"], spec["cues"], out / "train", overwrite=True, resume=resume)
     train_wall = time.perf_counter() - t0
     report = json.loads((out / "train" / "report.json").read_text())
     metrics = MeshMetricsConfig(**spec["metrics"])
@@ -165,6 +168,26 @@ def _run_row(spec: dict) -> dict:
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result
+
+
+def _resumable(train_dir: Path, cfg) -> bool:
+    """Whether ``train_dir``'s unfinished run left a checkpoint of exactly this configuration
+    (a row killed half-way continues from it instead of starting over)."""
+    from splat import checkpoint
+    from splat.checkpoint import staging_dir
+
+    path = staging_dir(train_dir) / checkpoint.CKPT_NAME
+    if not path.is_file():
+        return False
+    try:
+        saved = checkpoint.load(path)["config"]
+    except Exception as exc:  # a checkpoint cut short by the kill: the row starts again
+        log.warning("%s cannot be read (%s): the row starts again", path, exc)
+        return False
+    same = json.loads(json.dumps(asdict(cfg))) == json.loads(json.dumps(saved))
+    if not same:
+        log.warning("%s was written with other options: the row starts again", path)
+    return same
 
 
 def _done(out: Path, key: str) -> dict | None:
@@ -317,9 +340,9 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     write_reports(summary(), out_dir)
     try:
         _execute(cfg, todo, on_done)
-    except TrainingInterrupted as exc:  # the row's own checkpoint is not reused: the row reruns
+    except TrainingInterrupted as exc:  # the same command resumes the row from its checkpoint
         raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {len(results)} row runs are finished in "
-                                  f"{out_dir}: run the same command again to run the rest") from None
+                                  f"{out_dir}: run the same command again to continue") from None
     write_reports(summary(), out_dir)
     return out_dir
 

@@ -151,6 +151,45 @@ def test_a_killed_ablation_resumes_and_skips_finished_rows(tiny, ablation, monke
     assert ran == []
 
 
+def test_a_row_killed_mid_training_continues_from_its_checkpoint(tiny, monkeypatch):
+    import os
+    import signal
+
+    import splat.train as train
+    from splat.checkpoint import TrainingInterrupted
+
+    real = train.train_step
+
+    def step_then_kill(*args, **kw):
+        out = real(*args, **kw)
+        if args[5] == 12:  # SIGTERM arrives during step 12 of the row
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(train, "train_step", step_then_kill)
+    with pytest.raises(TrainingInterrupted, match="run the same command again"):
+        _run(tiny, "midrow", ["no-lnc"], floor=False)
+    row = tiny[0] / "midrow" / "rows" / "no-lnc_s0"
+    assert (row / "train.partial" / "ckpt" / "last.pt").is_file()
+    monkeypatch.setattr(train, "train_step", real)
+    _run(tiny, "midrow", ["no-lnc"], floor=False)
+    assert json.loads((row / "train" / "report.json").read_text())["resumed_from_step"] == 13
+    assert json.loads((row / "score.json").read_text())["final"]["step"] == 30  # scored like any row
+    # a checkpoint written with other options is not resumed: the row starts again
+    monkeypatch.setattr(train, "train_step", step_then_kill)
+    with pytest.raises(TrainingInterrupted):
+        _run(tiny, "midrow2", ["no-lnc"], floor=False)
+    monkeypatch.setattr(train, "train_step", real)
+    from evaluation.mesh_metrics import MeshMetricsConfig
+    from splat.ablate import AblateConfig, run
+
+    run(AblateConfig(rows=("no-lnc",), iters=30, checkpoints=(0.5, 1.0), floor=False,
+                     metrics=MeshMetricsConfig(n_samples=20_000)),
+        tiny[1], tiny[2], tiny[0] / "midrow2", TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
+    report = tiny[0] / "midrow2" / "rows" / "no-lnc_s0" / "train" / "report.json"
+    assert json.loads(report.read_text())["resumed_from_step"] is None
+
+
 def test_seeds_give_mean_and_spread(tiny):
     out = _run(tiny, "seeds", ["no-lnc"], seeds=2, floor=False)
     row = json.loads((out / "ablation.json").read_text())["rows"][0]
