@@ -1,7 +1,7 @@
 """Seconds per training iteration: the whole `splat train` step, not the rasterizer alone.
 
     python bench/train_step_bench.py --name cpu2 [--device cpu|cuda] [--sizes 320x240 640x480] \
-        [--counts 50000 100000 300000] [--iters 20]
+        [--counts 50000 100000 300000] [--iters 20] [--adams torch fused]
 
 One iteration is ``splat.train.train_step``: render, the IndoorGS loss terms (L_rgb, L_d, L_n,
 L_s and L_nc, all on; not the anchored-depth term L_a, which these views have no anchor for and
@@ -10,8 +10,12 @@ bookkeeping (no refine step falls inside the timed window; refine steps are rare
 is in the trainer's own report). The problem has no files: flat Gaussians on a benchmark room's
 surfaces (``splat.bench.surface_gaussians``) rendered from four cameras give the targets and the
 depth/normal priors, and training starts from a perturbed copy. Median seconds of ``--iters``
-steps after 3 warm-up steps (CUDA synchronised). Writes ``bench/results/train_step_<name>.json``.
-Not part of the default tests.
+steps after 3 warm-up steps (CUDA synchronised), and the median of each stage of the step (render =
+projection + compositing forward; loss = every loss term's forward; backward = all gradients,
+compositing and projection included; optimizer; density), from ``train_step(stage_s=...)``.
+Each configuration runs once per ``--adams`` implementation side by side ("torch" = the code before
+the fused Adam, "fused" = today's default), so old and new are timed under the same conditions.
+Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
 """
 
 from __future__ import annotations
@@ -49,9 +53,14 @@ class StepBench:
     iters: int = 20
     sh_degree: int = 3
     backend: str = "auto"
+    adams: tuple[str, ...] = ("torch", "fused")
+    """Adam implementations to time side by side (TrainConfig.adam)."""
 
 
-def time_config(width: int, height: int, n: int, cfg: StepBench) -> dict:
+STAGES = ("render", "loss", "backward", "optimizer", "density")
+
+
+def time_config(width: int, height: int, n: int, cfg: StepBench, adam: str) -> dict:
     truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
     views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
     g = torch.Generator().manual_seed(0)
@@ -59,26 +68,29 @@ def time_config(width: int, height: int, n: int, cfg: StepBench) -> dict:
     start["sh0"] += 0.3 * torch.randn(start["sh0"].shape, generator=g)
     start["means"] += 0.005 * torch.randn(start["means"].shape, generator=g)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(cfg.device)) for k, v in start.items()})
-    optimizers = make_optimizers(params, LearningRates(), 3.0)
+    optimizers = make_optimizers(params, LearningRates(), 3.0, adam)
     strategy = IndoorStrategy(IndoorStrategyConfig())  # 30k schedule: steps 1..N are before refining
     state = strategy.initialize_state(3.0)
     state["cue_type"] = (torch.arange(n) % 3).to(cfg.device)
-    tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree)
+    tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree, adam=adam)
     loss_cfg = replace(LossConfig(), nc_from_iter=0)  # every term on
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
-    times = []
+    times, stages = [], []
     for step in range(1, cfg.iters + 4):
+        stage_s: dict[str, float] = {}
         sync()
         t0 = time.perf_counter()
         loss, _, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step,
-                                cfg.sh_degree, tcfg, loss_cfg, g)
+                                cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s)
         sync()
         if step > 3:
             times.append(time.perf_counter() - t0)
+            stages.append(stage_s)
         if not math.isfinite(float(loss)):
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
-    row = {"width": width, "height": height, "n": n, "median_s": statistics.median(times),
-           "min_s": min(times), "max_s": max(times)}
+    row = {"width": width, "height": height, "n": n, "adam": adam, "median_s": statistics.median(times),
+           "min_s": min(times), "max_s": max(times),
+           "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}
     if cfg.device.startswith("cuda"):
         row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
         torch.cuda.reset_peak_memory_stats()
@@ -87,12 +99,15 @@ def time_config(width: int, height: int, n: int, cfg: StepBench) -> dict:
 
 def main(cfg: StepBench) -> dict:
     rows = []
+    print(f"{'size':>8s} {'n':>7s} {'adam':>6s} {'s/iter':>7s}  " + " ".join(f"{k:>9s}" for k in STAGES))
     for size in cfg.sizes:
         w, h = (int(v) for v in size.split("x"))
         for n in cfg.counts:
-            row = time_config(w, h, n, cfg)
-            rows.append(row)
-            print(f"{w}x{h} {n:>7d} Gaussians: {row['median_s']:.3f} s/iter", flush=True)
+            for adam in cfg.adams:
+                row = time_config(w, h, n, cfg, adam)
+                rows.append(row)
+                print(f"{size:>8s} {n:>7d} {adam:>6s} {row['median_s']:7.3f}  "
+                      + " ".join(f"{row['stages_s'][k]:9.4f}" for k in STAGES), flush=True)
     result = {"config": asdict(cfg), "torch": torch.__version__, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
               "load_avg": os.getloadavg(), "rows": rows,

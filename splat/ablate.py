@@ -105,6 +105,8 @@ def row_key(spec: dict) -> str:
 
     payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics")}
     tc = {k: v for k, v in spec["train_config"].items() if k not in OPERATIONAL_FIELDS and v is not None}
+    if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
+        del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
     return config_key(payload | {"train_config": tc})
 

@@ -78,3 +78,70 @@ def test_train_steps_fit_targets_and_keep_state_aligned(device):
     assert grown > 0, densities
     kinds = torch.bincount(state["cue_type"].cpu(), minlength=3)
     assert kinds[int(CueType.PLANE)] <= 1000  # PLANE is prune-only: never more than at the start
+
+
+
+def test_fused_adam_is_torch_adam_through_row_rewrites():
+    """`--adam fused` (the default) against torch's default Adam on the same gradients, with rows
+    cloned and removed between steps (the moments move with the rows): the same update to rounding."""
+    from splat.densify_ops import duplicate, remove
+
+    g = torch.Generator().manual_seed(3)
+    base = {"means": torch.randn(500, 3, generator=g), "opacities": torch.randn(500, generator=g),
+            "shN": torch.randn(500, 3, 3, generator=g)}
+    runs = {}
+    for adam in ("fused", "torch"):
+        params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone()) for k, v in base.items()})
+        opts = make_optimizers(params, LearningRates(), 3.0, adam)
+        state = {"cue_type": torch.arange(500) % 3}
+        gg = torch.Generator().manual_seed(4)
+        for step in range(60):
+            for p in params.values():  # gradients away from zero: Adam's sign-like step is not decided by rounding
+                p.grad = (torch.rand(p.shape, generator=gg) + 0.5) * torch.where(p.detach() > 0, 1.0, -1.0)
+            for opt in opts.values():
+                opt.step()
+            if step == 20:
+                duplicate(params, opts, state, torch.arange(len(params["means"])) % 7 == 0)
+            if step == 40:
+                remove(params, opts, state, torch.arange(len(params["means"])) % 5 == 0)
+        runs[adam] = {k: v.detach() for k, v in params.items()}, opts
+    (a, oa), (b, ob) = runs["fused"], runs["torch"]
+    for k in a:
+        assert a[k].shape == b[k].shape and torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-6), k
+        sa, sb = oa[k].state[oa[k].param_groups[0]["params"][0]], ob[k].state[ob[k].param_groups[0]["params"][0]]
+        assert torch.allclose(sa["exp_avg_sq"], sb["exp_avg_sq"], rtol=1e-5, atol=1e-9), k
+        assert float(sa["step"]) == float(sb["step"]) == 60
+    with pytest.raises(ValueError, match="adam"):
+        make_optimizers(torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(2, 3))}),
+                        LearningRates(), 1.0, "sgd")
+
+
+def _short_run(adam: str, iters: int) -> tuple[float, dict]:
+    truth = surface_gaussians(2000, sh_degree=1, seed=2)
+    views = target_views(truth, W, H, "cpu", sh_degree=1)
+    g = torch.Generator().manual_seed(0)
+    start = {k: v.clone() for k, v in truth.items()}
+    start["sh0"] += 0.5 * torch.randn(start["sh0"].shape, generator=g)
+    start["means"] += 0.01 * torch.randn(start["means"].shape, generator=g)
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v) for k, v in start.items()})
+    optimizers = make_optimizers(params, LearningRates(), 3.0, adam)
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS))
+    state = strategy.initialize_state(3.0)
+    state["cue_type"] = torch.arange(len(params["means"])) % 3
+    cfg = TrainConfig(iters=ITERS, device="cpu", sh_degree=1, adam=adam)
+    loss_cfg = replace(LossConfig(), nc_from_iter=0)
+    for step in range(iters):
+        train_step(params, optimizers, strategy, state, views[step % len(views)], step, 1, cfg, loss_cfg, g)
+    counts = torch.bincount(state["cue_type"], minlength=3).tolist()
+    return psnr(params, views), counts
+
+
+def test_fused_adam_trains_to_the_same_metrics():
+    """A fixed-seed run with each Adam: Adam's near-sign step (eps 1e-15) turns rounding into
+    different parameters within a few steps, and refine steps then pick other rows, so the runs
+    are compared where the issue states its tolerance: the fit (PSNR within 0.5 dB) and the
+    Gaussian count per type (within 3 %)."""
+    pa, ca = _short_run("fused", ITERS)
+    pb, cb = _short_run("torch", ITERS)
+    assert abs(pa - pb) < 0.5, (pa, pb)
+    assert all(abs(x - y) <= 0.03 * max(y, 10) for x, y in zip(ca, cb)), (ca, cb)
