@@ -12,6 +12,7 @@ from cli._dispatch import dispatch
 from splat.ablate import AblateConfig
 from splat.bench import BenchConfig
 from splat.presets import PRESETS, load_config_file, preset_config
+from splat.mesh_run import MeshRunConfig
 from splat.render_run import RenderConfig
 from splat.train import TrainConfig
 from splat.viewer import ViewConfig
@@ -159,6 +160,25 @@ def render(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
     return 0
 
 
+def mesh(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
+         out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+         overwrite: bool = False,
+         cfg: Annotated[MeshRunConfig, tyro.conf.arg(name="")] = MeshRunConfig()) -> int:
+    """Fuse a finished run's Gaussians into a mesh again with other TSDF settings (no training):
+    voxel size, weight threshold, median or expected rendered depth.
+
+    Args:
+        run: a finished `splat train` folder.
+        out: the mesh to write (default RUN/mesh_<depth>_w<weight-threshold>.ply).
+        overwrite: replace OUT if it exists.
+        cfg: which views and how to fuse them.
+    """
+    from splat.mesh_run import run as mesh_run
+
+    print(f"wrote {mesh_run(cfg, run, out, overwrite=overwrite)}")
+    return 0
+
+
 def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
          screenshot: Annotated[Path | None, tyro.conf.arg(metavar="PNG")] = None,
          size: tuple[int, int] = (1280, 720),
@@ -201,7 +221,7 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
 
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate, "render": render, "view": view}
+COMMANDS: dict = {"bench": bench, "train": train, "ablate": ablate, "render": render, "mesh": mesh, "view": view}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -72,6 +72,10 @@ class TSDFConfig:
     ("cuda" needs a CUDA build of Open3D; Open3D's own "CPU:0" / "CUDA:0" are accepted too)."""
     min_component_diag: float = 0.05
     """clean_mesh removes connected components whose bounding-box diagonal is below this fraction of the whole mesh's (0 keeps all)."""
+    depth: str = "median"
+    """rendered depth fused for a trained model: "median" (the depth where transmittance crosses 0.5,
+    RaDe-GS's meshing depth) or "expected" (the alpha-normalised blend of the Gaussians' depth planes:
+    smoother, so better normals; docs/meshing.md). Exact depth (the floor) is fused as it is."""
 
     @property
     def trunc(self) -> float:
@@ -92,6 +96,8 @@ class TSDFConfig:
         if self.block_count < 1:
             raise ValueError(f"block_count must be >= 1, got {self.block_count}")
         open3d_device(self.device)
+        if self.depth not in ("median", "expected"):
+            raise ValueError(f"depth must be 'median' or 'expected', got {self.depth!r}")
         if not 0.0 <= self.min_component_diag < 1.0:
             raise ValueError(f"min_component_diag must be in [0, 1), got {self.min_component_diag}")
 

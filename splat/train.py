@@ -167,16 +167,32 @@ def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out
 
 @torch.no_grad()
 def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig):
-    """TSDF fusion of the rendered median depth (alpha > 0.5) and colour of every mesh_every-th view."""
+    """TSDF fusion of the rendered depth (``cfg.tsdf.depth``; alpha > 0.5) and colour of every
+    mesh_every-th training view, cleaned (:func:`fuse_cameras`)."""
+    cams = [views.scene.cameras[views[k].index] for k in range(0, len(views), max(cfg.mesh_every, 1))]
+    return fuse_cameras(params, cams, sh_degree, cfg.tsdf, backend=cfg.backend, background=cfg.background,
+                        device=views[0].rgb.device if len(views) else "cpu")
+
+
+@torch.no_grad()
+def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = "auto",
+                 background=(0.0, 0.0, 0.0), device="cpu", progress: bool = False):
+    """Render each scene camera (``geocues.scene.Camera``: K, R, t, size) and fuse the rendered depth
+    where alpha > 0.5 — the median or the expected depth, ``tsdf.depth`` — with the colours into a
+    TSDF; return the cleaned mesh."""
+    from splat.camera import Camera
+
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
+    key = "median_depth" if tsdf.depth == "median" else "depth"
+
     def gen():
-        for k in range(0, len(views), max(cfg.mesh_every, 1)):
-            view = views[k]
-            out = render_view(params, view, sh_degree, cfg)
-            depth = torch.where(out["alpha"] > 0.5, out["median_depth"], torch.zeros_like(out["median_depth"]))
-            cam = views.scene.cameras[view.index]
+        for cam in cameras:
+            out = render(params, Camera.from_scene_camera(cam, device), sh_degree=sh_degree, backend=backend,
+                         background=bg)
+            depth = torch.where(out["alpha"] > 0.5, out[key], torch.zeros_like(out[key]))
             yield (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32),
                    cam.K, cam.world_to_camera)
-    return clean_mesh(fuse_views(gen(), cfg.tsdf), cfg.tsdf)
+    return clean_mesh(fuse_views(gen(), tsdf, progress=progress), tsdf)
 
 
 def _type_counts(cue_type: Tensor) -> dict[str, int]:

@@ -94,6 +94,38 @@ def test_mesh_lies_on_the_room_surface(trained):
     assert np.median(d) < 0.05 and np.mean(d < 0.1) > 0.9
 
 
+
+def test_splat_mesh_refuses_again_without_training(trained, tmp_path, capsys):
+    """`splat mesh RUN` with the run's TSDF settings rebuilds RUN/mesh.ply exactly; the expected
+    depth and other thresholds give another mesh on the same surface; errors are one line."""
+    import open3d as o3d
+
+    from cli.splat_cli import main
+
+    out, _ = trained
+    same = tmp_path / "same.ply"
+    assert main(["mesh", str(out), "-o", str(same), "--tsdf.voxel-size", "0.05"]) == 0
+    a, b = (o3d.io.read_triangle_mesh(str(p)) for p in (out / "mesh.ply", same))
+
+    def faces(m):  # triangles as sorted vertex-coordinate triples (the block order of Open3D varies)
+        t = np.round(np.asarray(m.vertices)[np.asarray(m.triangles)], 5).reshape(-1, 9)
+        return t[np.lexsort(t.T[::-1])]
+    assert len(a.triangles) == len(b.triangles) and np.allclose(faces(a), faces(b), atol=1e-5)
+    assert main(["mesh", str(out), "--tsdf.voxel-size", "0.05", "--tsdf.depth", "expected",
+                 "--tsdf.weight-threshold", "1"]) == 0
+    exp = out / "mesh_expected_w1.ply"
+    v = np.asarray(o3d.io.read_triangle_mesh(str(exp)).vertices)
+    assert len(v) > 500 and not np.array_equal(v, np.asarray(a.vertices))
+    d = distance_to_surface(v)
+    assert np.median(d) < 0.05 and np.mean(d < 0.1) > 0.9
+    capsys.readouterr()
+    assert main(["mesh", str(out), "--tsdf.depth", "expected", "--tsdf.weight-threshold", "1"]) == 1
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert main(["mesh", str(out), "--tsdf.depth", "mean"]) == 1
+    assert "depth must be 'median' or 'expected'" in capsys.readouterr().err
+    assert main(["mesh", str(tmp_path), "-o", str(tmp_path / "x.ply")]) == 1
+    assert "report.json" in capsys.readouterr().err
+
 def test_bad_inputs_name_the_problem(tmp_path):
     from splat.train import TrainConfig, run
 

@@ -1,0 +1,112 @@
+"""Mesh every finished row of an ablation again with other TSDF settings — no training.
+
+Meshing happens after training, so the rendered depth that is fused (median or expected) and the
+TSDF weight threshold can be compared on the Gaussians every row already trained. For each finished
+row (OUT/rows/<row>_s<seed>/train) and each variant this runs what `splat mesh` runs, scores the mesh
+with the ablation's own metrics, and fuses the exact-depth floor with the same weight threshold (the
+floor is exact depth: the rendered-depth choice does not apply to it). Variants are named
+``<depth>_w<threshold>``; ``median_w3`` is what `splat train` fused (checked: it reproduces each
+row's score.json).
+
+    python bench/remesh_ablation.py outputs/ablation_textured_s0 --name textured_s0 \
+        [--variants median_w3 expected_w3 median_w1 expected_w1] [--rows full no-cues]
+
+Writes ``bench/results/remesh_<name>.json`` and prints one table per variant.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import tyro
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from evaluation.mesh_metrics import MeshMetricsConfig  # noqa: E402
+from geocues.atomic import atomic_path  # noqa: E402
+from splat.ablate import _score_mesh  # noqa: E402
+from splat.floor import find_gt_depth_dir, fuse_floor  # noqa: E402
+from splat.mesh import TSDFConfig  # noqa: E402
+from splat.mesh_run import MeshRunConfig  # noqa: E402
+from splat.mesh_run import run as mesh_run  # noqa: E402
+
+SHOW = ("chamfer_l1", "f_score", "normal_consistency", "completeness", "accuracy")
+
+
+@dataclass
+class Remesh:
+    ablation: tyro.conf.Positional[Path]
+    """an `splat ablate` output folder (ablation.json and rows/)."""
+    name: str
+    """result name: bench/results/remesh_NAME.json."""
+    variants: tuple[str, ...] = ("median_w3", "expected_w3", "median_w1", "expected_w1")
+    rows: tuple[str, ...] = ()
+    """rows to re-mesh (default: every finished row)."""
+
+
+def parse_variant(name: str) -> tuple[str, float]:
+    depth, w = name.split("_w")
+    return depth, float(w)
+
+
+def main(cfg: Remesh) -> dict:
+    abl = json.loads((cfg.ablation / "ablation.json").read_text())
+    scene = Path(abl["scene"])
+    metrics = MeshMetricsConfig(**abl["config"]["metrics"])
+    gt = Path(abl["config"]["gt"]) if abl["config"].get("gt") else None
+    work = cfg.ablation / "remesh"
+    runs = sorted(p for p in (cfg.ablation / "rows").glob("*_s*/train") if (p / "report.json").is_file()
+                  and not p.parent.name.endswith(".outdated"))
+    if cfg.rows:
+        runs = [p for p in runs if p.parent.name.rsplit("_s", 1)[0] in cfg.rows]
+    result = {"ablation": str(cfg.ablation), "scene": str(scene), "scene_label": abl.get("scene_label"),
+              "variants": {}}
+    for variant in cfg.variants:
+        depth, w = parse_variant(variant)
+        rows = {}
+        base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
+        tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w)
+        folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
+        if folder is not None:
+            floor_mesh = fuse_floor(scene, work / f"floor_w{w:g}.ply", gt_depth=folder,
+                                    downscale=base_cfg.get("downscale", 1.0), test_every=base_cfg.get("test_every", 8),
+                                    mesh_every=base_cfg.get("mesh_every", 1), tsdf=tsdf)
+            rows["floor"] = _score_mesh(floor_mesh, gt, scene, metrics)
+        for run_dir in runs:
+            row = run_dir.parent.name
+            t0 = time.perf_counter()
+            out = mesh_run(MeshRunConfig(tsdf=tsdf), run_dir, work / row / f"{variant}.ply", overwrite=True)
+            rows[row] = _score_mesh(out, gt, scene, metrics) | {"mesh_s": time.perf_counter() - t0}
+            print(variant, row, {k: round(rows[row][k], 4) for k in SHOW}, flush=True)
+        result["variants"][variant] = rows
+    path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    print(format_table(result))
+    print(f"wrote {path}")
+    return result
+
+
+def format_table(result: dict) -> str:
+    """Markdown: one line per row, C-L1 / F / NC per variant."""
+    variants = list(result["variants"])
+    rows = list(dict.fromkeys(r for v in variants for r in result["variants"][v]))
+    head = "| row | " + " | ".join(f"{v} C-L1 cm / F / NC" for v in variants) + " |"
+    lines = [head, "|---" * (len(variants) + 1) + "|"]
+    for r in rows:
+        cells = []
+        for v in variants:
+            m = result["variants"][v].get(r)
+            cells.append(f"{100 * m['chamfer_l1']:.2f} / {m['f_score']:.3f} / {m['normal_consistency']:.3f}"
+                         if m else "–")
+        lines.append(f"| {r} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Remesh))
