@@ -89,14 +89,33 @@ def main(cfg: Remesh) -> dict:
         tmp.write_text(json.dumps(result, indent=2))
     print(format_table(result))
     print(f"wrote {path}")
+    write_docs()
     return result
+
+
+def write_docs(doc: Path = REPO / "docs" / "meshing.md") -> None:
+    """Put the table of every bench/results/remesh_*.json between the remesh-summary markers."""
+    parts = []
+    for path in sorted((REPO / "bench" / "results").glob("remesh_*.json")):
+        result = json.loads(path.read_text())
+        parts.append(f"**{result.get('scene_label') or result['scene']}** "
+                     f"([{path.relative_to(REPO)}](../{path.relative_to(REPO)})), C-L1 in cm / F@5cm / NC:\n\n"
+                     + format_table(result))
+    text = doc.read_text()
+    head, tail = "<!-- remesh-summary -->", "<!-- /remesh-summary -->"
+    if head not in text or tail not in text:
+        raise ValueError(f"{doc} has no {head} ... {tail} markers")
+    body = "\n\n".join(parts) if parts else "(no results yet)"
+    text = text[:text.index(head) + len(head)] + "\n" + body + "\n" + text[text.index(tail):]
+    with atomic_path(doc) as tmp:
+        tmp.write_text(text)
 
 
 def format_table(result: dict) -> str:
     """Markdown: one line per row, C-L1 / F / NC per variant."""
     variants = list(result["variants"])
     rows = list(dict.fromkeys(r for v in variants for r in result["variants"][v]))
-    head = "| row | " + " | ".join(f"{v} C-L1 cm / F / NC" for v in variants) + " |"
+    head = "| row | " + " | ".join(f"`{v}`" for v in variants) + " |"
     lines = [head, "|---" * (len(variants) + 1) + "|"]
     for r in rows:
         cells = []

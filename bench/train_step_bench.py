@@ -55,6 +55,8 @@ class StepBench:
     backend: str = "auto"
     adams: tuple[str, ...] = ("torch", "fused")
     """Adam implementations to time side by side (TrainConfig.adam)."""
+    docs: bool = False
+    """write the table into docs/training.md (between its train-step markers)."""
 
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")
@@ -116,7 +118,36 @@ def main(cfg: StepBench) -> dict:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     print(f"wrote {path}")
+    if cfg.docs:
+        write_docs(result, path)
     return result
+
+
+def format_table(result: dict) -> str:
+    """Markdown: seconds per iteration per Adam with the per-stage split, one line per configuration."""
+    lines = ["| image | Gaussians | Adam | s/iter | " + " | ".join(STAGES) + " |",
+             "|---|---:|---|---:|" + "---:|" * len(STAGES)]
+    for r in result["rows"]:
+        st = r.get("stages_s", {})
+        lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {r.get('adam', 'torch')} | {r['median_s']:.3f} | "
+                     + " | ".join(f"{st.get(k, float('nan')):.3f}" for k in STAGES) + " |")
+    return "\n".join(lines)
+
+
+def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md") -> None:
+    """Put the table between the train-step markers of docs/training.md."""
+    head, tail = "<!-- train-step -->", "<!-- /train-step -->"
+    text = doc.read_text()
+    if head not in text or tail not in text:
+        raise ValueError(f"{doc} has no {head} ... {tail} markers")
+    load = ", ".join(f"{x:.1f}" for x in result["load_avg"])
+    body = (f"From [{path.relative_to(REPO)}](../{path.relative_to(REPO)}) ({result['threads']} torch threads, "
+            f"load average {load} when it ended; medians of {result['config']['iters']} iterations):\n\n"
+            + format_table(result))
+    text = text[:text.index(head) + len(head)] + "\n" + body + "\n" + text[text.index(tail):]
+    with atomic_path(doc) as tmp:
+        tmp.write_text(text)
+    print(f"wrote the table into {doc}")
 
 
 if __name__ == "__main__":

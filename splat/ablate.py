@@ -108,6 +108,8 @@ def row_key(spec: dict) -> str:
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
+    if tc["tsdf"].get("depth") == "median":  # rows meshed before --tsdf.depth existed fused the median
+        del tc["tsdf"]["depth"]
     return config_key(payload | {"train_config": tc})
 
 

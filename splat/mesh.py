@@ -72,10 +72,12 @@ class TSDFConfig:
     ("cuda" needs a CUDA build of Open3D; Open3D's own "CPU:0" / "CUDA:0" are accepted too)."""
     min_component_diag: float = 0.05
     """clean_mesh removes connected components whose bounding-box diagonal is below this fraction of the whole mesh's (0 keeps all)."""
-    depth: str = "median"
-    """rendered depth fused for a trained model: "median" (the depth where transmittance crosses 0.5,
-    RaDe-GS's meshing depth) or "expected" (the alpha-normalised blend of the Gaussians' depth planes:
-    smoother, so better normals; docs/meshing.md). Exact depth (the floor) is fused as it is."""
+    depth: str = "expected"
+    """rendered depth fused for a trained model: "expected" (the alpha-normalised blend of the
+    Gaussians' depth planes) or "median" (where transmittance crosses 0.5, RaDe-GS's meshing depth:
+    a step from one Gaussian's plane to the next, so its meshes' normals are rougher — normal
+    consistency 0.06-0.13 lower on every row of the textured-room ablation, docs/meshing.md).
+    Exact depth (the floor) is fused as it is."""
 
     @property
     def trunc(self) -> float:

@@ -5,7 +5,7 @@ One stage, one entry: ``run(cfg, scene_dir, cues, out_dir) -> Path`` (hloc style
 view per iteration, SH degree raised step by step); what is IndoorGS's lives in other modules:
 initialisation from typed cues (splat/gaussians.py, §4.2), the per-type density control
 (splat/strategy.py, §4.2), the losses (splat/losses.py, §4.3) and RaDe-GS depth and normals
-(splat/rasterize.py, §3.2). Meshing is splat/mesh.py (TSDF fusion of rendered median depth).
+(splat/rasterize.py, §3.2). Meshing is splat/mesh.py (TSDF fusion of the rendered expected or median depth, `--tsdf.depth`).
 
 Every iteration count of the paper's 30k-iteration schedule scales with ``iters`` (the strategy's
 ``total_iters``, the SH degree steps), so a short CPU run keeps the schedule's shape.
