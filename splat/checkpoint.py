@@ -12,6 +12,7 @@ written twice). ``capture`` clones the tensors (an in-memory snapshot the guard 
 from __future__ import annotations
 
 import copy
+import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -80,6 +81,13 @@ def load(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise ValueError(f"{path} is not a training checkpoint of this version (format {FORMAT})")
     return data
+
+
+def config_diff(cfg_dict: dict, saved: dict) -> list[str]:
+    """Top-level options whose values differ between a config (``asdict(cfg)``) and the one a
+    checkpoint was written with (compared as JSON, so tuples and lists agree); [] when equal."""
+    now, then = json.loads(json.dumps(cfg_dict)), json.loads(json.dumps(saved))
+    return [k for k in now if now[k] != then.get(k)] + [k for k in then if k not in now]
 
 
 def numpy_rng_state(rng: np.random.Generator) -> dict:

@@ -43,14 +43,37 @@ def default_out(run_dir: Path, tsdf: TSDFConfig) -> Path:
     return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}.ply"
 
 
+def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = "auto",
+                 background=(0.0, 0.0, 0.0), device="cpu", progress: bool = False):
+    """Render each scene camera (``geocues.scene.Camera``: K, R, t, size) and fuse the rendered depth
+    where alpha > 0.5 — the median or the expected depth, ``tsdf.depth`` — with the colours into a
+    TSDF; return the cleaned mesh."""
+    import numpy as np
+    import torch
+
+    from splat.camera import Camera
+    from splat.mesh import clean_mesh, fuse_views
+    from splat.rasterize import render
+
+    bg = torch.tensor(background, dtype=torch.float32, device=device)
+    key = "median_depth" if tsdf.depth == "median" else "depth"
+
+    @torch.no_grad()
+    def gen():
+        for cam in cameras:
+            out = render(params, Camera.from_scene_camera(cam, device), sh_degree=sh_degree, backend=backend,
+                         background=bg)
+            depth = torch.where(out["alpha"] > 0.5, out[key], torch.zeros_like(out[key]))
+            yield (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32),
+                   cam.K, cam.world_to_camera)
+    return clean_mesh(fuse_views(gen(), tsdf, progress=progress), tsdf)
+
+
 def run(cfg: MeshRunConfig, run_dir: str | Path, out: str | Path | None = None, *,
         overwrite: bool = False) -> Path:
     """Fuse ``run_dir``'s Gaussians with ``cfg.tsdf``; write the mesh to ``out``; return its path."""
-    import torch
-
     from splat.mesh import write_mesh
     from splat.render_run import load_run
-    from splat.train import fuse_cameras
 
     cfg.validate()
     run_dir = Path(run_dir)
@@ -64,7 +87,6 @@ def run(cfg: MeshRunConfig, run_dir: str | Path, out: str | Path | None = None, 
     idx = list(scene.train_indices) if cfg.views == "train" else list(range(len(scene.cameras)))
     cams = [scene.cameras[k] for k in idx[::cfg.mesh_every]]
     log.info("splat mesh: %d views of %s, %s", len(cams), run_dir, asdict(cfg.tsdf))
-    with torch.no_grad():
-        mesh = fuse_cameras(params, cams, train_cfg.get("sh_degree", 3), cfg.tsdf,
-                            background=tuple(train_cfg.get("background", (0.0, 0.0, 0.0))), progress=True)
+    mesh = fuse_cameras(params, cams, train_cfg.get("sh_degree", 3), cfg.tsdf,
+                        background=tuple(train_cfg.get("background", (0.0, 0.0, 0.0))), progress=True)
     return write_mesh(mesh, out)  # atomic

@@ -42,7 +42,8 @@ from splat.export import write_3dgs_run
 from splat.gaussians import init_from_cues, load_ply, save_ply, scene_scale
 from splat.guard import NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
-from splat.mesh import clean_mesh, fuse_views, write_mesh
+from splat.mesh import write_mesh
+from splat.mesh_run import fuse_cameras
 from splat.rasterize import render
 from splat.strategy import PAPER_ITERS, IndoorStrategy
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
@@ -174,27 +175,6 @@ def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig):
                         device=views[0].rgb.device if len(views) else "cpu")
 
 
-@torch.no_grad()
-def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = "auto",
-                 background=(0.0, 0.0, 0.0), device="cpu", progress: bool = False):
-    """Render each scene camera (``geocues.scene.Camera``: K, R, t, size) and fuse the rendered depth
-    where alpha > 0.5 — the median or the expected depth, ``tsdf.depth`` — with the colours into a
-    TSDF; return the cleaned mesh."""
-    from splat.camera import Camera
-
-    bg = torch.tensor(background, dtype=torch.float32, device=device)
-    key = "median_depth" if tsdf.depth == "median" else "depth"
-
-    def gen():
-        for cam in cameras:
-            out = render(params, Camera.from_scene_camera(cam, device), sh_degree=sh_degree, backend=backend,
-                         background=bg)
-            depth = torch.where(out["alpha"] > 0.5, out[key], torch.zeros_like(out[key]))
-            yield (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32),
-                   cam.K, cam.world_to_camera)
-    return clean_mesh(fuse_views(gen(), tsdf, progress=progress), tsdf)
-
-
 def _type_counts(cue_type: Tensor) -> dict[str, int]:
     return {t.name: int((cue_type == t.value).sum()) for t in CueType}
 
@@ -282,9 +262,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
-        now, then = json.loads(json.dumps(asdict(cfg))), json.loads(json.dumps(ckpt["config"]))
-        if now != then:
-            diff = [k for k in now if now[k] != then.get(k)]
+        diff = checkpoint.config_diff(asdict(cfg), ckpt["config"])
+        if diff:
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}); resume with the same options")
     elif work.exists():

@@ -337,7 +337,7 @@ def test_expected_depth_gives_smoother_normals_than_median_depth(tmp_path):
     from geocues.types import CueType
     from splat.gaussians import init_from_cues
     from splat.mesh import TSDFConfig, write_mesh
-    from splat.train import fuse_cameras
+    from splat.mesh_run import fuse_cameras
     from test_train import surface_cues
 
     root = make_room_scene(tmp_path / "room", n_views=16, w=160, h=120, priors="none")
