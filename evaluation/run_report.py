@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from geocues.atomic import atomic_path, check_output_dir
+from geocues.atomic import atomic_path, check_output_file
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = ("loss", "rgb", "depth", "anchor", "normal", "flat", "nc")
+LOSS_TERMS = ("loss", "rgb", "depth", "anchor", "normal", "flat", "nc", "mv")
 TYPES = ("SFM", "LINE", "PLANE", "n")
 
 
@@ -133,13 +133,14 @@ def _draw_sheet(sheet: dict, path: Path) -> Path:
 
 
 def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: str | Path | None = None,
-                     gt_depth: str | Path | None = None, n_views: int = 4) -> Path:
-    """The report of one `splat train` folder (module docstring); returns RUN/report.md."""
+                     gt_depth: str | Path | None = None, n_views: int = 4, *, overwrite: bool = False) -> Path:
+    """The report of one `splat train` folder (module docstring); returns RUN/report.md. An earlier
+    report (RUN/report.md, written last) is replaced only with ``overwrite``."""
     run_dir = Path(run_dir)
     report_path = run_dir / "report.json"
     if not report_path.is_file():
         raise FileNotFoundError(f"{run_dir} holds no report.json (not a finished `splat train` folder)")
-    check_output_dir(run_dir)  # the report is written into RUN
+    check_output_file(run_dir / "report.md", overwrite)  # the report is written into RUN
     report = json.loads(report_path.read_text())
     scene_dir = Path(scene) if scene is not None else Path(report["scene"])
     log_rows = _read_log(run_dir)

@@ -96,14 +96,16 @@ def depth_bounds(scene: Scene, i: int) -> tuple[float, float]:
     return 0.3, max(5.0, 3.0 * spread)
 
 
-def select_neighbours(scene: Scene, i: int, cfg: MvsConfig, depth: float) -> list[int]:
-    """Up to ``n_neighbours`` views around view ``i``: optical axes within ``max_angle_deg``, a
-    triangulation angle at ``depth`` of at least ``min_angle_deg``, ranked by closeness of that angle
-    to 10° and of the axes."""
+def select_neighbours(scene: Scene, i: int, cfg: MvsConfig, depth: float,
+                      candidates: list[int] | None = None) -> list[int]:
+    """Up to ``n_neighbours`` views around view ``i`` (among ``candidates``, default all): optical
+    axes within ``max_angle_deg``, a triangulation angle at ``depth`` of at least ``min_angle_deg``,
+    ranked by closeness of that angle to 10° and of the axes."""
     ci, zi = scene.cameras[i].center, scene.cameras[i].R[2]
     target = ci + depth * zi
     scored = []
-    for j, cj in enumerate(scene.cameras):
+    for j in range(len(scene.cameras)) if candidates is None else candidates:
+        cj = scene.cameras[j]
         if j == i:
             continue
         axis = np.degrees(np.arccos(np.clip(zi @ cj.R[2], -1, 1)))

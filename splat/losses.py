@@ -1,6 +1,7 @@
 """Training losses of IndoorGS (§4.3): L = L_rgb + λ_d L_d + λ_n L_n + λ_s L_s + λ_nc L_nc.
 
-One function per term, named in its docstring; ``total_loss`` combines them for the trainer.
+One function per term, named in its docstring; ``total_loss`` combines them for the trainer, with
+this project's extensions L_a (here) and L_mv (splat/multiview.py) when their weights are > 0.
 Inputs follow the renderer (splat/rasterize.py ``render``): rgb [H, W, 3] in [0, 1], depth [H, W]
 z-depth in metres (0 = not covered), normal [H, W, 3] unit camera-frame normals facing the camera
 (OpenCV axes, zeros = undefined), alpha [H, W]. Priors: depth [H, W] metres (0 = invalid), normals
@@ -21,6 +22,7 @@ import torch
 from torch import Tensor
 
 from evaluation.image_metrics import ssim_map
+from splat.multiview import SourceView, multiview_ncc_loss, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -268,25 +270,42 @@ class LossConfig:
     anchor_tol_p90: float = 0.5
     """τ = max(anchor_tol_min, this × the view's alignment 90th-percentile residual); 0.5 measured
     better than 1.0 at λ_a = 1 and 5 (docs/training_losses.md)."""
+    lambda_mv: float = 0.0
+    """λ_mv, weight of the multi-view photometric consistency L_mv (PGSR's; not in the paper; 0 = off):
+    the rendered plane of a pixel warps its patch into a neighbouring training photo (splat/multiview.py)."""
+    mv_from_iter: int = 7000
+    """First iteration of L_mv, scaled with the run's length like nc_from_iter (PGSR starts at 7000)."""
+    mv_samples: int = 4096
+    """Pixels (patch centres) drawn per step for L_mv."""
+    mv_patch: int = 7
+    """Side of the L_mv patches in pixels (odd)."""
+    mv_min_std: float = 0.01
+    """L_mv leaves out patches whose grey standard deviation is below this (NCC undefined)."""
+    mv_min_ncc: float = 0.0
+    """L_mv leaves out pixels whose NCC is at or below this (occluded or unmatched)."""
+    mv_neighbours: int = 4
+    """Neighbouring training views per view; one is drawn per step."""
 
 
 def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params: dict[str, Tensor],
                cue_type: Tensor, cfg: LossConfig, step: int, depth_prior: Tensor | None = None,
                normal_prior: Tensor | None = None, generator: torch.Generator | None = None,
-               depth_anchor: Tensor | None = None, anchor_p90: float = float("nan")
-               ) -> tuple[Tensor, dict[str, float]]:
-    """L = L_rgb + λ_d L_d + λ_n L_n + λ_s L_s + λ_nc L_nc (IndoorGS §4.3) for one view.
+               depth_anchor: Tensor | None = None, anchor_p90: float = float("nan"),
+               source: SourceView | None = None) -> tuple[Tensor, dict[str, float]]:
+    """L = L_rgb + λ_d L_d + λ_n L_n + λ_s L_s + λ_nc L_nc (IndoorGS §4.3) for one view, plus this
+    project's λ_a L_a and λ_mv L_mv when their weights are > 0.
 
     out: ``render`` output (rgb, depth, normal, alpha); gt_rgb: [H, W, 3]; camera_K: [3, 3];
     params["scales"]: [N, 3] log-scales; cue_type: [N] int (SFM=0, LINE=1, PLANE=2); step: the
     iteration; depth_prior [H, W] m (0 = invalid), normal_prior [H, W, 3] (0 = invalid);
     depth_anchor [H, W] m and anchor_p90 (m): the cue-aligned prior and its residual for L_a
-    (used when cfg.lambda_anchor > 0; a NaN anchor_p90 leaves τ = cfg.anchor_tol_min).
+    (used when cfg.lambda_anchor > 0; a NaN anchor_p90 leaves τ = cfg.anchor_tol_min); source: a
+    neighbouring training view for L_mv (used when cfg.lambda_mv > 0 and step >= mv_from_iter).
     A term is skipped when its switch is off, its prior is None, or (L_nc) step < nc_from_iter.
     L_s flattens the Gaussians whose type is in ``cfg.flat_types`` (LINE only by default, as the
     paper's G_L; PLANE Gaussians are not flattened unless 2 is added).
-    Returns (total, {"rgb", "depth", "anchor", "normal", "flat", "nc" (the computed ones), "total"}) with the
-    unweighted term values as floats.
+    Returns (total, {"rgb", "depth", "anchor", "normal", "flat", "nc", "mv" (the computed ones), "total"})
+    with the unweighted term values as floats (and "mv_kept", the share of L_mv samples used).
     """
     for key in ("rgb", "depth", "normal", "alpha"):
         if key not in out:
@@ -313,6 +332,11 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
     if cfg.use_nc and step >= cfg.nc_from_iter:
         terms["nc"] = (cfg.lambda_nc, depth_normal_consistency_loss(out["normal"], out["depth"], camera_K, covered,
                                                                     cfg.nc_detach_depth))
+    extra = {}
+    if cfg.lambda_mv > 0 and source is not None and step >= cfg.mv_from_iter:
+        mv, stats = multiview_ncc_loss(out["depth"], out["normal"], to_gray(gt_rgb), camera_K, source,
+                                       cfg.mv_samples, cfg.mv_patch, cfg.mv_min_std, cfg.mv_min_ncc, generator)
+        terms["mv"], extra["mv_kept"] = (cfg.lambda_mv, mv), stats["kept"]
     total = sum(wt * t for wt, t in terms.values())
     values = torch.stack([t.detach() for _, t in terms.values()] + [total.detach()]).tolist()  # one sync
-    return total, dict(zip(list(terms) + ["total"], values))
+    return total, dict(zip(list(terms) + ["total"], values)) | extra

@@ -72,6 +72,7 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
            extension=True),
     Preset("literal-line-clone", "LINE clone at mu + grad (paper verbatim)",
            {"strategy.line_clone_literal": True}, extension=True),
+    Preset("mv", "+ multi-view photometric consistency L_mv (PGSR)", {"loss.lambda_mv": 0.15}, extension=True),
 ]}
 
 DEFAULT_ROWS = tuple(PRESETS)

@@ -44,6 +44,7 @@ from splat.guard import NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
 from splat.mesh import write_mesh
 from splat.mesh_run import fuse_cameras
+from splat.multiview import SourceView, source_view, training_neighbours
 from splat.rasterize import render
 from splat.strategy import PAPER_ITERS, IndoorStrategy
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
@@ -88,7 +89,8 @@ def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[st
 def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, view: View, step: int,
                sh_degree: int, cfg: TrainConfig, loss_cfg: LossConfig,
                generator: torch.Generator | None = None, guard: NumericsGuard | None = None,
-               stage_s: dict[str, float] | None = None) -> tuple[Tensor, dict, dict]:
+               stage_s: dict[str, float] | None = None, source: SourceView | None = None
+               ) -> tuple[Tensor, dict, dict]:
     """One iteration on one view: render, IndoorGS loss, backward, Adam, per-type density control.
 
     ``loss_cfg`` is the run's loss config with its iteration counts already scaled (see run()).
@@ -96,6 +98,7 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
     density control; its report is returned under ``density["guard"]``. With ``stage_s`` (a dict),
     the seconds of each stage (render, loss, backward, optimizer, density) are added to it (the
     per-stage breakdown of bench/train_step_bench.py; CUDA work is synchronised at each boundary).
+    ``source``: the neighbouring training view of L_mv (splat/multiview.py), if it is on.
     Returns the loss, its terms and what the density control did at this step (empty if nothing).
     """
     clock = _StageClock(stage_s, params["means"].device)
@@ -103,7 +106,7 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
     clock("render")
     loss, terms = total_loss(out, view.rgb, view.camera.K, params, state["cue_type"], loss_cfg, step,
                              depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=generator,
-                             depth_anchor=view.depth_anchor, anchor_p90=view.anchor_p90)
+                             depth_anchor=view.depth_anchor, anchor_p90=view.anchor_p90, source=source)
     info = {**out, "width": view.camera.width, "height": view.camera.height,
             "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
     strategy.step_pre_backward(params, optimizers, state, step, info)
@@ -292,7 +295,12 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
     optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)
     strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters))
-    loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS))
+    loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
+                       mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
+    neighbours = training_neighbours(scene, train_views.indices, cfg.loss.mv_neighbours) if cfg.loss.lambda_mv > 0 else None
+    if neighbours is not None:
+        log.info("L_mv: %d of %d training views have a neighbour (%.1f on average)", sum(map(bool, neighbours)),
+                 len(neighbours), float(np.mean([len(n) for n in neighbours])))
     state = strategy.initialize_state(scale)
     state["cue_type"] = cue_type.to(device)
     strategy.check_sanity(params, optimizers)
@@ -348,10 +356,16 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 opt.param_groups[0]["lr"] = rate * guard.lr_mult.get(key, 1.0)
             if not order:
                 order = list(rng.permutation(len(train_views)))
-            view = train_views[order.pop()]
+            k = order.pop()
+            view = train_views[k]
+            source = None
+            if neighbours and neighbours[k] and step >= loss_cfg.mv_from_iter:
+                j = neighbours[k][int(torch.randint(len(neighbours[k]), (1,), generator=gen))]
+                source = source_view(view.camera, train_views.cameras[j], train_views.image(j))
             sh_degree = min(cfg.sh_degree, step // sh_every)
             loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
-                                              cfg, loss_cfg, gen, guard if cfg.guard.enabled else None)
+                                              cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,
+                                              source=source)
             event = density.get("guard") or guard.check_params(step, params)
             if event is not None:
                 try:

@@ -77,7 +77,7 @@ class TrainConfig:
     log_every: int = 50
     """Write a train_log.jsonl line every this many iterations."""
     mesh: bool = True
-    """Fuse a TSDF mesh from the rendered median depth of the training views at the end."""
+    """Fuse a TSDF mesh from the rendered depth (--tsdf.depth) of the training views at the end."""
     mesh_at_checkpoints: bool = False
     """Also fuse a mesh at every checkpoint (OUT/checkpoints/mesh_STEP.ply), for accuracy against time."""
     mesh_every: int = 1
@@ -123,6 +123,9 @@ class TrainConfig:
         for name, value in asdict(self.loss).items():
             if isinstance(value, float):
                 finite_pos(f"loss.{name.replace('_', '-')}", value, zero_ok=True)
+        if self.loss.mv_patch < 3 or self.loss.mv_patch % 2 == 0 or self.loss.mv_samples < 1 or self.loss.mv_neighbours < 1:
+            raise ValueError(f"--loss.mv-patch must be odd and >= 3, --loss.mv-samples and --loss.mv-neighbours >= 1 "
+                             f"(got {self.loss.mv_patch}, {self.loss.mv_samples}, {self.loss.mv_neighbours})")
         if not all(0 < c <= 1 for c in self.checkpoints):
             raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
         finite_pos("save-every", self.save_every, zero_ok=True)

@@ -105,6 +105,10 @@ class ViewSet:
         """[V, 3] camera centres in world coordinates (float64)."""
         return np.stack([self.scene.cameras[i].center for i in self.indices]) if self.indices else np.zeros((0, 3))
 
+    def image(self, k: int) -> Tensor:
+        """[H, W, 3] float32 RGB in [0, 1] of view k (without its priors)."""
+        return self._rgb[k].to(self.device).float() / 255.0
+
     def __getitem__(self, k: int) -> View:
         dev = self.device
         d, n, a = self._depth[k], self._normal[k], self._anchor[k]
