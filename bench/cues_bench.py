@@ -192,7 +192,7 @@ def run(cfg: BenchConfig) -> Path:
         ecfg.priors = mode == "priors"
         out_dir = cfg.out / f"{cfg.name}_{mode}"
         t = time.perf_counter()
-        ex.run(scene_dir, out_dir, ecfg, overwrite=True, cache_dir=cache)
+        ex.run(ecfg, scene_dir, out_dir, overwrite=True, cache_dir=cache)
         wall = time.perf_counter() - t
         m = measure(out_dir, gt, cfg)
         m["wall_s"] = wall

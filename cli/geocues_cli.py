@@ -12,6 +12,7 @@ import tyro
 from cli._dispatch import dispatch
 from geocues.extract import ExtractConfig
 from geocues.mvs import MvsConfig
+from geocues.rescale import RescaleConfig
 from geocues.sfm import SfmConfig
 from geocues.undistort import UndistortConfig
 
@@ -35,7 +36,8 @@ def sfm(scene: tyro.conf.Positional[Path],
     """
     from geocues.sfm import run
 
-    report = run(scene, out, cfg, overwrite=overwrite, recompute=recompute)
+    done = run(cfg, scene, out, overwrite=overwrite, recompute=recompute)
+    report = json.loads((done / "sfm_report.json").read_text())
     print(json.dumps({k: v for k, v in report.items() if k != "config"}, indent=2))
     return 0
 
@@ -54,7 +56,7 @@ def undistort(scene: tyro.conf.Positional[Path],
     """
     from geocues.undistort import run
 
-    print(run(scene, out, cfg, overwrite=overwrite))
+    print(run(cfg, scene, out, overwrite=overwrite))
     return 0
 
 
@@ -117,7 +119,7 @@ def extract(scene: tyro.conf.Positional[Path],
     """
     from geocues.extract import run
 
-    out_dir = run(scene, out, cfg, overwrite=overwrite)
+    out_dir = run(cfg, scene, out, overwrite=overwrite)
     report = json.loads((out_dir / "report.json").read_text())
     print(json.dumps({k: report[k] for k in ("counts", "seconds", "notes")}, indent=2))
     return 0
@@ -147,9 +149,8 @@ def mvs(scene: tyro.conf.Positional[Path],
 
 def rescale(scene: tyro.conf.Positional[Path],
             out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
-            scale: float | None = None,
-            from_priors: bool = False,
-            overwrite: bool = False) -> int:
+            overwrite: bool = False,
+            cfg: tyro.conf.OmitArgPrefixes[RescaleConfig] = RescaleConfig()) -> int:
     """Make a scene metric: OUT is SCENE with camera translations and SfM points multiplied by --scale,
     or by the factor its metric depth priors give (--from-priors); images, priors and GT linked.
     `geocues info` shows a scene's extent and warns when it is far from metric.
@@ -157,13 +158,12 @@ def rescale(scene: tyro.conf.Positional[Path],
     Args:
         scene: scene folder with a COLMAP model.
         out: the new scene folder.
-        scale: metres per scene unit.
-        from_priors: estimate the factor from the depth priors (median ratio at the SfM points).
         overwrite: replace an existing OUT.
+        cfg: the factor (--scale S or --from-priors).
     """
     from geocues.rescale import run
 
-    done = run(scene, out, scale, from_priors, overwrite=overwrite)
+    done = run(cfg, scene, out, overwrite=overwrite)
     print(f"wrote {done} (scale in {done}/scene.json)")
     return 0
 

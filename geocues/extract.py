@@ -136,9 +136,10 @@ def _run_lines(scene: Scene, cfg: ExtractConfig, cache_dir: Path) -> LineCues:
     return extract_line_cues(scene, cfg.line, cache_dir)
 
 
-def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = None,
+def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, cache_dir: str | Path | None = None) -> Path:
-    """Extract the cues of the scene at ``scene_dir`` into ``out_dir``; returns ``out_dir``.
+    """Extract the cues of the scene at ``scene_dir`` into ``out_dir`` with ``cfg`` (None: the
+    defaults); returns ``out_dir``.
 
     If ``out_dir/report.json`` already holds a run with the same configuration, nothing is redone
     unless ``overwrite``; a run with a different configuration there raises ValueError unless
@@ -168,7 +169,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, cfg: ExtractConfig | None = 
             log.info("extract: %s already holds this run (config %s); skipping", out_dir, key)
             return out_dir
         raise ValueError(f"{out_dir} holds cues of another configuration or scene "
-                         f"(config {old.get('config_key')} vs {key}); pass overwrite=True to replace them")
+                         f"(config {old.get('config_key')} vs {key}); pass --overwrite (overwrite=True) to replace them")
     log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from geocues.atomic import check_output_dir
+from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import find_model_dir, read_model, write_model
 from geocues.scene import Scene
 from geocues.sfm import link_scene
@@ -65,34 +65,47 @@ def scale_from_priors(scene: Scene, min_points: int = 20) -> tuple[float, int]:
     return float(np.median(ratios)), len(ratios)
 
 
-def run(scene_dir: str | Path, out_dir: str | Path, scale: float | None = None, from_priors: bool = False,
-        *, overwrite: bool = False) -> Path:
+@dataclass
+class RescaleConfig:
+    """Options of `geocues rescale`: one factor, given or estimated."""
+
+    scale: float | None = None
+    """Metres per scene unit."""
+    from_priors: bool = False
+    """Estimate the factor from the depth priors (median ratio at the SfM points)."""
+
+    def validate(self) -> None:
+        if (self.scale is None) == (not self.from_priors):
+            raise ValueError("give either --scale S or --from-priors")
+        if self.scale is not None and not (np.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"--scale must be a positive number, got {self.scale}")
+
+
+def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Write ``out_dir``: the scene with camera translations and SfM points multiplied by the factor
-    (``scale``, or estimated ``from_priors``); images, priors and GT linked (priors and GT are
-    already metric). Returns ``out_dir``."""
+    (``cfg.scale``, or estimated ``cfg.from_priors``); images, priors and GT linked (priors and GT
+    are already metric). OUT is built in a temporary sibling and renamed into place. Returns ``out_dir``."""
+    cfg.validate()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
-    if (scale is None) == (not from_priors):
-        raise ValueError("give either --scale S or --from-priors")
-    if scale is not None and not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"--scale must be a positive number, got {scale}")
+    if out_dir.exists() and out_dir.resolve() == scene_dir.resolve():
+        raise ValueError("geocues rescale writes a new scene folder: pass an OUT other than SCENE")
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise ValueError(f"{out_dir} already exists; pass --overwrite to replace it")
     check_output_dir(out_dir)
     scene = Scene.load(scene_dir, check_priors=False)
-    used = None
-    if from_priors:
+    scale, used = cfg.scale, None
+    if cfg.from_priors:
         scale, used = scale_from_priors(scene)
     images, points = read_model(find_model_dir(scene_dir))
     for im in images:
         im.t = im.t * scale
     points.xyz = points.xyz * scale
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    write_model(out_dir / "sparse" / "0", images, points)
-    link_scene(scene_dir, out_dir)  # images, priors (metric already), GT
-    meta = json.loads((out_dir / "scene.json").read_text()) if (out_dir / "scene.json").is_file() else {}
-    meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used}
-    (out_dir / "scene.json").write_text(json.dumps(meta, indent=1))
+    with atomic_dir(out_dir) as tmp:
+        write_model(tmp / "sparse" / "0", images, points)
+        link_scene(scene_dir, tmp)  # images, priors (metric already), GT
+        meta = json.loads((tmp / "scene.json").read_text()) if (tmp / "scene.json").is_file() else {}
+        meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used}
+        (tmp / "scene.json").write_text(json.dumps(meta, indent=1))
     log.info("rescaled %s by %.6g%s: extent %.3g -> %.3g m", scene_dir, scale,
              f" (from the depth priors of {used} views)" if used else "", scene_extent(scene),
              scene_extent(scene) * scale)

@@ -13,7 +13,8 @@ Two modes:
 
 The database is cached in ``OUT/cache/sfm/`` with the parameters that made it; a re-run reuses the
 features (and the matches) unless ``recompute`` or the parameters changed. The model is written
-atomically; the report goes to ``OUT/sfm_report.json``.
+atomically; the report goes to ``OUT/sfm_report.json``. Entry: ``run(cfg, scene, out=None, *,
+overwrite=False, recompute=False) -> OUT`` (SCENE itself when written in place).
 """
 
 from __future__ import annotations
@@ -167,9 +168,11 @@ def distance_to_mesh_stats(xyz: np.ndarray, mesh_path: Path) -> dict:
             "p90_m": float(np.percentile(d, 90))}
 
 
-def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig(),
-        overwrite: bool = False, recompute: bool = False) -> dict:
-    """Fill a scene's 3D points (triangulate) or reconstruct it from images (map); return the report.
+def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None, *,
+        overwrite: bool = False, recompute: bool = False) -> Path:
+    """Fill a scene's 3D points (triangulate) or reconstruct it from images (map); return the scene
+    folder written (``scene_dir`` in place, else ``out_dir``), whose ``sfm_report.json`` holds the
+    report (points, track length, reprojection error, pairs, seconds, config).
 
     ``out_dir=None`` writes ``SCENE/sparse/0`` in place; otherwise OUT becomes a complete scene
     folder (images/priors/gt linked, scene.json copied, OUT/sparse/0 the new model). An OUT that
@@ -312,4 +315,4 @@ def run(scene_dir: Path, out_dir: Path | None = None, cfg: SfmConfig = SfmConfig
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],
              sum(seconds.values()))
-    return report
+    return root

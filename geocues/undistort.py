@@ -14,7 +14,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from geocues.atomic import atomic_dir
+from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import PINHOLE_MODELS, find_model_dir
 
 log = logging.getLogger(__name__)
@@ -32,9 +32,9 @@ class UndistortConfig:
     """Write the model as .bin (else .txt)."""
 
 
-def run(scene_dir: Path, out_dir: Path, cfg: UndistortConfig = UndistortConfig(),
-        overwrite: bool = False) -> Path:
-    """Undistort SCENE into OUT (a new scene folder); returns OUT. Refuses to write into SCENE."""
+def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Undistort ``scene_dir`` into ``out_dir`` (a new scene folder); returns ``out_dir``. Refuses to
+    write into SCENE, and into an OUT that holds a model unless ``overwrite``."""
     import pycolmap
 
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
@@ -45,7 +45,8 @@ def run(scene_dir: Path, out_dir: Path, cfg: UndistortConfig = UndistortConfig()
     if out_dir.resolve() == scene_dir.resolve():
         raise ValueError(f"undistort writes a new scene: OUT must differ from SCENE ({scene_dir})")
     if (out_dir / "sparse").exists() and not overwrite:
-        raise FileExistsError(f"{out_dir / 'sparse'} exists; pass overwrite=True (--overwrite) to replace it")
+        raise ValueError(f"{out_dir / 'sparse'} exists; pass --overwrite to replace it")
+    check_output_dir(out_dir)
     rec = pycolmap.Reconstruction(str(model_dir))
     if rec.num_reg_images() == 0:
         raise ValueError(f"the COLMAP model in {model_dir} has no registered images")

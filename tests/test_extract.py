@@ -50,7 +50,7 @@ def _no_nan(out):
 
 class TestRun:
     def test_outputs_and_accuracy(self, scenes, tmp_path):
-        out = ex.run(scenes["all"], tmp_path / "cues")
+        out = ex.run(None, scenes["all"], tmp_path / "cues")
         for f in ("cues.ply", "lines3d.npz", "report.json", "depth_alignments.json"):
             assert (out / f).is_file()
         cues = _no_nan(out)
@@ -77,17 +77,17 @@ class TestRun:
 
     def test_second_run_is_skipped_and_cache_reused(self, scenes, tmp_path):
         out = tmp_path / "cues"
-        ex.run(scenes["all"], out)
+        ex.run(None, scenes["all"], out)
         first = _report(out)
         assert first["planes"]["texture_cache_hits"] == 0
         stamp = (out / "cues.ply").stat().st_mtime_ns
-        ex.run(scenes["all"], out)  # same config: nothing redone
+        ex.run(None, scenes["all"], out)  # same config: nothing redone
         assert (out / "cues.ply").stat().st_mtime_ns == stamp
         cfg = ex.ExtractConfig()
         cfg.plane.voxel_size = 0.03
         with pytest.raises(ValueError, match="overwrite"):
-            ex.run(scenes["all"], out, cfg)
-        ex.run(scenes["all"], out, cfg, overwrite=True)
+            ex.run(cfg, scenes["all"], out)
+        ex.run(cfg, scenes["all"], out, overwrite=True)
         second = _report(out)
         assert second["planes"]["texture_cache_hits"] == 16
         assert second["counts"]["PLANE"] < first["counts"]["PLANE"]  # coarser voxels
@@ -95,13 +95,13 @@ class TestRun:
     @pytest.mark.parametrize("off", ["sfm", "lines", "planes"])
     def test_each_stage_switches_off(self, scenes, tmp_path, off):
         cfg = ex.ExtractConfig(**{off: False})
-        rep = _report(ex.run(scenes["all"], tmp_path / off, cfg))
+        rep = _report(ex.run(cfg, scenes["all"], tmp_path / off))
         name = {"sfm": "SFM", "lines": "LINE", "planes": "PLANE"}[off]
         assert rep["counts"][name] == 0 and off not in rep["seconds"]
         assert sum(rep["counts"].values()) > 0
 
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
-        out = ex.run(scenes["all"], tmp_path / "free", ex.ExtractConfig(priors=False))
+        out = ex.run(ex.ExtractConfig(priors=False), scenes["all"], tmp_path / "free")
         rep = _report(out)
         assert rep["planes"]["plane_modes"]["prior_free"] == 16
         assert any("priors ignored" in n for n in rep["notes"])
@@ -110,7 +110,7 @@ class TestRun:
 
     def test_bad_paths(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="missing"):
-            ex.run(tmp_path / "missing", tmp_path / "out")
+            ex.run(None, tmp_path / "missing", tmp_path / "out")
 
 
 def test_triangulation_angles():
@@ -132,13 +132,13 @@ def test_triangulation_angles():
 class TestHardCases:
     def test_empty_sfm_model(self, tmp_path):
         scene = make_room_scene(tmp_path / "room", n_views=16, priors="all", n_sfm=0)
-        out = ex.run(scene, tmp_path / "cues")
+        out = ex.run(None, scene, tmp_path / "cues")
         cues, rep = _no_nan(out), _report(out)
         assert rep["counts"]["SFM"] == 0 and rep["counts"]["PLANE"] > 0 and len(cues) == rep["n_points"]
         assert any("no 3D points" in n for n in rep["notes"])
 
     def test_no_priors_at_all(self, scenes, tmp_path):
-        out = ex.run(scenes["none"], tmp_path / "cues")
+        out = ex.run(None, scenes["none"], tmp_path / "cues")
         rep = _report(out)
         _no_nan(out)
         assert rep["planes"]["images_with_prior"] == 0
@@ -146,7 +146,7 @@ class TestHardCases:
         assert rep["counts"]["PLANE"] > 0
 
     def test_priors_for_some_images(self, scenes, tmp_path):
-        out = ex.run(scenes["some"], tmp_path / "cues")
+        out = ex.run(None, scenes["some"], tmp_path / "cues")
         rep = _report(out)
         _no_nan(out)
         for r in rep["per_image"]:
@@ -158,14 +158,14 @@ class TestHardCases:
 
     def test_images_with_no_lines(self, scenes, tmp_path, fake_lines):
         fake_lines["drop"] = (1, 3)
-        out = ex.run(scenes["all"], tmp_path / "cues")
+        out = ex.run(None, scenes["all"], tmp_path / "cues")
         rep = _report(out)
         _no_nan(out)
         assert any("2 of 16 images support no 3D line" in n for n in rep["notes"])
 
     def test_no_lines_no_sfm_no_priors(self, scenes, tmp_path):
         """Nothing to anchor planes: every region is rejected with a reason, no crash."""
-        out = ex.run(scenes["none"], tmp_path / "cues", ex.ExtractConfig(sfm=False, lines=False))
+        out = ex.run(ex.ExtractConfig(sfm=False, lines=False), scenes["none"], tmp_path / "cues")
         rep = _report(out)
         assert rep["counts"] == {"SFM": 0, "LINE": 0, "PLANE": 0}
         assert rep["rejections"]["planes"].get("too_few_anchors", 0) > 0

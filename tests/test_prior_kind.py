@@ -139,7 +139,7 @@ class TestExtract:
         scene, _ = room
         cfg = ex.ExtractConfig(prior_kind="depth")
         with caplog.at_level(logging.WARNING, logger="geocues"):
-            out = ex.run(scene.root, tmp_path / "as_depth", cfg)
+            out = ex.run(cfg, scene.root, tmp_path / "as_depth")
         rep = json.loads((out / "report.json").read_text())
         warnings = [r.getMessage() for r in caplog.records if "look like disparity" in r.getMessage()]
         assert len(warnings) == 1, [r.getMessage() for r in caplog.records]
@@ -152,7 +152,7 @@ class TestExtract:
     def test_disparity_prior_is_used(self, room, tmp_path, fake_lines, caplog):
         scene, _ = room
         with caplog.at_level(logging.WARNING, logger="geocues"):
-            out = ex.run(scene.root, tmp_path / "as_disparity")  # kind from scene.json
+            out = ex.run(None, scene.root, tmp_path / "as_disparity")  # kind from scene.json
         rep = json.loads((out / "report.json").read_text())
         assert "look like" not in caplog.text and rep["prior_kind"] == "disparity"
         als = [r["alignment"] for r in rep["per_image"]]
@@ -165,7 +165,7 @@ class TestExtract:
 
         seen = {}
 
-        def fake_run(scene, out, cfg, overwrite=False):
+        def fake_run(cfg, scene, out, *, overwrite=False):
             seen["cfg"] = cfg
             out.mkdir(parents=True, exist_ok=True)
             (out / "report.json").write_text(json.dumps({"counts": {}, "seconds": {}, "notes": []}))
@@ -182,7 +182,7 @@ class TestExtract:
 
     def test_bad_kind_from_python_is_named(self, room, tmp_path):
         with pytest.raises(ValueError, match="prior_kind must be"):
-            ex.run(room[0].root, tmp_path / "c", ex.ExtractConfig(prior_kind="inverse"))
+            ex.run(ex.ExtractConfig(prior_kind="inverse"), room[0].root, tmp_path / "c")
 
 
 def test_training_views_get_depth_from_a_disparity_prior(room):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cues_synth import make_room_scene, render
-from geocues.rescale import metric_warning, run, scale_from_priors, scene_extent
+from geocues.rescale import RescaleConfig, metric_warning, run, scale_from_priors, scene_extent
 from geocues.scene import Scene
 
 
@@ -22,7 +22,7 @@ def rooms(tmp_path_factory):
     for cam in scene.cameras:  # metric priors (a depth sensor): the exact depth
         np.save(root / "priors" / "depth" / f"{cam.stem}.npy",
                 render(cam.K, cam.R, cam.t, cam.width, cam.height)[1].astype(np.float32))
-    small = run(root, base / "small", scale=0.01)  # what an images-only SfM might return
+    small = run(RescaleConfig(scale=0.01), root, base / "small")  # what an images-only SfM might return
     return base, root, small
 
 
@@ -43,7 +43,7 @@ def test_from_priors_recovers_the_scale_and_round_trips(rooms):
     base, root, small = rooms
     s, used = scale_from_priors(Scene.load(small, check_priors=False))
     assert s == pytest.approx(100, rel=0.01) and used >= 4  # views with 20+ SfM points in view
-    back = run(small, base / "back", from_priors=True)
+    back = run(RescaleConfig(from_priors=True), small, base / "back")
     assert json.loads((back / "scene.json").read_text())["rescaled"]["scale"] == pytest.approx(s)
     a, b = Scene.load(root, check_priors=False), Scene.load(back, check_priors=False)
     for ca, cb in zip(a.cameras, b.cameras):
@@ -55,9 +55,9 @@ def test_from_priors_recovers_the_scale_and_round_trips(rooms):
 def test_bad_options_are_named(rooms, tmp_path):
     _, root, _ = rooms
     with pytest.raises(ValueError, match="either --scale S or --from-priors"):
-        run(root, tmp_path / "x")
+        run(RescaleConfig(), root, tmp_path / "x")
     with pytest.raises(ValueError, match="positive"):
-        run(root, tmp_path / "x", scale=-2.0)
+        run(RescaleConfig(scale=-2.0), root, tmp_path / "x")
     plain = make_room_scene(tmp_path / "plain", n_views=4, w=64, h=48, priors="none")
     with pytest.raises(ValueError, match="no view of .* has a depth prior"):
-        run(plain, tmp_path / "y", from_priors=True)
+        run(RescaleConfig(from_priors=True), plain, tmp_path / "y")

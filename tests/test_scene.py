@@ -223,13 +223,13 @@ class TestUndistort:
         (m / "points3D.txt").write_text("")
 
     def test_dot_lands_on_pinhole_projection(self, tmp_path: Path):
-        from geocues.undistort import run
+        from geocues.undistort import UndistortConfig, run
 
         X = np.array([0.45, -0.3, 1.0])  # off-centre, where distortion moves it by several pixels
         self._make(tmp_path / "d", X)
         with pytest.raises(ValueError, match="geocues undistort"):
             Scene.load(tmp_path / "d")
-        run(tmp_path / "d", tmp_path / "u")
+        run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
         s = Scene.load(tmp_path / "u")
         cam = s.cameras[0]
         img = s.load_image(0)[..., 0]
@@ -242,13 +242,13 @@ class TestUndistort:
         np.testing.assert_allclose(dot, uv[0], atol=0.3)
 
     def test_refuses_in_place_and_existing_out(self, tmp_path: Path):
-        from geocues.undistort import run
+        from geocues.undistort import UndistortConfig, run
 
         self._make(tmp_path / "d", np.array([0.1, 0.1, 1.0]))
         with pytest.raises(ValueError, match="must differ"):
-            run(tmp_path / "d", tmp_path / "d")
-        run(tmp_path / "d", tmp_path / "u")
-        with pytest.raises(FileExistsError, match=str(tmp_path / "u" / "sparse")):
-            run(tmp_path / "d", tmp_path / "u")
-        run(tmp_path / "d", tmp_path / "u", overwrite=True)
+            run(UndistortConfig(), tmp_path / "d", tmp_path / "d")
+        run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
+        with pytest.raises(ValueError, match=str(tmp_path / "u" / "sparse") + ".*--overwrite"):
+            run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
+        run(UndistortConfig(), tmp_path / "d", tmp_path / "u", overwrite=True)
         assert sorted(p.name for p in (tmp_path / "u").iterdir()) == ["images", "sparse"]

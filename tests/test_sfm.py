@@ -50,6 +50,10 @@ def _restore_log_handlers():
         logging.getLogger(n).handlers = before[n]
 
 
+def _report(scene: Path) -> dict:
+    return json.loads((scene / "sfm_report.json").read_text())
+
+
 @pytest.fixture(scope="module")
 def tiny(icl_dir: Path, tmp_path_factory) -> Path:
     return make_tiny_icl(icl_dir, tmp_path_factory.mktemp("tiny") / "scene")
@@ -58,7 +62,9 @@ def tiny(icl_dir: Path, tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def triangulated(tiny: Path, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("tri") / "out"
-    return out, run(tiny, out)
+    done = run(SfmConfig(), tiny, out)
+    assert done == out  # the stage returns the scene folder it wrote
+    return out, _report(out)
 
 
 # ----------------------------------------------------------------------------- units
@@ -125,18 +131,18 @@ def test_align_to_reference_recovers_similarity():
 class TestBadInput:
     def test_no_images_folder(self, tmp_path: Path):
         with pytest.raises(FileNotFoundError, match=str(tmp_path / "images")):
-            run(tmp_path)
+            run(SfmConfig(), tmp_path)
 
     def test_triangulate_without_model(self, tmp_path: Path):
         (tmp_path / "images").mkdir()
         with pytest.raises(FileNotFoundError, match=r"needs a posed model.*cameras\.txt"):
-            run(tmp_path, cfg=SfmConfig(mode="triangulate"))
+            run(SfmConfig(mode="triangulate"), tmp_path)
 
     def test_map_with_too_few_images(self, tmp_path: Path):
         (tmp_path / "images").mkdir()
         cv2.imwrite(str(tmp_path / "images" / "a.png"), np.zeros((8, 8, 3), np.uint8))
         with pytest.raises(ValueError, match="at least 2 images"):
-            run(tmp_path)
+            run(SfmConfig(), tmp_path)
 
     def test_image_of_model_missing(self, tmp_path: Path):
         (tmp_path / "images").mkdir()
@@ -144,7 +150,7 @@ class TestBadInput:
         write_model(tmp_path / "sparse" / "0", [RawImage(1, 1, "x.png", "PINHOLE", 8, 8, np.eye(3),
                                                          np.eye(3), np.zeros(3))])
         with pytest.raises(FileNotFoundError, match=str(tmp_path / "images" / "x.png")):
-            run(tmp_path)
+            run(SfmConfig(), tmp_path)
 
     def test_cli_reports_error_in_one_line(self, tmp_path: Path, capsys):
         assert geocues_main(["sfm", str(tmp_path / "nope")]) == 1
@@ -213,19 +219,20 @@ class TestTriangulate:
         out = tmp_path / "copy"
         shutil.copytree(src, out, symlinks=True)
         cfg = replace(SfmConfig(), check_gt=False)
-        again = run(out, None, cfg)  # OUT is a scene itself: write in place, reuse its cache
+        assert run(cfg, out) == out  # OUT is a scene itself: write in place, reuse its cache
+        again = _report(out)
         assert abs(again["points"] - rep["points"]) <= 0.02 * rep["points"]  # threaded BA: not bit-exact
         assert again["seconds"]["match"] == 0.0 and again["seconds"]["extract"] < rep["seconds"]["extract"]
         assert again["model"] == str((out / "sparse" / "0").resolve())
         # changing a matching parameter re-matches but keeps the features
-        third = run(out, None, replace(cfg, num_neighbors=3, exhaustive_below=5))
+        third = _report(run(replace(cfg, num_neighbors=3, exhaustive_below=5), out))
         assert third["pairs"] < again["pairs"] and third["seconds"]["match"] > 0
 
 
 class TestMap:
     def test_incremental_mapping_aligned_to_poses(self, tiny: Path, tmp_path: Path):
         out = tmp_path / "map"
-        rep = run(tiny, out, SfmConfig(mode="map", check_gt=False))
+        rep = _report(run(SfmConfig(mode="map", check_gt=False), tiny, out))
         assert rep["mode"] == "map" and rep["registered_images"] >= 9 and rep["points"] > 300
         got = {c.name: c for c in Scene.load(out).cameras}
         ref = {c.name: c for c in Scene.load(tiny).cameras}
@@ -251,17 +258,18 @@ def test_cli_info_and_sfm(triangulated, capsys, tmp_path: Path):
 def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
     """No model at all: incremental mapping estimates a SIMPLE_RADIAL camera (focal near ICL's 262.5 at
     320x240); the scene is refused until `geocues undistort` makes it PINHOLE (points kept)."""
+    from geocues.undistort import UndistortConfig
     from geocues.undistort import run as undistort
 
     scene = make_tiny_icl(icl_dir, tmp_path / "s")
     shutil.rmtree(scene / "sparse")
-    rep = run(scene, tmp_path / "out", SfmConfig(check_gt=False))
+    rep = _report(run(SfmConfig(check_gt=False), scene, tmp_path / "out"))
     assert rep["mode"] == "map" and rep["registered_images"] >= 9 and rep["points"] > 300
     rec = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
     (cam,) = rec.cameras.values()
     assert cam.model.name == "SIMPLE_RADIAL" and abs(cam.params[0] / 262.5 - 1) < 0.05
     with pytest.raises(ValueError, match="undistort"):
         Scene.load(tmp_path / "out")
-    undistort(tmp_path / "out", tmp_path / "und")
+    undistort(UndistortConfig(), tmp_path / "out", tmp_path / "und")
     s = Scene.load(tmp_path / "und")
     assert len(s) == rep["registered_images"] and len(s.points) == rep["points"]

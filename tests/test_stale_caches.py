@@ -59,14 +59,14 @@ def test_texture_and_line_caches_miss_after_the_images_change(tmp_path):
 def test_extract_into_the_same_folder_after_the_scene_was_regenerated(tmp_path, monkeypatch):
     monkeypatch.setattr(ex, "_run_lines", lambda scene, cfg, cache: fake_line_cues(scene.cameras))
     root = make_room_scene(tmp_path / "room", n_views=16, priors="all", seed=0)
-    out = ex.run(root, tmp_path / "cues")
+    out = ex.run(None, root, tmp_path / "cues")
     old = read_cues_ply(out / "cues.ply")
-    assert ex.run(root, out) == out  # unchanged scene: skipped
+    assert ex.run(None, root, out) == out  # unchanged scene: skipped
     _regenerate(root, seed=1)  # other SfM points and priors at the same path
     with pytest.raises(ValueError, match="another configuration or scene"):
-        ex.run(root, out)  # never the old scene's cues without a word
-    new = read_cues_ply(ex.run(root, out, overwrite=True) / "cues.ply")
-    fresh = read_cues_ply(ex.run(root, tmp_path / "fresh") / "cues.ply")
+        ex.run(None, root, out)  # never the old scene's cues without a word
+    new = read_cues_ply(ex.run(None, root, out, overwrite=True) / "cues.ply")
+    fresh = read_cues_ply(ex.run(None, root, tmp_path / "fresh") / "cues.ply")
     assert new.counts() == fresh.counts()
     # extraction is deterministic per seed: bit-identical cues (regression: Open3D's threaded
     # segment_plane gave 2,805 and 2,807 PLANE cues on two runs of one scene)

@@ -115,8 +115,8 @@ class TestRead:
         out.mkdir()
         _export(colmap_scene, out)
         cfg = ex.ExtractConfig(lines=False, planes=False)
-        a = read_cues_ply(ex.run(colmap_scene, tmp_path / "cues_colmap", cfg) / "cues.ply")
-        b = read_cues_ply(ex.run(out, tmp_path / "cues_ns", cfg) / "cues.ply")
+        a = read_cues_ply(ex.run(cfg, colmap_scene, tmp_path / "cues_colmap") / "cues.ply")
+        b = read_cues_ply(ex.run(cfg, out, tmp_path / "cues_ns") / "cues.ply")
         assert len(a.xyz) > 0
         np.testing.assert_allclose(b.xyz, a.xyz, atol=1e-5, rtol=0)  # cue PLY stores float32
 

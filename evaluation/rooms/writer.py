@@ -112,7 +112,7 @@ def _run_sfm(scene_dir: Path, keep_cache: bool) -> dict:
     except ImportError as exc:  # the SfM stage is optional for the generator
         log.warning("make-room: geocues.sfm is not available (%s); the model has no 3D points", exc)
         return {"run": False, "reason": f"geocues.sfm not importable: {exc}"}
-    report = sfm.run(scene_dir)
+    report = json.loads((sfm.run(sfm.SfmConfig(), scene_dir) / "sfm_report.json").read_text())
     if not keep_cache:
         shutil.rmtree(scene_dir / "cache", ignore_errors=True)
     return {"run": True, "report": report}
