@@ -68,8 +68,8 @@ def run_variant(cfg: TrainVariants, name: str, options: str) -> dict:
         log = out.parent / f"{name}.log"
         _run([str(BIN / "splat"), "train", str(cfg.scene), "-c", str(cfg.cues), "-o", str(out),
               *shlex.split(cfg.common), *shlex.split(options)], log)
-        _run([str(BIN / "evaluate"), str(out / "mesh.ply"), "--scene", str(cfg.scene), "--json",
-              str(out / "metrics.json")], log)
+        _run([str(BIN / "evaluate"), str(out / "mesh.ply"), str(cfg.scene), "-o", str(out / "metrics.json"),
+              "--overwrite"], log)
         _run([sys.executable, str(REPO / "bench" / "depth_diag.py"), "--scene", str(cfg.scene), "--model", str(out),
               "--json", str(out / "depth_diag.json")], log)
     report, mesh, depth = (json.loads(f.read_text()) for f in files)

@@ -1,4 +1,7 @@
-"""`evaluate` console script: `evaluate PRED_MESH --gt GT_MESH` (default) and benchmark tools."""
+"""`evaluate` console script: `evaluate PRED_MESH [SCENE] [--gt GT_MESH]` (default) and benchmark tools.
+
+SCENE is positional, as in `geocues` and `splat`; the old `--scene SCENE` still works (a deprecation
+note on stderr) and is moved into place before tyro parses."""
 
 from __future__ import annotations
 
@@ -12,12 +15,14 @@ from cli._dispatch import dispatch
 from cli.rooms_cli import make_room
 from evaluation.cue_metrics import CueMetricsConfig
 from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, format_table, save_json
+from geocues.atomic import atomic_path, check_output_file
 
 
 def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="PRED_MESH")],
+         scene: Annotated[Path | None, tyro.conf.Positional, tyro.conf.arg(metavar="[SCENE]")] = None,
          gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
-         scene: Annotated[Path | None, tyro.conf.arg(metavar="SCENE")] = None,
          json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
+         overwrite: bool = False,
          renders: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
          test_every: int = 8,
          lpips: Annotated[Path | None, tyro.conf.arg(metavar="WEIGHTS")] = None,
@@ -29,26 +34,28 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
 
     Args:
         pred_mesh: the predicted mesh (PLY/OBJ/OFF).
-        gt: the ground-truth mesh (default: SCENE/gt/mesh.ply when --scene is given).
         scene: a scene folder; its cameras (train and test) cull both meshes to what they saw.
+        gt: the ground-truth mesh (default: SCENE/gt/mesh.ply when SCENE is given).
         json: write the metrics and the protocol used to this JSON file.
+        overwrite: replace OUT if it exists.
         renders: a folder of rendered test views named like their images (splat train's
-            OUT/test_renders); needs --scene.
+            OUT/test_renders); needs SCENE.
         test_every: the held-out split the renders were made for (every n-th image).
         lpips: a TorchScript LPIPS network you made (no weights are downloaded); adds LPIPS.
         align_to: the GT scene of a reconstruction made in its own frame (e.g. `geocues sfm --mode
-            map`): the mesh (in the frame of --scene) is moved into GT_SCENE's frame by the similarity
+            map`): the mesh (in the frame of SCENE) is moved into GT_SCENE's frame by the similarity
             of the camera centres both share (Umeyama), then scored against GT_SCENE's GT mesh
-            (or --gt) culled to GT_SCENE's cameras. Needs --scene.
+            (or --gt) culled to GT_SCENE's cameras. Needs SCENE.
         icp: after --align-to, refine with ICP (rotation, translation and scale) against the GT mesh.
     """
-    import json as _json
-
+    if json is not None:
+        check_output_file(json, overwrite)
     if renders is not None and scene is None:
-        raise SystemExit("--renders needs --scene (the test images are the scene's)")
+        raise ValueError("--renders needs SCENE (the test images are the scene's): evaluate PRED_MESH SCENE --renders DIR")
     if align_to is not None:
         if scene is None:
-            raise ValueError("--align-to needs --scene SCENE: the scene whose frame the mesh is in")
+            raise ValueError("--align-to needs SCENE, the scene whose frame the mesh is in: "
+                             "evaluate PRED_MESH SCENE --align-to GT_SCENE")
         from evaluation.align import evaluate_aligned
 
         result = evaluate_aligned(pred_mesh, scene, align_to, gt, cfg, icp=icp)
@@ -69,19 +76,16 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         lp = f", LPIPS {images['lpips']:.4f}" if images["lpips"] is not None else ""
         print(f"held-out views: {images['n_images']}, PSNR {images['psnr']:.2f} dB, SSIM {images['ssim']:.4f}{lp}")
     if json is not None:
-        save_json(result, json)
-        if images is not None:
-            data = _json.loads(json.read_text())
-            data["images"] = images
-            json.write_text(_json.dumps(data, indent=2) + "\n")
+        save_json(result, json, {"images": images} if images is not None else None)  # atomic
         print(f"wrote {json}")
     return 0
 
 
 def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CUES")],
-         scene: Annotated[Path, tyro.conf.arg(metavar="SCENE")],
+         scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
          gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
          json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
+         overwrite: bool = False,
          cfg: Annotated[CueMetricsConfig, tyro.conf.arg(name="")] = CueMetricsConfig()) -> int:
     """Accuracy (distance to GT per cue type) and coverage of `geocues extract` output.
 
@@ -90,25 +94,29 @@ def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="
         scene: the scene the cues came from (its cameras define the seen GT surface).
         gt: the ground-truth mesh (default: SCENE/gt/mesh.ply).
         json: write the result to this JSON file.
+        overwrite: replace OUT if it exists.
     """
     import json as _json
 
     from evaluation.cue_metrics import evaluate_cues_dir, format_cue_table
 
+    if json is not None:
+        check_output_file(json, overwrite)
     result = evaluate_cues_dir(cues_dir, scene, gt, cfg)
     print(format_cue_table(result))
     if json is not None:
-        json.parent.mkdir(parents=True, exist_ok=True)
-        json.write_text(_json.dumps(result, indent=1))
+        with atomic_path(json) as tmp:
+            tmp.write_text(_json.dumps(result, indent=1))
         print(f"wrote {json}")
     return 0
 
 
 def report(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
-           scene: Annotated[Path | None, tyro.conf.arg(metavar="SCENE")] = None,
+           scene: Annotated[Path | None, tyro.conf.Positional, tyro.conf.arg(metavar="[SCENE]")] = None,
            gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
            gt_depth: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
-           views: int = 4) -> int:
+           views: int = 4,
+           overwrite: bool = False) -> int:
     """Plots and a contact sheet of one `splat train` folder, linked from RUN/report.md.
 
     Loss terms and Gaussians per type against iterations; test PSNR/SSIM (and mesh metrics of the
@@ -121,11 +129,38 @@ def report(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
         gt: GT mesh for the checkpoint meshes (default: SCENE/gt/mesh.ply when present).
         gt_depth: folder of exact depth maps for the depth-error panel (default: SCENE/gt/depth).
         views: held-out views in the contact sheet.
+        overwrite: replace an earlier report in RUN (report.md, its plots and report_data.json).
     """
     from evaluation.run_report import write_run_report
 
-    print(f"wrote {write_run_report(run, scene, gt, gt_depth, views)}")
+    print(f"wrote {write_run_report(run, scene, gt, gt_depth, views, overwrite=overwrite)}")
     return 0
+
+
+def scene_option_to_positional(argv: list[str]) -> list[str]:
+    """The old spelling `--scene SCENE` (before SCENE became positional, as in `geocues`/`splat`):
+    moved to the end of the arguments as the positional SCENE, with a one-line deprecation note."""
+    out, scene = [], None
+    k = 0
+    while k < len(argv):
+        a = argv[k]
+        if a == "--scene" or a.startswith("--scene="):
+            if scene is not None:
+                raise ValueError("--scene is given twice")
+            if a == "--scene":
+                if k + 1 >= len(argv):
+                    raise ValueError("--scene needs a value (better: give SCENE as a positional argument)")
+                scene, k = argv[k + 1], k + 2
+            else:
+                scene, k = a.split("=", 1)[1], k + 1
+            continue
+        out.append(a)
+        k += 1
+    if scene is None:
+        return argv
+    print(f"evaluate: --scene is deprecated; give SCENE as a positional argument (`evaluate ... {scene}`)",
+          file=sys.stderr)
+    return out + [scene]
 
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
@@ -135,6 +170,13 @@ DEFAULT = "mesh"
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] != "make-room" and any(a == "--scene" or a.startswith("--scene=") for a in argv):
+        try:
+            argv = scene_option_to_positional(argv)
+        except ValueError as exc:
+            print(f"evaluate: error: {exc}", file=sys.stderr)
+            return 1
     return dispatch("evaluate", COMMANDS, default=DEFAULT, argv=argv)
 
 

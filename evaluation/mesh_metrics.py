@@ -34,6 +34,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from evaluation.culling import CameraSet, bounds_mask, raycasting_scene, visible_mask
+from geocues.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -394,14 +395,11 @@ def evaluate_with_scene(pred_path: str | Path, gt_path: str | Path | None = None
     return result
 
 
-def save_json(metrics: MeshMetrics, path: str | Path) -> Path:
-    """Write ``metrics.to_dict()`` as JSON atomically (temp file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(metrics.to_dict(), indent=2) + "\n")
-    tmp.replace(path)
-    return path
+def save_json(metrics: MeshMetrics, path: str | Path, extra: dict | None = None) -> Path:
+    """Write ``metrics.to_dict()`` (and the keys of ``extra``) as JSON atomically (temp file, then rename)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(metrics.to_dict() | (extra or {}), indent=2) + "\n")
+    return Path(path)
 
 
 def format_table(metrics: MeshMetrics) -> str:

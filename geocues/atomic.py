@@ -95,3 +95,16 @@ def check_output_dir(path: str | Path) -> Path:
         os.close(fd)
         os.unlink(probe)
     return path
+
+
+def check_output_file(path: str | Path, overwrite: bool = False) -> Path:
+    """Fail early, before any work, when the output file ``path`` cannot be written: it is a folder,
+    it exists and ``overwrite`` is off (a finished output is replaced only when asked), or its folder
+    refuses a new file (:func:`check_output_dir`). Write it with :func:`atomic_path`."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"the output path {path} is a folder, not a file")
+    if path.exists() and not overwrite:
+        raise ValueError(f"{path} exists; pass --overwrite to replace it")
+    check_output_dir(path.parent)
+    return path

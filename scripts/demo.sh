@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # README command 1: install what is missing (idempotent), then run the main job end to end on the
 # bundled default scene — a procedural benchmark room (textured layout, seed 0) with exact ground truth.
-#   bash scripts/demo.sh [OUT]        (default OUT: outputs/demo; steps whose outputs exist are skipped)
+#   bash scripts/demo.sh [OUT]        (default OUT: outputs/demo; finished steps are skipped, the metrics redone)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
@@ -19,17 +19,17 @@ say "2/5 geometric cues: SfM (SOR), 3D lines, plane-like points"
 $BIN/geocues extract "$OUT/room" -o "$OUT/cues"
 
 say "3/5 cue accuracy and coverage against the GT mesh"
-$BIN/evaluate cues "$OUT/cues" --scene "$OUT/room" --json "$OUT/cue_metrics.json"
+$BIN/evaluate cues "$OUT/cues" "$OUT/room" -o "$OUT/cue_metrics.json" --overwrite
 
 say "4/5 training: IndoorGS (full) against the no-cue baseline at the same budget, and the exact-depth floor"
 # 1500 iterations at 320x240: the knee of the accuracy-against-time curve on 2 cores (docs/training.md)
 $BIN/splat ablate "$OUT/room" -c "$OUT/cues" -o "$OUT/ablation" --rows full no-cues --iters 1500 \
     --scene-label "default scene (textured room, seed 0)" --downscale 2 --strategy.max-gaussians 100000
-$BIN/evaluate report "$OUT/ablation/rows/full_s0/train"
+$BIN/evaluate report "$OUT/ablation/rows/full_s0/train" --overwrite
 
 say "5/5 the trained mesh against the GT mesh, and the held-out views"
-$BIN/evaluate "$OUT/ablation/rows/full_s0/train/mesh.ply" --scene "$OUT/room" \
-    --renders "$OUT/ablation/rows/full_s0/train/test_renders" --test-every 8 --json "$OUT/mesh_metrics_trained.json"
+$BIN/evaluate "$OUT/ablation/rows/full_s0/train/mesh.ply" "$OUT/room" \
+    --renders "$OUT/ablation/rows/full_s0/train/test_renders" --test-every 8 -o "$OUT/mesh_metrics_trained.json" --overwrite
 sed -n '/^| row/,/^$/p' "$OUT/ablation/report.md"
 
 say "done: $OUT/ablation/report.md (table, accuracy_vs_time.png), $OUT/ablation/rows/full_s0/train/report.md (plots, held-out views)"

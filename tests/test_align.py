@@ -87,7 +87,7 @@ def test_evaluate_align_to_scores_the_mesh_as_in_the_gt_frame(scenes, capsys):
 
     base, gt_root, pred_root, _ = scenes
     out = base / "m.json"
-    assert main([str(base / "pred_mesh.ply"), "--scene", str(pred_root), "--align-to", str(gt_root),
+    assert main([str(base / "pred_mesh.ply"), str(pred_root), "--align-to", str(gt_root),
                  "-o", str(out), "--n-samples", "50000"]) == 0  # -o OUT as in every command
     m = json.loads(out.read_text())
     same = _self_score(gt_root)  # the GT mesh against itself: the protocol's sampling noise

@@ -99,7 +99,7 @@ def test_scene_culls_to_its_cameras(tmp_path):
     plain, culled = tmp_path / "plain.json", tmp_path / "culled.json"
     args = ["--n-samples", "20000", "--mode", "surface"]
     assert main([str(pred), "--gt", str(scene / "gt" / "mesh.ply"), "--json", str(plain), *args]) == 0
-    assert main([str(pred), "--scene", str(scene), "--json", str(culled), *args]) == 0  # GT from the scene
+    assert main([str(pred), str(scene), "--json", str(culled), *args]) == 0  # GT from the scene
     plain, culled = json.loads(plain.read_text()), json.loads(culled.read_text())
     assert plain["accuracy"] > 5e-4  # the patch: ~3% of the surface at 4 cm
     assert culled["accuracy"] < 1e-6 and culled["completeness"] < 1e-6
@@ -111,5 +111,51 @@ def test_no_gt_anywhere(tmp_path, capsys):
     scene = make_scene(tmp_path / "scene")
     (scene / "gt" / "mesh.ply").unlink()
     pred, _ = box_files(tmp_path, 0.0)
-    assert main([str(pred), "--scene", str(scene)]) == 1
+    assert main([str(pred), str(scene)]) == 1
     assert "--gt" in capsys.readouterr().err
+
+
+def test_scene_is_positional_and_the_old_option_still_works(tmp_path, capsys):
+    """SCENE is positional (as in `geocues`/`splat`); `--scene SCENE` gives the same result with a
+    deprecation note; renders or an alignment without SCENE, or SCENE twice, are one-line errors."""
+    scene = make_scene(tmp_path / "scene")
+    pred = write_mesh(tmp_path / "pred.ply", *rects((-1, 1, -1, 1, 2.0), (0.6, 0.9, -0.2, 0.2, 1.96)))
+    args = ["--n-samples", "5000", "--mode", "surface"]
+    new, old = tmp_path / "new.json", tmp_path / "old.json"
+    assert main(["mesh", str(pred), str(scene), "-o", str(new), *args]) == 0
+    assert "deprecated" not in capsys.readouterr().err
+    assert main([str(pred), "--scene", str(scene), "--json", str(old), *args]) == 0
+    assert "--scene is deprecated" in capsys.readouterr().err
+    a, b = json.loads(new.read_text()), json.loads(old.read_text())
+    assert a["protocol"]["culling"] == "frusta" and a["chamfer_l1"] == b["chamfer_l1"] < 1e-6
+    assert main([str(pred), f"--scene={scene}", "-o", str(tmp_path / "eq.json"), *args]) == 0
+    assert json.loads((tmp_path / "eq.json").read_text())["chamfer_l1"] == a["chamfer_l1"]
+    capsys.readouterr()
+    assert main([str(pred), "--gt", str(scene / "gt" / "mesh.ply"), "--renders", str(tmp_path)]) == 1
+    assert "--renders needs SCENE" in capsys.readouterr().err
+    assert main([str(pred), "--align-to", str(scene)]) == 1
+    assert "--align-to needs SCENE" in capsys.readouterr().err
+    assert main([str(pred), "--scene", str(scene), "--scene", str(scene)]) == 1
+    assert "--scene is given twice" in capsys.readouterr().err
+
+
+def test_report_and_cues_take_scene_positionally(tmp_path, monkeypatch, capsys):
+    import evaluation.cue_metrics
+    import evaluation.run_report
+
+    seen = {}
+    monkeypatch.setattr(evaluation.run_report, "write_run_report",
+                        lambda run, scene, gt, gt_depth, views, overwrite=False: seen.update(
+                            run=run, scene=scene, views=views, overwrite=overwrite) or run / "report.md")
+    assert main(["report", "R", "S", "--views", "2"]) == 0
+    assert seen == {"run": Path("R"), "scene": Path("S"), "views": 2, "overwrite": False}
+    assert main(["report", "R", "--overwrite"]) == 0 and seen["scene"] is None and seen["overwrite"]
+    assert main(["report", "R", "--scene", "S"]) == 0 and seen["scene"] == Path("S")
+    monkeypatch.setattr(evaluation.cue_metrics, "evaluate_cues_dir",
+                        lambda cues, scene, gt, cfg: seen.update(cues=cues, cue_scene=scene) or {})
+    monkeypatch.setattr(evaluation.cue_metrics, "format_cue_table", lambda result: "")
+    assert main(["cues", "C", "S2"]) == 0
+    assert (seen["cues"], seen["cue_scene"]) == (Path("C"), Path("S2"))
+    with pytest.raises(SystemExit):  # SCENE is required for cues
+        main(["cues", "C"])
+    capsys.readouterr()

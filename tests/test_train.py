@@ -138,7 +138,7 @@ def test_bad_inputs_name_the_problem(tmp_path):
 
 
 def test_evaluate_cli_reports_mesh_and_held_out_views(trained, tmp_path, capsys):
-    """`evaluate MESH --scene SCENE --renders OUT/test_renders` gives the trainer's test PSNR (PNG-rounded)."""
+    """`evaluate MESH SCENE --renders OUT/test_renders` gives the trainer's test PSNR (PNG-rounded)."""
     from cli.evaluate_cli import main
 
     import open3d as o3d
@@ -148,7 +148,7 @@ def test_evaluate_cli_reports_mesh_and_held_out_views(trained, tmp_path, capsys)
     V, T, _ = room_mesh()
     gt = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
     o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), gt)
-    assert main([str(out / "mesh.ply"), "--gt", str(tmp_path / "gt.ply"), "--scene", str(scene),
+    assert main([str(out / "mesh.ply"), str(scene), "--gt", str(tmp_path / "gt.ply"),
                  "--renders", str(out / "test_renders"),
                  "--json", str(tmp_path / "m.json"), "--n-samples", "20000"]) == 0
     data = json.loads((tmp_path / "m.json").read_text())
