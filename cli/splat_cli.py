@@ -19,14 +19,19 @@ from splat.viewer import ViewConfig
 
 
 def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
+          overwrite: bool = False,
           cfg: Annotated[BenchConfig, tyro.conf.arg(name="")] = BenchConfig()) -> int:
     """Time render() forward + backward per compositing backend, image size and Gaussian count.
 
     Args:
         json: write the results (every run, machine, load average) to this JSON file.
+        overwrite: replace OUT if it exists.
     """
+    from geocues.atomic import check_output_file
     from splat.bench import format_table, run_bench
 
+    if json is not None:
+        check_output_file(json, overwrite)
     result = run_bench(cfg, json_out=json)
     print(format_table(result))
     if json is not None:
@@ -102,17 +107,21 @@ train.from_argv = train_command  # dispatch picks the preset's defaults before p
 def ablate(scene: tyro.conf.Positional[Path],
            cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
            out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+           overwrite: bool = False,
            cfg: Annotated[AblateConfig, tyro.conf.arg(name="")] = AblateConfig()) -> int:
     """The paper's ablation (Tab. 3) on SCENE: one `splat train` per row, meshes scored at checkpoints.
 
     Writes OUT/report.md (the table, deltas against `full`, the floor), OUT/accuracy_vs_time.png and
-    OUT/ablation.json; finished rows are skipped on a re-run. Any `splat train` option after these
-    applies to every row (e.g. --downscale 2 --strategy.max-gaussians 100000). -v/--verbose: debug logging.
+    OUT/ablation.json. Running it again resumes: finished rows are skipped, a killed row continues
+    from its checkpoint. Any `splat train` option after these applies to every row (e.g. --downscale 2
+    --strategy.max-gaussians 100000). -v/--verbose: debug logging.
 
     Args:
         scene: scene folder (COLMAP model, images/, optional priors/, gt/mesh.ply or --gt).
         cues: cue folder from `geocues extract`.
         out: output folder (rows/, floor/, reports).
+        overwrite: start again from nothing: remove OUT's rows, floor and reports first (without it
+            a re-run resumes).
         cfg: ablation options.
     """
     raise AssertionError("parsed by ablate_main")  # pragma: no cover
@@ -123,8 +132,8 @@ def ablate_main(argv: list[str]) -> int:
     from splat.ablate import run
 
     args, train_args = tyro.cli(_ablate_args, args=argv, prog="splat ablate", return_unknown_args=True)
-    scene, cues, out, cfg = args
-    run(cfg, scene, cues, out, train_args)
+    scene, cues, out, overwrite, cfg = args
+    run(cfg, scene, cues, out, overwrite=overwrite, train_args=train_args)
     print(f"wrote {out}/report.md, {out}/accuracy_vs_time.png, {out}/ablation.json")
     return 0
 
@@ -132,8 +141,9 @@ def ablate_main(argv: list[str]) -> int:
 def _ablate_args(scene: tyro.conf.Positional[Path],
                  cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
                  out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+                 overwrite: bool = False,
                  cfg: Annotated[AblateConfig, tyro.conf.arg(name="")] = AblateConfig()):
-    return scene, cues, out, cfg
+    return scene, cues, out, overwrite, cfg
 
 
 _ablate_args.__doc__ = ablate.__doc__
@@ -182,6 +192,7 @@ def mesh(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
 def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
          screenshot: Annotated[Path | None, tyro.conf.arg(metavar="PNG")] = None,
          size: tuple[int, int] = (1280, 720),
+         overwrite: bool = False,
          cfg: Annotated[ViewConfig, tyro.conf.arg(name="")] = ViewConfig()) -> int:
     """Look at a finished run in the browser (viser): Gaussians, mesh, cues by type, 3D lines and
     cameras, each behind a checkbox; serves until Ctrl-C.
@@ -191,10 +202,15 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
         screenshot: instead of serving, save the page as headless Chromium draws it (software WebGL)
             to this PNG and exit.
         size: width and height of --screenshot.
+        overwrite: replace the --screenshot PNG if it exists.
         cfg: what to show and where to serve.
     """
+    from geocues.atomic import check_output_file
     from splat.viewer import LAST_GUI_TEXT, serve, stop, url_of
     from splat.viewer import run as view_run
+
+    if screenshot is not None:
+        check_output_file(screenshot, overwrite)
 
     try:
         server = view_run(cfg, run, block=False)

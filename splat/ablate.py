@@ -1,11 +1,11 @@
 """`splat ablate`: the paper's ablation (Tab. 3) on a user's scene, with accuracy against time.
 
-One stage, one entry: ``run(cfg, scene_dir, cues, out_dir, train_args) -> Path``. Each row is a
-preset of splat/presets.py run as one `splat train` (meshes at checkpoints) in
-``OUT/rows/<row>_s<seed>/train``, and each checkpoint mesh is scored with the ``evaluate``
+One stage, one entry: ``run(cfg, scene_dir, cues, out_dir, *, overwrite=False, train_args=None)
+-> Path``. Each row is a preset of splat/presets.py run as one `splat train` (meshes at checkpoints)
+in ``OUT/rows/<row>_s<seed>/train``, and each checkpoint mesh is scored with the ``evaluate``
 protocol against the scene's GT mesh. A row is finished when its ``score.json`` exists (written
 atomically, last) with the same configuration key: a re-run skips it, so a killed ablation
-resumes. The ``floor`` row fuses the exact GT depth of the same training views
+resumes; ``overwrite`` starts again from nothing (OUT's rows, floor and reports removed first). The ``floor`` row fuses the exact GT depth of the same training views
 (splat/floor.py). ``train_args`` are `splat train` options applied to every row, on top of its
 preset. Rows run one after another (``jobs=1``), in ``jobs`` processes, or as Ray tasks
 (``ray="auto"`` or a cluster address; every node must see OUT, SCENE and CUES at the same paths).
@@ -110,6 +110,8 @@ def row_key(spec: dict) -> str:
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
     if tc["tsdf"].get("depth") == "median":  # rows meshed before --tsdf.depth existed fused the median
         del tc["tsdf"]["depth"]
+    if not tc["loss"].get("lambda_mv"):  # L_mv off: rows trained before it existed keep their key
+        tc["loss"] = {k: v for k, v in tc["loss"].items() if not (k == "lambda_mv" or k.startswith("mv_"))}
     return config_key(payload | {"train_config": tc})
 
 
@@ -301,15 +303,23 @@ def _worker_init() -> None:
     logging.basicConfig(level=logging.WARNING)
 
 
-def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path,
-        train_args: list[str] | None = None) -> Path:
-    """Run (or resume) the ablation; write OUT/ablation.json, report.md and the plots; return OUT."""
+# What an ablation writes into OUT: what ``overwrite`` removes (nothing else a user put there).
+OUTPUTS = ("rows", "floor", "ablation.json", "report.md", "accuracy_vs_time.png")
+
+
+def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
+        overwrite: bool = False, train_args: list[str] | None = None) -> Path:
+    """Run the ablation, or resume it (finished rows skipped, a killed row continued from its
+    checkpoint); with ``overwrite`` start again from nothing. Writes OUT/ablation.json, report.md
+    and the plots; returns OUT. ``train_args``: `splat train` options for every row."""
     from evaluation.ablation_report import write_reports
 
     scene_dir, cues, out_dir = Path(scene_dir).resolve(), Path(cues).resolve(), Path(out_dir).resolve()
     train_args = list(train_args or [])
     check_output_dir(out_dir)
-    specs, na = plan(cfg, scene_dir, cues, out_dir, train_args)
+    specs, na = plan(cfg, scene_dir, cues, out_dir, train_args)  # bad options fail before anything is removed
+    if overwrite:
+        _remove_outputs(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     from splat.train_config import TrainConfig
 
@@ -349,6 +359,19 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
                                   f"{out_dir}: run the same command again to continue") from None
     write_reports(summary(), out_dir)
     return out_dir
+
+
+def _remove_outputs(out_dir: Path) -> None:
+    """Remove what an earlier ablation wrote into ``out_dir`` (:data:`OUTPUTS`)."""
+    gone = [name for name in OUTPUTS if (out_dir / name).exists()]
+    if gone:
+        log.warning("--overwrite: removing the earlier ablation's %s from %s", ", ".join(gone), out_dir)
+    for name in gone:
+        path = out_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
 
 
 def _short(final: dict) -> str:

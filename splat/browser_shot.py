@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from geocues.atomic import atomic_path
+
 log = logging.getLogger(__name__)
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -146,7 +148,8 @@ def screenshot(url: str, png: str | Path, *, width: int = 1280, height: int = 72
                     time.sleep(0.5)
             time.sleep(settle_s)
             data, n = _until_still(page, t0 + timeout_s)
-            png.write_bytes(data)
+            with atomic_path(png) as tmp:
+                tmp.write_bytes(data)
             page.ws.close()
         finally:
             try:

@@ -13,7 +13,7 @@ import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from geocues.atomic import check_output_dir
+from geocues.atomic import check_output_file
 from splat.mesh import TSDFConfig
 
 log = logging.getLogger(__name__)
@@ -80,9 +80,7 @@ def run(cfg: MeshRunConfig, run_dir: str | Path, out: str | Path | None = None, 
     out = Path(out) if out is not None else default_out(run_dir, cfg.tsdf)
     if out.suffix.lower() != ".ply":
         raise ValueError(f"the mesh is written as PLY: name a .ply file, got {out}")
-    if out.exists() and not overwrite:
-        raise ValueError(f"{out} exists; pass --overwrite to replace it")
-    check_output_dir(out.parent)
+    check_output_file(out, overwrite)
     scene, params, train_cfg = load_run(run_dir, cfg.scene)
     idx = list(scene.train_indices) if cfg.views == "train" else list(range(len(scene.cameras)))
     cams = [scene.cameras[k] for k in idx[::cfg.mesh_every]]

@@ -64,7 +64,7 @@ def _run(tiny, out, rows, **kw):
     base, root, cues = tiny
     cfg = AblateConfig(rows=tuple(rows), iters=30, checkpoints=(0.5, 1.0),
                        metrics=MeshMetricsConfig(n_samples=20_000), **kw)
-    return run(cfg, root, cues, base / out, TRAIN_ARGS)
+    return run(cfg, root, cues, base / out, train_args=TRAIN_ARGS)
 
 
 @pytest.fixture(scope="module")
@@ -140,15 +140,43 @@ def test_a_killed_ablation_resumes_and_skips_finished_rows(tiny, ablation, monke
     from evaluation.mesh_metrics import MeshMetricsConfig
 
     run(AblateConfig(rows=("full",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
-        tiny[1], tiny[2], out, TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
+        tiny[1], tiny[2], out, train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
     assert ran == ["full"]
     outdated = json.loads((out / "rows" / "full_s0.outdated" / "score.json").read_text())  # kept aside
     assert outdated["key"] != json.loads((out / "rows" / "full_s0" / "score.json").read_text())["key"]
     # options that never change what a run computes (checkpointing, the guard) are not a new row
     ran.clear()
     run(AblateConfig(rows=("full",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
-        tiny[1], tiny[2], out, TRAIN_ARGS + ["--loss.lambda-nc", "0.2", "--save-every", "7", "--guard.max-rollbacks", "2"])
+        tiny[1], tiny[2], out, train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.2", "--save-every", "7",
+                                                        "--guard.max-rollbacks", "2"])
     assert ran == []
+
+
+def test_overwrite_starts_the_ablation_again_from_nothing(tiny, ablation, monkeypatch, capsys):
+    """Without --overwrite a re-run resumes (finished rows skipped); with it, OUT's rows, floor and
+    reports are removed first and every row runs again; what else a user put in OUT stays."""
+    import splat.ablate as ablate
+    from cli.splat_cli import main
+
+    base, root, cues = tiny
+    out = base / "again"
+    shutil.copytree(ablation, out)
+    (out / "notes.txt").write_text("mine")
+    ran = []
+    real = ablate.run_row
+    monkeypatch.setattr(ablate, "run_row", lambda spec: ran.append(spec["row"]) or real(spec))
+    args = ["ablate", str(root), "-c", str(cues), "-o", str(out), "--rows", "full", "--iters", "30",
+            "--checkpoints", "0.5", "1.0", "--metrics.n-samples", "20000", "--no-floor", *TRAIN_ARGS]
+    assert main(args) == 0
+    assert ran == []  # the default: resume, `full` is finished
+    before = json.loads((out / "rows" / "full_s0" / "score.json").read_text())
+    assert main(args + ["--overwrite"]) == 0
+    assert ran == ["full"]
+    assert sorted(p.name for p in (out / "rows").iterdir()) == ["full_s0"]  # no-cues_s0 removed
+    assert not (out / "floor").exists() and (out / "notes.txt").read_text() == "mine"
+    after = json.loads((out / "rows" / "full_s0" / "score.json").read_text())
+    assert after["wall_s"] != before["wall_s"]  # trained again, not the old score
+    assert [r["row"] for r in json.loads((out / "ablation.json").read_text())["rows"]] == ["full"]
 
 
 def test_a_row_killed_mid_training_continues_from_its_checkpoint(tiny, monkeypatch):
@@ -185,7 +213,7 @@ def test_a_row_killed_mid_training_continues_from_its_checkpoint(tiny, monkeypat
 
     run(AblateConfig(rows=("no-lnc",), iters=30, checkpoints=(0.5, 1.0), floor=False,
                      metrics=MeshMetricsConfig(n_samples=20_000)),
-        tiny[1], tiny[2], tiny[0] / "midrow2", TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
+        tiny[1], tiny[2], tiny[0] / "midrow2", train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
     report = tiny[0] / "midrow2" / "rows" / "no-lnc_s0" / "train" / "report.json"
     assert json.loads(report.read_text())["resumed_from_step"] is None
 
@@ -272,6 +300,11 @@ def test_evaluate_report_of_a_run(ablation):
     assert (w, h) == (round(3.2 * 5 * 90), round(2.5 * 2 * 90))  # 5 panels x 2 views
     md = (run / "report.md").read_text()
     assert "report_views.png" in md and "Chamfer-L1" in md
+    # a finished report is replaced only with --overwrite (views=1 would change the contact sheet)
+    assert main(["report", str(run), "--views", "1"]) == 1
+    assert png_size(run / "report_views.png") == (w, h)
+    assert main(["report", str(run), "--views", "1", "--overwrite"]) == 0
+    assert png_size(run / "report_views.png") == (w, round(2.5 * 1 * 90))
 
 
 def test_evaluate_report_names_a_folder_that_is_not_a_run(tmp_path, capsys):

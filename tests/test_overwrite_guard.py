@@ -1,0 +1,126 @@
+"""The `--overwrite` guard in every command (issue 14, one CLI style): a command pointed at a finished
+output stops before any work with one error line that says `--overwrite`, exit code 1, the output
+untouched; with `--overwrite` it is replaced (checked end to end for the cheap commands).
+`splat ablate` is the exception: running it again resumes (tests/test_ablate.py covers its
+`--overwrite`, which starts again from nothing)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cues_synth import make_room_scene, room_mesh
+from geocues.cue_io import CueCloud, write_cues_ply
+
+OLD = "an earlier finished output"
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    import open3d as o3d
+
+    base = tmp_path_factory.mktemp("guard")
+    root = make_room_scene(base / "room", n_views=6, w=64, h=48, priors="none")
+    V, T, _ = room_mesh()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
+    (root / "gt").mkdir()
+    o3d.io.write_triangle_mesh(str(root / "gt" / "mesh.ply"), mesh)
+    write_cues_ply(base / "cues" / "cues.ply",
+                   CueCloud.make(np.random.default_rng(0).uniform(0, 3, (200, 3)), np.full((200, 3), 0.5), 2))
+    run = base / "run"  # a finished `splat train` folder as far as the guards look
+    run.mkdir()
+    (run / "report.json").write_text("{}")
+    return base, root
+
+
+def _main(prog: str):
+    from cli.evaluate_cli import main as evaluate
+    from cli.geocues_cli import main as geocues
+    from cli.splat_cli import main as splat
+
+    return {"geocues": geocues, "splat": splat, "evaluate": evaluate}[prog]
+
+
+def _finished(path, kind: str):
+    """Put an earlier finished output at ``path``: a file, or a folder holding ``kind``."""
+    if kind == "file":
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(OLD)
+        return path
+    path.mkdir(parents=True, exist_ok=True)
+    marker = path / kind
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"config_key": "another configuration"}) if kind == "report.json" else OLD)
+    return marker
+
+
+# (command, output to put there first and what marks it finished); {R} the scene, {B} the base folder
+CASES = [
+    (["geocues", "sfm", "{R}", "-o", "{B}/sfm"], "{B}/sfm", "sfm_report.json"),
+    (["geocues", "undistort", "{R}", "-o", "{B}/und"], "{B}/und", "sparse/0/cameras.txt"),
+    (["geocues", "mvs", "{R}", "-o", "{B}/mvs"], "{B}/mvs", "mvs_report.json"),
+    (["geocues", "rescale", "{R}", "-o", "{B}/metric", "--scale", "2"], "{B}/metric", "scene.json"),
+    (["geocues", "extract", "{R}", "-o", "{B}/cues_old"], "{B}/cues_old", "report.json"),
+    (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{B}/train", "--iters", "2"], "{B}/train", "report.json"),
+    (["splat", "render", "{B}/run", "-o", "{B}/renders"], "{B}/renders", "panels/0.png"),
+    (["splat", "mesh", "{B}/run", "-o", "{B}/remesh.ply"], "{B}/remesh.ply", "file"),
+    (["splat", "bench", "-o", "{B}/bench.json", "--sizes", "8", "8", "--counts", "10"], "{B}/bench.json", "file"),
+    (["splat", "view", "{B}/run", "--screenshot", "{B}/view.png"], "{B}/view.png", "file"),
+    (["evaluate", "{R}/gt/mesh.ply", "{R}", "-o", "{B}/metrics.json"], "{B}/metrics.json", "file"),
+    (["evaluate", "mesh", "{R}/gt/mesh.ply", "{R}", "-o", "{B}/metrics2.json"], "{B}/metrics2.json", "file"),
+    (["evaluate", "cues", "{B}/cues", "{R}", "-o", "{B}/cue_metrics.json"], "{B}/cue_metrics.json", "file"),
+    (["evaluate", "report", "{B}/run"], "{B}/run", "report.md"),
+    (["evaluate", "make-room", "{B}/made", "--no-sfm"], "{B}/made", "scene.json"),
+]
+
+
+def _case_id(cmd: list[str]) -> str:
+    return " ".join(cmd[:2]) if not cmd[1].startswith("{") else f"{cmd[0]} (default command)"
+
+
+@pytest.mark.parametrize("cmd, out, kind", CASES, ids=[_case_id(c[0]) for c in CASES])
+def test_a_finished_output_needs_overwrite(room, capsys, cmd, out, kind):
+    base, root = room
+    fill = {"{R}": str(root), "{B}": str(base)}
+
+    def sub(a: str) -> str:
+        for k, v in fill.items():
+            a = a.replace(k, v)
+        return a
+
+    marker = _finished(Path(sub(out)), kind)
+    before = marker.read_text()
+    prog, *args = [sub(a) for a in cmd]
+    code = _main(prog)(args)
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if ": error: " in line]
+    assert code == 1, err
+    assert len(errors) == 1 and "Traceback" not in err, err
+    assert "--overwrite" in errors[0], errors[0]
+    assert marker.read_text() == before  # untouched
+
+
+def test_overwrite_replaces_the_output(room, capsys):
+    """The cheap commands, end to end: with --overwrite the earlier output is replaced."""
+    base, root = room
+    for prog, args, out in [
+        ("evaluate", [str(root / "gt" / "mesh.ply"), str(root), "-o", str(base / "m.json"), "--n-samples", "5000",
+                      "--mode", "surface"],
+         base / "m.json"),
+        ("evaluate", ["cues", str(base / "cues"), str(root), "-o", str(base / "c.json"), "--n-gt-samples", "5000"],
+         base / "c.json"),
+        ("geocues", ["rescale", str(root), "-o", str(base / "r"), "--scale", "2"], base / "r" / "scene.json"),
+    ]:
+        _finished(out, "file")
+        assert _main(prog)(args) == 1
+        assert out.read_text() == OLD
+        assert _main(prog)(args + ["--overwrite"]) == 0, capsys.readouterr().err
+        data = json.loads(out.read_text())  # a whole new JSON file, not the old text
+        assert data and out.read_text() != OLD
+    assert json.loads((base / "m.json").read_text())["chamfer_l1"] < 1e-4  # the GT against itself
+    assert json.loads((base / "r" / "scene.json").read_text())["rescaled"]["scale"] == 2.0
+    assert sorted(p.name for p in (base / "r").iterdir()) == ["gt", "images", "scene.json", "sparse"]
+    assert not list(base.glob(".*"))  # no temporary sibling left behind
