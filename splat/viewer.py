@@ -3,8 +3,10 @@
 One entry: ``run(cfg, run_dir, *, port=None, block=True) -> viser.ViserServer``. It serves, each layer
 behind a GUI checkbox,
 
-    splats    RUN/point_cloud.ply as Gaussians (degree-0 colour; at most ``max_splats``, a seeded
-              random subset, so that the browser keeps up)
+    splats    RUN/point_cloud.ply as Gaussians (at most ``max_splats``, a seeded random subset, so that
+              the browser keeps up). viser takes one colour per Gaussian, not SH: each Gaussian's SH
+              is evaluated once, toward it from the mean training-camera centre (``colors="centre"``,
+              what a capture filmed from inside the room saw), or its degree-0 term (``"dc"``)
     mesh      RUN/mesh.ply (vertex colours where it has them)
     cues      the run's cue cloud (report.json "cues"), coloured by type as cues_by_type.ply:
               SfM blue, line red, plane green
@@ -26,6 +28,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -56,6 +59,9 @@ class ViewConfig:
     """the cue cloud, cues.ply or its folder (default: the run's, from RUN/report.json)."""
     seed: int = 0
     """seed of the subsets."""
+    colors: Literal["centre", "dc"] = "centre"
+    """splat colours (viser takes one per Gaussian): centre = the SH evaluated toward each Gaussian from
+    the mean training-camera centre (needs the scene; else dc); dc = the degree-0 term alone."""
 
     def validate(self) -> None:
         unknown = sorted(set(self.show) - set(LAYERS))
@@ -89,21 +95,23 @@ def _subset(n: int, k: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
 
 
-def load_splats(path: Path, max_splats: int, seed: int = 0) -> Splats:
+def load_splats(path: Path, max_splats: int, seed: int = 0, eye: np.ndarray | None = None) -> Splats:
     """RUN/point_cloud.ply -> :class:`Splats`: covariance R diag(exp(s)^2) R^T, opacity sigmoid(o),
-    colour 0.5 + SH_C0 * sh0 clipped to [0, 1] (view-dependent bands are left out)."""
+    colour clipped to [0, 1]: the SH evaluated in the direction eye -> mean when ``eye`` [3] (a world
+    point) is given, else the degree-0 term 0.5 + SH_C0 * sh0."""
     from splat.gaussians import load_ply
 
     params, _ = load_ply(path)
-    return splats_from_params(params, max_splats, seed)
+    return splats_from_params(params, max_splats, seed, eye)
 
 
-def splats_from_params(params, max_splats: int, seed: int = 0) -> Splats:
-    """Gaussian parameters (splat.gaussians contract, any device) -> :class:`Splats`."""
+def splats_from_params(params, max_splats: int, seed: int = 0, eye: np.ndarray | None = None) -> Splats:
+    """Gaussian parameters (splat.gaussians contract, any device) -> :class:`Splats` (colours as
+    :func:`load_splats`)."""
     import torch
 
     from splat.projection import quat_to_rotmat
-    from splat.sh import SH_C0
+    from splat.sh import SH_C0, sh_degree_of, sh_to_rgb
 
     params = {k: v.detach().cpu() for k, v in params.items()}
     n = len(params["means"])
@@ -115,7 +123,13 @@ def splats_from_params(params, max_splats: int, seed: int = 0) -> Splats:
     R = quat_to_rotmat(params["quats"][rows].double()).numpy()  # [K, 3, 3]
     s2 = np.exp(2.0 * p["scales"])  # [K, 3] variances along the local axes
     cov = np.einsum("nij,nj,nkj->nik", R, s2, R)
-    rgb = np.clip(0.5 + SH_C0 * p["sh0"][:, 0], 0.0, 1.0)
+    if eye is not None and params["shN"].shape[1] > 0:  # one fixed view direction per Gaussian
+        dirs = p["means"] - np.asarray(eye, np.float64)[None]
+        dirs = dirs / np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+        rgb = np.clip(sh_to_rgb(torch.from_numpy(p["sh0"]), torch.from_numpy(p["shN"]), torch.from_numpy(dirs),
+                                sh_degree_of(params["shN"])).numpy(), 0.0, 1.0)
+    else:
+        rgb = np.clip(0.5 + SH_C0 * p["sh0"][:, 0], 0.0, 1.0)
     opacity = 1.0 / (1.0 + np.exp(-p["opacities"]))
     return Splats(p["means"].astype(np.float32), cov.astype(np.float32), rgb.astype(np.float32),
                   opacity.astype(np.float32)[:, None], n)
@@ -204,6 +218,12 @@ def _resolve(run_dir: Path, cfg: ViewConfig) -> dict[str, Path | None]:
     return files
 
 
+def mean_train_centre(scene) -> np.ndarray:
+    """[3] the mean centre of the scene's training cameras (all cameras when none is held out)."""
+    idx = list(scene.train_indices) or list(range(len(scene.cameras)))
+    return np.mean([scene.cameras[i].center for i in idx], axis=0)
+
+
 def _camera_pose(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) -> (wxyz of camera-to-world, centre). viser's frustums use the OpenCV
     camera frame (+z forward, +y down), as COLMAP does, so no axis flip is needed."""
@@ -249,7 +269,15 @@ def _start_camera(server, scene, k: int, splats: Splats) -> None:
 def build(server, cfg: ViewConfig, files: dict[str, Path | None]) -> dict[str, tuple]:
     """Add every layer to ``server`` with a checkbox each; returns {layer: handles}."""
     t0 = time.perf_counter()
-    splats = load_splats(files["splats"], cfg.max_splats, cfg.seed)
+    scene = None
+    if files["scene"] is not None:
+        from geocues.scene import Scene
+
+        scene = Scene.load(files["scene"], check_priors=False)
+    eye = mean_train_centre(scene) if scene is not None and cfg.colors == "centre" else None
+    if eye is None and cfg.colors == "centre":
+        log.info("no scene cameras: splat colours are the SH degree-0 term")
+    splats = load_splats(files["splats"], cfg.max_splats, cfg.seed, eye)
     extent = np.percentile(splats.centers, 98, axis=0) - np.percentile(splats.centers, 2, axis=0)
     size = float(np.linalg.norm(extent)) or 1.0
     layers: dict[str, tuple] = {"splats": (server.scene.add_gaussian_splats(
@@ -267,10 +295,7 @@ def build(server, cfg: ViewConfig, files: dict[str, Path | None]) -> dict[str, t
         seg, rgb = lines
         layers["lines"] = (server.scene.add_line_segments(
             "/lines", seg, np.repeat(rgb[:, None], 2, axis=1), thickness=2.0, thickness_units="screen"),)
-    if files["scene"] is not None:
-        from geocues.scene import Scene
-
-        scene = Scene.load(files["scene"], check_priors=False)
+    if scene is not None:
         layers["cameras"] = _add_cameras(server, scene)
         _start_camera(server, scene, cfg.start_view, splats)
     else:  # no cameras: look at the middle of the Gaussians from outside their box
@@ -344,13 +369,14 @@ class LiveView:
         with contextlib.redirect_stdout(io.StringIO()):
             self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.max_splats = max_splats
+        self.eye = mean_train_centre(scene)  # colours as `splat view` shows them
         self.server.gui.configure_theme(show_share_button=False)
         self.status = self.server.gui.add_markdown("starting")
         _add_cameras(self.server, scene)
         log.info("live view of the training at %s", url_of(self.server))
 
     def update(self, params, step: int, loss: float) -> None:
-        s = splats_from_params(params, self.max_splats, seed=step)
+        s = splats_from_params(params, self.max_splats, seed=step, eye=self.eye)
         # the same name replaces the node in every connected browser
         self.server.scene.add_gaussian_splats("/splats", s.centers, s.covariances, s.rgbs, s.opacities)
         self.status.content = f"step {step:,} · loss {loss:.4f} · {s.total:,} Gaussians"

@@ -87,6 +87,43 @@ class TestLayers:
         assert len(sub.centers) == 20 and sub.total == n
         assert np.isin(sub.centers[:, 0], s.centers[:, 0]).all()  # a subset, not new points
 
+    def test_splat_colours_are_the_sh_toward_the_mean_training_camera(self, fake_run, monkeypatch):
+        """viser takes one colour per Gaussian: with higher SH bands it is their value in the direction
+        from the mean training-camera centre to the Gaussian (degree 1 written out here), not the DC."""
+        import splat.viewer as viewer
+        from splat.sh import SH_C1
+        from splat.viewer import mean_train_centre, splats_from_params
+
+        rng = np.random.default_rng(1)
+        n = 40
+        means = rng.uniform(-2, 2, (n, 3))
+        sh0, shN = rng.normal(0, 0.5, (n, 1, 3)), rng.normal(0, 0.5, (n, 3, 3))
+        f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+        params = {"means": f32(means), "quats": f32(np.tile([1.0, 0, 0, 0], (n, 1))), "scales": f32(np.full((n, 3), -3.0)),
+                  "opacities": f32(np.zeros(n)), "sh0": f32(sh0), "shN": f32(shN)}
+        eye = np.array([0.3, -0.2, 0.1])
+        d = means - eye
+        x, y, z = (d / np.linalg.norm(d, axis=1, keepdims=True)).T
+        band1 = (-SH_C1 * y)[:, None] * shN[:, 0] + (SH_C1 * z)[:, None] * shN[:, 1] + (-SH_C1 * x)[:, None] * shN[:, 2]
+        expected = np.clip(0.5 + SH_C0 * sh0[:, 0] + band1, 0, 1)
+        np.testing.assert_allclose(splats_from_params(params, n, eye=eye).rgbs, expected, atol=1e-5)
+        dc = np.clip(0.5 + SH_C0 * sh0[:, 0], 0, 1)
+        np.testing.assert_allclose(splats_from_params(params, n).rgbs, dc, atol=1e-5)
+        assert np.abs(expected - dc).max() > 0.1  # the test tells the two apart
+
+        run_dir, scene, _ = fake_run  # `splat view` passes the mean training centre, --colors dc none
+        seen = []
+        real = viewer.load_splats
+        monkeypatch.setattr(viewer, "load_splats", lambda *a: seen.append(a[3]) or real(*a))
+        for colors in ("centre", "dc"):
+            stop(run(ViewConfig(port=0, colors=colors), run_dir, block=False))
+        as_viewed = Scene.load(scene.root, check_priors=False)  # the viewer's split
+        train = [c.center for c in as_viewed.cameras if c.index in set(as_viewed.train_indices)]
+        assert 0 < len(train) < len(as_viewed.cameras)
+        np.testing.assert_allclose(mean_train_centre(as_viewed), np.mean(train, axis=0))
+        np.testing.assert_allclose(seen[0], np.mean(train, axis=0))
+        assert seen[1] is None
+
     def test_lines_from_ply_and_npz(self, fake_run, tmp_path):
         from geocues.cue_io import write_lines_npz
 
