@@ -51,7 +51,8 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
     if json is not None:
         check_output_file(json, overwrite)
     if renders is not None and scene is None:
-        raise ValueError("--renders needs SCENE (the test images are the scene's): evaluate PRED_MESH SCENE --renders DIR")
+        raise ValueError("--renders needs SCENE (the test images are the scene's): "
+                         "evaluate PRED_MESH SCENE --renders DIR")
     if align_to is not None:
         if scene is None:
             raise ValueError("--align-to needs SCENE, the scene whose frame the mesh is in: "

@@ -99,8 +99,9 @@ class TestLayers:
         means = rng.uniform(-2, 2, (n, 3))
         sh0, shN = rng.normal(0, 0.5, (n, 1, 3)), rng.normal(0, 0.5, (n, 3, 3))
         f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-        params = {"means": f32(means), "quats": f32(np.tile([1.0, 0, 0, 0], (n, 1))), "scales": f32(np.full((n, 3), -3.0)),
-                  "opacities": f32(np.zeros(n)), "sh0": f32(sh0), "shN": f32(shN)}
+        params = {"means": f32(means), "quats": f32(np.tile([1.0, 0, 0, 0], (n, 1))),
+                  "scales": f32(np.full((n, 3), -3.0)), "opacities": f32(np.zeros(n)), "sh0": f32(sh0),
+                  "shN": f32(shN)}
         eye = np.array([0.3, -0.2, 0.1])
         d = means - eye
         x, y, z = (d / np.linalg.norm(d, axis=1, keepdims=True)).T
