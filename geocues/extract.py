@@ -387,7 +387,9 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     timings["planes_merge"] = time.perf_counter() - t0
     timings["planes"] += timings["planes_merge"]
     if not has_priors:
-        notes.append("the scene has no depth priors: plane-like cues are prior-free for every image")
+        notes.append("the scene has no depth priors: plane-like cues are prior-free for every image "
+                     "(`geocues mvs SCENE -o SCENE_MVS` computes depth priors from the photos; on ICL living "
+                     "room 1 they lowered the mesh's Chamfer-L1 from 5.0 to 3.8 cm, docs/geocues.md)")
     elif not cfg.priors:
         notes.append("depth priors ignored (priors off): plane-like cues are prior-free")
     else:
