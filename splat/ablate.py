@@ -336,6 +336,13 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
             todo.append(spec)
     log.info("ablation: %d rows x %d seeds; %d to run, %d finished, n/a: %s", len(specs) // max(cfg.seeds, 1),
              cfg.seeds, len(todo), len(results), na or "none")
+    # Rows an earlier run (`--rows X`) finished in OUT with the same options stay in the report.
+    others = [r for r in PRESETS if r not in cfg.rows and (out_dir / "rows" / f"{r}_s0").is_dir()]
+    for spec in plan(dataclasses.replace(cfg, rows=tuple(others)), scene_dir, cues, out_dir, train_args)[0] if others else []:
+        done = _done(Path(spec["out"]), spec["key"])
+        if done is not None:
+            results[(spec["row"], spec["seed"])] = done
+    shown = [r for r in PRESETS if r in cfg.rows or any((r, s) in results for s in range(cfg.seeds))]
     floor = _run_floor(cfg, scene_dir, out_dir, example)
 
     def summary() -> dict:
@@ -344,7 +351,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
                                          "gt_depth": str(cfg.gt_depth) if cfg.gt_depth else None},
                 "train_args": train_args, "floor": floor,
                 "rows": [_row_summary(r, [results[(r, s)] for s in range(cfg.seeds) if (r, s) in results], na)
-                         for r in dict.fromkeys(cfg.rows)]}
+                         for r in shown]}
 
     def on_done(spec: dict, result: dict) -> None:
         results[(spec["row"], spec["seed"])] = result

@@ -152,6 +152,28 @@ def test_a_killed_ablation_resumes_and_skips_finished_rows(tiny, ablation, monke
     assert ran == []
 
 
+def test_a_run_of_other_rows_keeps_the_finished_ones_in_the_report(tiny, ablation, monkeypatch):
+    """`--rows X` after `--rows Y` in the same OUT: the report lists both (same options), not X only;
+    rows finished with other options are not listed."""
+    import splat.ablate as ablate
+
+    out = tiny[0] / "subset"
+    shutil.copytree(ablation, out)
+    ran = []
+    monkeypatch.setattr(ablate, "run_row", lambda spec: ran.append(spec["row"]))
+    _run(tiny, "subset", ["full"])
+    assert ran == []
+    rows = {r["row"]: r["status"] for r in json.loads((out / "ablation.json").read_text())["rows"]}
+    assert rows == {"full": "done", "no-cues": "done"}  # no-ln was n/a (no normal priors): not finished
+    assert "`no-cues`" in (out / "report.md").read_text()
+    from evaluation.mesh_metrics import MeshMetricsConfig
+    from splat.ablate import AblateConfig, run
+
+    run(AblateConfig(rows=(), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
+        tiny[1], tiny[2], out, train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
+    assert ran == [] and json.loads((out / "ablation.json").read_text())["rows"] == []
+
+
 def test_overwrite_starts_the_ablation_again_from_nothing(tiny, ablation, monkeypatch, capsys):
     """Without --overwrite a re-run resumes (finished rows skipped); with it, OUT's rows, floor and
     reports are removed first and every row runs again; what else a user put in OUT stays."""
