@@ -384,6 +384,8 @@ def evaluate_with_scene(pred_path: str | Path, gt_path: str | Path | None = None
                         cfg: MeshMetricsConfig | None = None) -> MeshMetrics:
     """The ``evaluate`` command's work: GT from ``gt_path`` or the scene's ``gt/mesh.ply``; with a
     scene, its cameras cull both surfaces (``cfg.cull_to_frusta``)."""
+    if not Path(pred_path).is_file():  # the input named first is checked first
+        raise FileNotFoundError(f"no mesh at {pred_path}" + (" (a folder)" if Path(pred_path).is_dir() else ""))
     cameras, scene_gt = scene_cameras_and_gt(scene_dir) if scene_dir is not None else (None, None)
     gt_path = gt_path if gt_path is not None else scene_gt
     if gt_path is None:

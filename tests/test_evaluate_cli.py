@@ -81,6 +81,9 @@ def test_missing_file_fails_cleanly(tmp_path, capsys):
     assert rc == 1 and not out.exists()
     err = capsys.readouterr().err
     assert "absent.ply" in err and "Traceback" not in err
+    assert main([str(tmp_path / "absent.ply")]) == 1  # no GT either: the mesh named first is the error
+    err = capsys.readouterr().err
+    assert "no mesh at" in err and "absent.ply" in err
 
 
 def test_empty_mesh_fails_cleanly(tmp_path, capsys):
