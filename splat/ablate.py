@@ -101,6 +101,12 @@ def config_key(payload: dict) -> str:
 def row_key(spec: dict) -> str:
     """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`
     and without options left unset (None), so that an option added later, unset, keeps the key."""
+    return row_keys(spec)[0]
+
+
+def row_keys(spec: dict) -> list[str]:
+    """The row's key (first) and the keys the same row got under earlier key rules: a finished row
+    with any of them is the same row."""
     from splat.mesh import open3d_device
 
     payload = {k: spec[k] for k in ("scene", "cues", "gt", "metrics")}
@@ -108,11 +114,13 @@ def row_key(spec: dict) -> str:
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
-    if tc["tsdf"].get("depth") == "median":  # rows meshed before --tsdf.depth existed fused the median
-        del tc["tsdf"]["depth"]
     if not tc["loss"].get("lambda_mv"):  # L_mv off: rows trained before it existed keep their key
         tc["loss"] = {k: v for k, v in tc["loss"].items() if not (k == "lambda_mv" or k.startswith("mv_"))}
-    return config_key(payload | {"train_config": tc})
+    keys = []
+    if tc["tsdf"].get("depth") == "median":  # rows meshed before --tsdf.depth existed fused the median;
+        keys.append(config_key(payload | {"train_config": tc | {"tsdf": {k: v for k, v in tc["tsdf"].items()
+                                                                          if k != "depth"}}}))
+    return keys + [config_key(payload | {"train_config": tc})]  # rows of the days between: depth kept
 
 
 def _score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsConfig) -> dict:
@@ -196,7 +204,7 @@ def _resumable(train_dir: Path, cfg) -> bool:
     return same
 
 
-def _done(out: Path, key: str) -> dict | None:
+def _done(out: Path, key: str | list[str]) -> dict | None:
     path = out / "score.json"
     if not path.is_file():
         return None
@@ -204,7 +212,7 @@ def _done(out: Path, key: str) -> dict | None:
         data = json.loads(path.read_text())
     except ValueError:
         return None
-    return data if data.get("key") == key else None
+    return data if data.get("key") in ([key] if isinstance(key, str) else key) else None
 
 
 def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> dict | None:
@@ -258,7 +266,8 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
             spec = {"row": row, "seed": s, "scene": str(scene_dir), "cues": str(cues),
                     "gt": str(cfg.gt) if cfg.gt else None, "metrics": asdict(cfg.metrics),
                     "train_config": asdict(tcfg), "out": str(out_dir / "rows" / f"{row}_s{s}")}
-            spec["key"] = row_key(spec)
+            spec["keys"] = row_keys(spec)
+            spec["key"] = spec["keys"][0]
             specs.append(spec)
     return specs, na
 
@@ -328,7 +337,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     results: dict[tuple[str, int], dict] = {}
     todo = []
     for spec in specs:
-        done = _done(Path(spec["out"]), spec["key"])
+        done = _done(Path(spec["out"]), spec["keys"])
         if done is not None:
             log.info("row %s seed %d: finished earlier, skipped", spec["row"], spec["seed"])
             results[(spec["row"], spec["seed"])] = done
@@ -339,7 +348,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     # Rows an earlier run (`--rows X`) finished in OUT with the same options stay in the report.
     others = [r for r in PRESETS if r not in cfg.rows and (out_dir / "rows" / f"{r}_s0").is_dir()]
     for spec in plan(dataclasses.replace(cfg, rows=tuple(others)), scene_dir, cues, out_dir, train_args)[0] if others else []:
-        done = _done(Path(spec["out"]), spec["key"])
+        done = _done(Path(spec["out"]), spec["keys"])
         if done is not None:
             results[(spec["row"], spec["seed"])] = done
     shown = [r for r in PRESETS if r in cfg.rows or any((r, s) in results for s in range(cfg.seeds))]

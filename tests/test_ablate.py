@@ -334,3 +334,19 @@ def test_evaluate_report_names_a_folder_that_is_not_a_run(tmp_path, capsys):
 
     assert main(["report", str(tmp_path)]) == 1
     assert "no report.json" in capsys.readouterr().err
+
+
+def test_rows_keyed_under_earlier_key_rules_are_still_finished(tiny, tmp_path):
+    """Rows fused with the median depth were keyed without `tsdf.depth` before it existed and with it
+    in the days between: both keys name the same row (else a re-run trains them again)."""
+    from splat.ablate import AblateConfig, _done, plan
+
+    base, root, cues = tiny
+    specs, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, TRAIN_ARGS + ["--tsdf.depth", "median"])
+    keys = specs[0]["keys"]
+    assert len(keys) == 2 and keys[0] == specs[0]["key"]
+    (tmp_path / "row").mkdir()
+    (tmp_path / "row" / "score.json").write_text(json.dumps({"key": keys[1]}))
+    assert _done(tmp_path / "row", keys) is not None and _done(tmp_path / "row", keys[0]) is None
+    expected, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, TRAIN_ARGS)
+    assert expected[0]["keys"] == [expected[0]["key"]]  # the default depth has one key
