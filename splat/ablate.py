@@ -98,14 +98,10 @@ def config_key(payload: dict) -> str:
     return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def row_key(spec: dict) -> str:
-    """The key of a row: what it trains and how it is scored, without :data:`OPERATIONAL_FIELDS`
-    and without options left unset (None), so that an option added later, unset, keeps the key."""
-    return row_keys(spec)[0]
-
-
 def row_keys(spec: dict) -> list[str]:
-    """The row's key (first) and the keys the same row got under earlier key rules: a finished row
+    """The key of a row (first): what it trains and how it is scored, without
+    :data:`OPERATIONAL_FIELDS` and without options left unset (None), so that an option added later,
+    unset, keeps the key; then the keys the same row got under earlier key rules: a finished row
     with any of them is the same row."""
     from splat.mesh import open3d_device
 
@@ -204,7 +200,7 @@ def _resumable(train_dir: Path, cfg) -> bool:
     return same
 
 
-def _done(out: Path, key: str | list[str]) -> dict | None:
+def _done(out: Path, keys: list[str]) -> dict | None:
     path = out / "score.json"
     if not path.is_file():
         return None
@@ -212,7 +208,7 @@ def _done(out: Path, key: str | list[str]) -> dict | None:
         data = json.loads(path.read_text())
     except ValueError:
         return None
-    return data if data.get("key") in ([key] if isinstance(key, str) else key) else None
+    return data if data.get("key") in keys else None
 
 
 def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> dict | None:
@@ -228,7 +224,7 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> di
                       "tsdf": asdict(example.tsdf), "depth": str(folder), "png": cfg.gt_depth_png_scale,
                       "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
     out = out_dir / "floor"
-    done = _done(out, key)
+    done = _done(out, [key])
     if done is not None:
         return done
     t0 = time.perf_counter()
