@@ -30,13 +30,14 @@ import logging
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from geocues.atomic import atomic_path, check_output_dir
-from geocues.scene import Scene
+from geocues.scene import Camera, Scene
 from geocues.sfm import link_scene
 
 log = logging.getLogger(__name__)
@@ -96,16 +97,16 @@ def depth_bounds(scene: Scene, i: int) -> tuple[float, float]:
     return 0.3, max(5.0, 3.0 * spread)
 
 
-def select_neighbours(scene: Scene, i: int, cfg: MvsConfig, depth: float,
+def select_neighbours(cameras: Sequence[Camera], i: int, cfg: MvsConfig, depth: float,
                       candidates: list[int] | None = None) -> list[int]:
-    """Up to ``n_neighbours`` views around view ``i`` (among ``candidates``, default all): optical
-    axes within ``max_angle_deg``, a triangulation angle at ``depth`` of at least ``min_angle_deg``,
-    ranked by closeness of that angle to 10° and of the axes."""
-    ci, zi = scene.cameras[i].center, scene.cameras[i].R[2]
+    """Up to ``n_neighbours`` of ``cameras`` around camera ``i`` (among ``candidates``, default all):
+    optical axes within ``max_angle_deg``, a triangulation angle at ``depth`` of at least
+    ``min_angle_deg``, ranked by closeness of that angle to 10° and of the axes."""
+    ci, zi = cameras[i].center, cameras[i].R[2]
     target = ci + depth * zi
     scored = []
-    for j in range(len(scene.cameras)) if candidates is None else candidates:
-        cj = scene.cameras[j]
+    for j in range(len(cameras)) if candidates is None else candidates:
+        cj = cameras[j]
         if j == i:
             continue
         axis = np.degrees(np.arccos(np.clip(zi @ cj.R[2], -1, 1)))
@@ -214,19 +215,20 @@ def sweep_view(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float,
             conf.clamp(0, 1).numpy().astype(np.float32))
 
 
-def consistency_filter(scene: Scene, depths: dict[int, np.ndarray], neighbours: dict[int, list[int]],
-                       cfg: MvsConfig) -> dict[int, np.ndarray]:
-    """Keep a depth where at least ``min_consistent`` neighbours agree (forward-backward check)."""
+def consistency_filter(cameras: Sequence[Camera], depths: dict[int, np.ndarray],
+                       neighbours: dict[int, list[int]], cfg: MvsConfig) -> dict[int, np.ndarray]:
+    """Keep a depth of camera ``i`` (``depths[i]``: z-depth [H, W] in metres, 0 = none) where at
+    least ``min_consistent`` of ``neighbours[i]`` agree (forward-backward check)."""
     out = {}
     for i, d_np in depths.items():
-        ref = scene.cameras[i]
+        ref = cameras[i]
         d = torch.from_numpy(d_np)
         rays = _rays(ref)
         pix = torch.stack(torch.meshgrid(torch.arange(ref.height) + 0.5, torch.arange(ref.width) + 0.5,
                                          indexing="ij")[::-1], -1)  # [H, W, 2] pixel centres (u, v)
         votes = torch.zeros_like(d, dtype=torch.int32)
         for j in neighbours[i]:
-            src = scene.cameras[j]
+            src = cameras[j]
             R_rel, t_rel = _relative(ref, src)
             uv, z = _project(src, R_rel, t_rel, rays, d)
             d_src, inside = _sample(torch.from_numpy(depths[j])[None, None], uv, src.width, src.height)
@@ -267,10 +269,10 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
     depths, conf, neighbours, bounds = {}, {}, {}, {}
     for i in tqdm(range(len(scene)), desc="mvs: plane sweep", unit="view"):
         bounds[i] = depth_bounds(scene, i)
-        neighbours[i] = select_neighbours(scene, i, cfg, float(np.sqrt(bounds[i][0] * bounds[i][1])))
+        neighbours[i] = select_neighbours(scene.cameras, i, cfg, float(np.sqrt(bounds[i][0] * bounds[i][1])))
         depths[i], conf[i] = sweep_view(scene, i, neighbours[i], bounds[i], cfg, images)
     raw_valid = {i: float((d > 0).mean()) for i, d in depths.items()}
-    filtered = consistency_filter(scene, depths, neighbours, cfg) if cfg.min_consistent > 0 else depths
+    filtered = consistency_filter(scene.cameras, depths, neighbours, cfg) if cfg.min_consistent > 0 else depths
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
     if (out_dir / "scene.json").is_file():
         meta = json.loads((out_dir / "scene.json").read_text())

@@ -110,6 +110,8 @@ def row_keys(spec: dict) -> list[str]:
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
+    if tc["tsdf"].get("consistent_views") is None:  # depth filter off: rows meshed before it keep their key
+        tc["tsdf"] = {k: v for k, v in tc["tsdf"].items() if not k.startswith("consisten")}
     if not tc["loss"].get("lambda_mv"):  # L_mv off: rows trained before it existed keep their key
         tc["loss"] = {k: v for k, v in tc["loss"].items() if not (k == "lambda_mv" or k.startswith("mv_"))}
     keys = []

@@ -79,6 +79,18 @@ class TSDFConfig:
     consistency 0.06-0.13 lower on every row of the textured-room ablation, docs/meshing.md).
     Exact depth (the floor) is fused as it is."""
 
+    consistent_views: int | None = None
+    """fuse a rendered-depth pixel only where at least this many of its ``consistency_neighbours``
+    neighbouring views render a depth that agrees with it (forward-backward reprojection within
+    ``consistency_px`` pixels and ``consistency_rel_depth``, the check of MVS fusion; an extension);
+    None fuses every pixel. Exact depth (the floor) is never filtered."""
+    consistency_neighbours: int = 4
+    """views compared with each fused view (chosen as `geocues mvs` chooses them) when ``consistent_views`` is set."""
+    consistency_px: float = 1.0
+    """forward-backward reprojection tolerance in pixels of the rendered views."""
+    consistency_rel_depth: float = 0.01
+    """forward-backward depth tolerance relative to the depth."""
+
     @property
     def trunc(self) -> float:
         """The truncation distance in metres (``sdf_trunc`` or 4 voxels)."""
@@ -100,6 +112,12 @@ class TSDFConfig:
         open3d_device(self.device)
         if self.depth not in ("median", "expected"):
             raise ValueError(f"depth must be 'median' or 'expected', got {self.depth!r}")
+        if self.consistent_views is not None and not 1 <= self.consistent_views <= self.consistency_neighbours:
+            raise ValueError(f"consistent_views must be in 1..consistency_neighbours "
+                             f"({self.consistency_neighbours}) or unset, got {self.consistent_views}")
+        if not (self.consistency_px > 0 and self.consistency_rel_depth > 0):
+            raise ValueError(f"consistency_px and consistency_rel_depth must be positive, got "
+                             f"{self.consistency_px}, {self.consistency_rel_depth}")
         if not 0.0 <= self.min_component_diag < 1.0:
             raise ValueError(f"min_component_diag must be in [0, 1), got {self.min_component_diag}")
 

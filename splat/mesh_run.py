@@ -47,7 +47,8 @@ def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = 
                  background=(0.0, 0.0, 0.0), device="cpu", progress: bool = False):
     """Render each scene camera (``geocues.scene.Camera``: K, R, t, size) and fuse the rendered depth
     where alpha > 0.5 — the median or the expected depth, ``tsdf.depth`` — with the colours into a
-    TSDF; return the cleaned mesh."""
+    TSDF; return the cleaned mesh. With ``tsdf.consistent_views`` every view is rendered first and a
+    depth is fused only where enough neighbouring renders agree (:func:`consistent_depths`)."""
     import numpy as np
     import torch
 
@@ -59,14 +60,41 @@ def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = 
     key = "median_depth" if tsdf.depth == "median" else "depth"
 
     @torch.no_grad()
-    def gen():
-        for cam in cameras:
-            out = render(params, Camera.from_scene_camera(cam, device), sh_degree=sh_degree, backend=backend,
-                         background=bg)
-            depth = torch.where(out["alpha"] > 0.5, out[key], torch.zeros_like(out[key]))
-            yield (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32),
-                   cam.K, cam.world_to_camera)
-    return clean_mesh(fuse_views(gen(), tsdf, progress=progress), tsdf)
+    def rendered(cam):
+        out = render(params, Camera.from_scene_camera(cam, device), sh_degree=sh_degree, backend=backend,
+                     background=bg)
+        depth = torch.where(out["alpha"] > 0.5, out[key], torch.zeros_like(out[key]))
+        return (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32))
+
+    if tsdf.consistent_views is None:
+        views = ((*rendered(cam), cam.K, cam.world_to_camera) for cam in cameras)
+    else:
+        renders = [rendered(cam) for cam in cameras]
+        depths = consistent_depths(cameras, [d for d, _ in renders], tsdf)
+        views = [(d, rgb, cam.K, cam.world_to_camera) for d, (_, rgb), cam in zip(depths, renders, cameras)]
+    return clean_mesh(fuse_views(views, tsdf, progress=progress), tsdf)
+
+
+def consistent_depths(cameras: list, depths: list, tsdf) -> list:
+    """``depths`` (z-depth [H, W] of each of ``cameras``, 0 = none) with 0 where fewer than
+    ``tsdf.consistent_views`` of the ``tsdf.consistency_neighbours`` neighbouring views agree: the
+    forward-backward check of `geocues mvs` (geocues.mvs.consistency_filter), neighbours chosen as
+    it chooses them at the view's median depth."""
+    import numpy as np
+
+    from geocues.mvs import MvsConfig, consistency_filter, select_neighbours
+
+    cfg = MvsConfig(n_neighbours=tsdf.consistency_neighbours, min_consistent=tsdf.consistent_views,
+                    max_reproj_px=tsdf.consistency_px, max_rel_depth=tsdf.consistency_rel_depth)
+    neighbours = {}
+    for i, d in enumerate(depths):
+        valid = d[d > 0]
+        neighbours[i] = select_neighbours(cameras, i, cfg, float(np.median(valid))) if valid.size else []
+    kept = consistency_filter(cameras, dict(enumerate(depths)), neighbours, cfg)
+    before, after = sum(int((d > 0).sum()) for d in depths), sum(int((d > 0).sum()) for d in kept.values())
+    log.info("TSDF: %d of %d rendered depths (%.1f %%) agree with >= %d of %d neighbouring views",
+             after, before, 100.0 * after / max(before, 1), tsdf.consistent_views, tsdf.consistency_neighbours)
+    return [kept[i] for i in range(len(depths))]
 
 
 def run(cfg: MeshRunConfig, run_dir: str | Path, out: str | Path | None = None, *,

@@ -132,6 +132,6 @@ def training_neighbours(scene, train_indices: list[int], n_neighbours: int = 4) 
     out = []
     for i in train_indices:
         near, far = depth_bounds(scene, i)
-        picks = select_neighbours(scene, i, cfg, float(np.sqrt(near * far)), candidates=train_indices)
+        picks = select_neighbours(scene.cameras, i, cfg, float(np.sqrt(near * far)), candidates=train_indices)
         out.append([pos[j] for j in picks])
     return out

@@ -56,7 +56,7 @@ def test_consistency_check_is_what_removes_the_outliers(mvs_room):
     images = {i: _gray(scene.load_image(i)) for i in views}
     nbrs = {0: [1, 29, 2, 28], 1: [0, 2, 29, 3], 29: [0, 28, 1], 2: [1, 3, 0], 28: [29, 0], 3: [2, 1]}
     raw = {i: sweep_view(scene, i, nbrs[i], depth_bounds(scene, i), cfg, images)[0] for i in nbrs}
-    kept = consistency_filter(scene, raw, nbrs, cfg)
+    kept = consistency_filter(scene.cameras, raw, nbrs, cfg)
     cam = scene.cameras[0]
     gt = render(cam.K, cam.R, cam.t, cam.width, cam.height)[1]
 
@@ -89,6 +89,6 @@ def test_flat_images_and_views_without_overlap_give_no_depth(tmp_path):
     for i in range(len(scene)):
         assert (scene.depth_prior(i) == 0).all()
     no_overlap = MvsConfig(max_angle_deg=0.0)  # no neighbour passes: nothing, and no error
-    assert select_neighbours(scene, 0, no_overlap, 2.0) == []
+    assert select_neighbours(scene.cameras, 0, no_overlap, 2.0) == []
     with pytest.raises(ValueError, match="holds MVS priors already"):
         run(MvsConfig(max_size=64, n_depths=16), root, tmp_path / "flat")

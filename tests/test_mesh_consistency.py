@@ -1,0 +1,74 @@
+"""`--tsdf.consistent-views`: a rendered depth is fused only where neighbouring renders agree
+(splat.mesh_run.consistent_depths, the forward-backward check of `geocues mvs`).
+
+A depth one view alone renders (a floater fitted to that photo, in front of the wall) is dropped and
+the agreeing surface kept; with the option unset nothing changes; hard cases (no depth, no
+neighbour, NaN-free) stay finite."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cues_synth import make_room_scene, render
+from geocues.scene import Scene
+from splat.mesh import TSDFConfig
+from splat.mesh_run import consistent_depths
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    root = make_room_scene(tmp_path_factory.mktemp("cons") / "room", n_views=24, w=96, h=72, priors="none")
+    cams = Scene.load(root, check_priors=False).cameras
+    depths = [render(c.K, c.R, c.t, c.width, c.height)[1] for c in cams]
+    return cams, depths
+
+
+def test_a_depth_only_one_view_renders_is_dropped_and_the_surface_kept(room):
+    cams, exact = room
+    depths = [d.copy() for d in exact]
+    patch = (slice(20, 40), slice(30, 60))
+    depths[0][patch] *= 0.7  # a floater in front of the wall, in view 0 only
+    tsdf = TSDFConfig(consistent_views=1)
+    kept = consistent_depths(cams, depths, tsdf)
+    assert len(kept) == len(depths) and all(k.shape == d.shape for k, d in zip(kept, depths))
+    assert (kept[0][patch] == 0).mean() > 0.95  # the floater goes
+    outside = np.ones_like(depths[0], bool)
+    outside[patch] = False
+    valid = exact[0] > 0
+    # the wall around it and the other views stay (a neighbour agrees); the parts of the frame no
+    # neighbour sees are the only other losses
+    assert (kept[0][outside & valid] > 0).mean() > 0.7
+    others = np.concatenate([(k[d > 0] > 0) for k, d in zip(kept[1:], depths[1:])])
+    assert others.mean() > 0.7
+    for k, d in zip(kept, depths):  # kept values are the rendered values, untouched
+        np.testing.assert_array_equal(k[k > 0], d[k > 0])
+    # the stricter the vote, the fewer depths are fused (these views overlap their two neighbours
+    # by about half the frame)
+    strict = consistent_depths(cams, depths, replace(tsdf, consistent_views=2))
+    assert sum((k > 0).sum() for k in strict) < sum((k > 0).sum() for k in kept)
+    assert (strict[0][patch] == 0).all()
+
+
+def test_views_without_depth_or_neighbours_give_no_error_and_no_depth(room):
+    cams, exact = room
+    depths = [np.zeros_like(d) for d in exact]
+    depths[3] = exact[3].copy()
+    depths[3][0, 0] = np.nan  # a NaN render is never fused
+    kept = consistent_depths(cams, depths, TSDFConfig(consistent_views=1))
+    assert all(np.isfinite(k).all() for k in kept)
+    assert all((k == 0).all() for k in kept)  # nobody agrees with view 3: every neighbour is empty
+    one = consistent_depths(cams[:1], exact[:1], TSDFConfig(consistent_views=1))  # no neighbour at all
+    assert (one[0] == 0).all()
+
+
+def test_the_option_is_checked():
+    TSDFConfig().validate()  # unset: every pixel is fused
+    with pytest.raises(ValueError, match="consistent_views"):
+        TSDFConfig(consistent_views=5, consistency_neighbours=4).validate()
+    with pytest.raises(ValueError, match="consistent_views"):
+        TSDFConfig(consistent_views=0).validate()
+    with pytest.raises(ValueError, match="positive"):
+        TSDFConfig(consistent_views=1, consistency_rel_depth=0).validate()
