@@ -30,7 +30,7 @@ sys.path.insert(0, str(REPO))
 
 from evaluation.mesh_metrics import MeshMetricsConfig  # noqa: E402
 from geocues.atomic import atomic_path  # noqa: E402
-from splat.ablate import _score_mesh  # noqa: E402
+from splat.ablate import score_mesh  # noqa: E402
 from splat.floor import find_gt_depth_dir, fuse_floor  # noqa: E402
 from splat.mesh import TSDFConfig  # noqa: E402
 from splat.mesh_run import MeshRunConfig  # noqa: E402
@@ -80,12 +80,12 @@ def main(cfg: Remesh) -> dict:
             floor_mesh = fuse_floor(scene, work / f"floor_w{w:g}.ply", gt_depth=folder,
                                     downscale=base_cfg.get("downscale", 1.0), test_every=base_cfg.get("test_every", 8),
                                     mesh_every=base_cfg.get("mesh_every", 1), tsdf=tsdf)
-            rows["floor"] = _score_mesh(floor_mesh, gt, scene, metrics)
+            rows["floor"] = score_mesh(floor_mesh, gt, scene, metrics)
         for run_dir in runs:
             row = run_dir.parent.name
             t0 = time.perf_counter()
             out = mesh_run(MeshRunConfig(tsdf=tsdf), run_dir, work / row / f"{variant}.ply", overwrite=True)
-            rows[row] = _score_mesh(out, gt, scene, metrics) | {"mesh_s": time.perf_counter() - t0}
+            rows[row] = score_mesh(out, gt, scene, metrics) | {"mesh_s": time.perf_counter() - t0}
             print(variant, row, {k: round(rows[row][k], 4) for k in SHOW}, flush=True)
         result["variants"][variant] = rows
     path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"

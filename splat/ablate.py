@@ -121,7 +121,9 @@ def row_keys(spec: dict) -> list[str]:
     return keys + [config_key(payload | {"train_config": tc})]  # rows of the days between: depth kept
 
 
-def _score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsConfig) -> dict:
+def score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsConfig) -> dict:
+    """The ablation's mesh metrics (:data:`METRICS`) of ``mesh`` against ``gt`` (or the scene's GT
+    mesh), culled to ``scene``'s cameras as `evaluate mesh` does."""
     from evaluation.mesh_metrics import evaluate_with_scene
 
     result = evaluate_with_scene(mesh, gt, scene, metrics).to_dict()
@@ -171,7 +173,7 @@ def _run_row(spec: dict) -> dict:
     gt = Path(spec["gt"]) if spec.get("gt") else None
     curve = []
     for point in report["accuracy_vs_time"]:
-        scores = _score_mesh(out / "train" / point["mesh"], gt, Path(spec["scene"]), metrics)
+        scores = score_mesh(out / "train" / point["mesh"], gt, Path(spec["scene"]), metrics)
         curve.append({k: point[k] for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")} | scores)
     result = {"row": spec["row"], "seed": spec["seed"], "key": spec["key"], "curve": curve,
               "final": curve[-1] if curve else {}, "train_s": report["timings"]["train_s"],
@@ -234,7 +236,7 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> di
                       downscale=example.downscale, test_every=example.test_every,
                       mesh_every=example.mesh_every, tsdf=example.tsdf)
     result = {"row": "floor", "status": "done", "key": key, "depth_dir": str(folder),
-              "final": _score_mesh(mesh, cfg.gt, scene_dir, cfg.metrics), "wall_s": time.perf_counter() - t0}
+              "final": score_mesh(mesh, cfg.gt, scene_dir, cfg.metrics), "wall_s": time.perf_counter() - t0}
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result
