@@ -357,6 +357,13 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                                        seed=cfg.seed + i, inside_only=strict[pc],
                                        anchors_group=anchors.group[pc])
             row["plane_mode"] = "prior"
+            if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in
+                row["regions_prior_free"] = len(pp.no_depth_regions)
+                holes = np.full_like(regions, -1)
+                for new_id, k in enumerate(pp.no_depth_regions):
+                    holes[regions == k] = new_id
+                pp = pp.concat(plane_cues_prior_free(cam, image, holes, anchors.xyz[pc], anchors.group[pc],
+                                                     cfg.plane, seed=cfg.seed + i, inside_only=strict[pc]))
         elif cfg.prior_free_fallback or not cfg.priors or not has_priors:
             pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[pc], anchors.group[pc],
                                        cfg.plane, seed=cfg.seed + i, inside_only=strict[pc])

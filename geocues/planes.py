@@ -89,6 +89,11 @@ class PlaneConfig:
     """Pixels (at 640) stepped to each side of a projected line for that test."""
     prior_normal_std_deg: float = 5.0
     """Trust in the prior plane's normal when refitting it to the anchors (degrees, 1 sigma)."""
+    fill_holes: bool = False
+    """Sparse priors (`geocues mvs` finds no depth on textureless surfaces): the pixels of a region
+    where the prior has no depth are cut with the anchored plane of their nearest pixel that has
+    one (same pins: max_plane_std, anchor hull), and regions with no prior depth at all get
+    prior-free plane cues (an extension)."""
     # ---- prior-free
     free_min_anchors: int = 8
     """Prior-free: anchors (near the region) needed to fit its plane."""
@@ -141,6 +146,18 @@ class PlanePoints:
     n_regions: int = 0
     n_accepted: int = 0  # regions that produced points
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> regions (or planes)
+    no_depth_regions: list[int] = field(default_factory=list)  # regions without prior depth (fill_holes)
+
+    def concat(self, other: "PlanePoints") -> "PlanePoints":
+        """These points and ``other``'s (of the same image and regions: their planes follow ours)."""
+        rej = dict(self.rejected)
+        for k, v in other.rejected.items():
+            rej[k] = rej.get(k, 0) + v
+        return PlanePoints(np.concatenate([self.xyz, other.xyz]), np.concatenate([self.rgb, other.rgb]),
+                           np.concatenate([self.normal, other.normal]),
+                           np.concatenate([self.plane_id, other.plane_id + len(self.planes)]),
+                           np.concatenate([self.planes.reshape(-1, 4), other.planes.reshape(-1, 4)]),
+                           self.n_regions, self.n_accepted + other.n_accepted, rej)
 
     @staticmethod
     def empty(n_regions: int = 0, rejected: dict | None = None) -> "PlanePoints":
@@ -208,11 +225,16 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     groups = np.arange(len(anchors_xyz)) if anchors_group is None else np.asarray(anchors_group)
     out = _Collector(cam, image, rows, cols)
     accepted = 0
+    no_depth = []  # regions left to the prior-free fit (fill_holes)
     for k in range(n_regions):
         sel = np.flatnonzero((rid == k) & (z > 0) & (z < cfg.max_depth))
         if len(sel) < cfg.min_region_points:
             _bump(rej, "too_small_or_no_depth")
+            if cfg.fill_holes and (rid == k).sum() >= cfg.min_region_points:
+                no_depth.append(k)
             continue
+        holes = np.flatnonzero((rid == k) & ~((z > 0) & (z < cfg.max_depth))) if cfg.fill_holes else sel[:0]
+        found = []  # (pixel indices, camera-frame points, normal, anchored plane or None) per plane
         Xc = rays[sel] * z[sel, None]  # [m, 3] camera frame
         zmed = float(np.median(z[sel]))
         tau = max(cfg.ransac_dist, cfg.ransac_rel * zmed)  # the prior's error grows with depth
@@ -264,10 +286,47 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             if len(keep) == 0:
                 _bump(rej, "no_points_left")
                 continue
-            out.add(sel[keep], Xk, n_c)
+            found.append((sel[keep], Xk, n_c, ap if cfg.snap_to_plane and near_plane.sum() >= cfg.min_agree_anchors
+                          else None, a_c[near_plane]))
+        for (pix, Xk, n_c, _, _), (h_pix, h_X) in zip(found, _fill(cam, rows, cols, holes, found, cfg, s)):
+            out.add(np.r_[pix, h_pix], np.r_[Xk, h_X], n_c)
             got_any = True
         accepted += got_any
-    return out.result(n_regions, accepted, rej)
+    res = out.result(n_regions, accepted, rej)
+    res.no_depth_regions = no_depth
+    return res
+
+
+def _fill(cam: Camera, rows: np.ndarray, cols: np.ndarray, holes: np.ndarray, found: list, cfg: PlaneConfig,
+          s: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """For each plane found in a region, the hole pixels (no prior depth) it takes: those whose
+    nearest pixel with depth belongs to it, cut with the plane where its anchors pin it down."""
+    empty = (np.zeros(0, np.int64), np.zeros((0, 3)))
+    anchored = [f[3] is not None for f in found]
+    if len(holes) == 0 or not any(anchored):
+        return [empty] * len(found)
+    from scipy.spatial import cKDTree
+
+    owner = np.concatenate([np.full(len(f[0]), j) for j, f in enumerate(found)])
+    pix = np.concatenate([f[0] for f in found])
+    _, nearest = cKDTree(np.c_[rows[pix], cols[pix]]).query(np.c_[rows[holes], cols[holes]])
+    rays = cam.pixel_rays()
+    result = []
+    for j, (_, _, _, ap, anchors_c) in enumerate(found):
+        mine = holes[owner[nearest] == j]
+        if ap is None or len(mine) == 0:
+            result.append(empty)
+            continue
+        r = rays[rows[mine], cols[mine]]
+        zk = ray_plane_depth(r, ap.n, ap.d)
+        ok = np.isfinite(zk) & (zk > 0) & (zk < cfg.max_depth) & \
+            (np.abs(r @ ap.n) / np.linalg.norm(r, axis=1) >= cfg.min_ray_cos)
+        X = r * np.where(ok, zk, 0.0)[:, None]
+        ok &= ap.std_at(X) <= cfg.max_plane_std
+        if cfg.hull_margin_px >= 0:
+            ok &= in_anchor_hull(cam, anchors_c, rows[mine], cols[mine], cfg.hull_margin_px * s)
+        result.append((mine[ok], X[ok]))
+    return result
 
 
 def _lacks_evidence(a_c: np.ndarray, grp: np.ndarray, inl: np.ndarray, cfg: PlaneConfig) -> str | None:

@@ -243,6 +243,30 @@ class TestWithPrior:
                                    PlaneConfig(require_anchors=False))
         assert len(pp.xyz) > 1000 and np.mean(distance_to_surface(pp.xyz) < 0.03) > 0.95
 
+    def test_fill_holes_covers_a_sparse_prior_on_the_wall(self, room):
+        """An MVS-like prior with no depth in most of each region (a 24-px lattice of depth lines
+        is all there is): only with fill_holes do the holes get plane points, on the walls; a
+        region with no prior depth at all is handed back for the prior-free fit."""
+        scene, depths, regions, anchors = room
+        i = 1
+        cam, image, a = scene.cameras[i], scene.load_image(i), anchors.xyz[anchors.candidates(i)]
+        sparse = np.zeros_like(depths[i])
+        sparse[::24] = depths[i][::24]
+        sparse[:, ::24] = depths[i][:, ::24]
+        off = plane_cues_with_prior(cam, image, regions[i], sparse, a, PlaneConfig(min_region_points=20))
+        on = plane_cues_with_prior(cam, image, regions[i], sparse, a,
+                                   PlaneConfig(min_region_points=20, fill_holes=True))
+        assert len(on.xyz) > 3 * max(len(off.xyz), 1)
+        assert np.mean(distance_to_surface(on.xyz) < 0.02) > 0.95
+        assert _wall_normals_ok(on.xyz, on.normal) > 0.95
+        assert len(on.planes) == len(off.planes)  # the same planes, over more of their pixels
+        dense = plane_cues_with_prior(cam, image, regions[i], depths[i], a, PlaneConfig(fill_holes=True))
+        k = int(np.bincount(regions[i][regions[i] >= 0]).argmax())  # the largest region loses its prior
+        holed = np.where(regions[i] == k, 0, depths[i]).astype(np.float32)
+        pp = plane_cues_with_prior(cam, image, regions[i], holed, a, PlaneConfig(fill_holes=True))
+        assert pp.no_depth_regions == [k] and len(pp.xyz) < len(dense.xyz)
+        assert plane_cues_with_prior(cam, image, regions[i], holed, a, PlaneConfig()).no_depth_regions == []
+
     def test_shape_mismatch(self, room):
         scene, depths, regions, anchors = room
         with pytest.raises(ValueError, match=r"must all be \(120, 160\)"):
