@@ -159,15 +159,19 @@ def _run_row(spec: dict) -> dict:
         log.warning("%s holds a finished row of another configuration: moved to %s, running it again",
                     out, aside)
     cfg = config_from_dict(TrainConfig, spec["train_config"])
-    resume = out.exists() and _resumable(out / "train", cfg)
-    if out.exists() and not resume:  # an unfinished run without a usable checkpoint: start again
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    if resume:
-        log.info("%s: resuming the unfinished run from its checkpoint", spec["row"])
     t0 = time.perf_counter()
-    train_run(cfg, spec["scene"], spec["cues"], out / "train", overwrite=True, resume=resume)
-    train_wall = time.perf_counter() - t0
+    if _trained(out / "train", spec):  # killed while scoring: the finished training is kept
+        log.info("%s: its training finished before the kill; scoring it", spec["row"])
+        train_wall = None
+    else:
+        resume = out.exists() and _resumable(out / "train", cfg)
+        if out.exists() and not resume:  # an unfinished run without a usable checkpoint: start again
+            shutil.rmtree(out)
+        out.mkdir(parents=True, exist_ok=True)
+        if resume:
+            log.info("%s: resuming the unfinished run from its checkpoint", spec["row"])
+        train_run(cfg, spec["scene"], spec["cues"], out / "train", overwrite=True, resume=resume)
+        train_wall = time.perf_counter() - t0
     report = json.loads((out / "train" / "report.json").read_text())
     metrics = MeshMetricsConfig(**spec["metrics"])
     gt = Path(spec["gt"]) if spec.get("gt") else None
@@ -182,6 +186,18 @@ def _run_row(spec: dict) -> dict:
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result
+
+
+def _trained(train_dir: Path, spec: dict) -> bool:
+    """Whether ``train_dir`` holds a finished `splat train` run of this row (same key)."""
+    try:
+        config = json.loads((train_dir / "report.json").read_text())["config"]
+    except (OSError, ValueError, KeyError):
+        return False
+    try:
+        return bool(set(row_keys({**spec, "train_config": config})) & set(spec.get("keys", [spec["key"]])))
+    except (KeyError, TypeError):  # a report of another layout
+        return False
 
 
 def _resumable(train_dir: Path, cfg) -> bool:

@@ -240,6 +240,27 @@ def test_a_row_killed_mid_training_continues_from_its_checkpoint(tiny, monkeypat
     assert json.loads(report.read_text())["resumed_from_step"] is None
 
 
+def test_a_row_killed_while_scoring_keeps_its_finished_training(tiny, ablation, monkeypatch):
+    """Killed after `splat train` finished but before score.json: the re-run scores the trained
+    model and does not train it again (regression: the finished run was deleted and trained anew)."""
+    import splat.ablate as ablate
+    import splat.train as train
+
+    out = tiny[0] / "scoring"
+    shutil.copytree(ablation, out)
+    row = out / "rows" / "no-cues_s0"
+    (row / "score.json").unlink()
+    before = (row / "train" / "report.json").read_text()
+    monkeypatch.setattr(train, "run", lambda *a, **k: pytest.fail("the finished row was trained again"))
+    _run(tiny, "scoring", ["full", "no-cues", "no-ln"])
+    assert (row / "train" / "report.json").read_text() == before
+    score = json.loads((row / "score.json").read_text())
+    assert score["final"]["step"] == 30 and score["train_wall_s"] is None
+    # a finished training of other options is not this row: it trains again
+    assert not ablate._trained(row / "train", {"key": "other", "keys": ["other"], "scene": "", "cues": "",
+                                                "gt": None, "metrics": {}})
+
+
 def test_seeds_give_mean_and_spread(tiny):
     out = _run(tiny, "seeds", ["no-lnc"], seeds=2, floor=False)
     row = json.loads((out / "ablation.json").read_text())["rows"][0]
