@@ -359,9 +359,9 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
             row["plane_mode"] = "prior"
             if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in
                 row["regions_prior_free"] = len(pp.no_depth_regions)
-                holes = np.full_like(regions, -1)
-                for new_id, k in enumerate(pp.no_depth_regions):
-                    holes[regions == k] = new_id
+                relabel = np.full(n_regions + 1, -1, regions.dtype)  # region id -> hole id; -1 stays -1
+                relabel[pp.no_depth_regions] = np.arange(len(pp.no_depth_regions))
+                holes = relabel[regions]
                 pp = pp.concat(plane_cues_prior_free(cam, image, holes, anchors.xyz[pc], anchors.group[pc],
                                                      cfg.plane, seed=cfg.seed + i, inside_only=strict[pc]))
         elif cfg.prior_free_fallback or not cfg.priors or not has_priors:

@@ -226,14 +226,16 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     out = _Collector(cam, image, rows, cols)
     accepted = 0
     no_depth = []  # regions left to the prior-free fit (fill_holes)
+    has_depth = (z > 0) & (z < cfg.max_depth)
     for k in range(n_regions):
-        sel = np.flatnonzero((rid == k) & (z > 0) & (z < cfg.max_depth))
+        in_k = rid == k
+        sel = np.flatnonzero(in_k & has_depth)
         if len(sel) < cfg.min_region_points:
             _bump(rej, "too_small_or_no_depth")
-            if cfg.fill_holes and (rid == k).sum() >= cfg.min_region_points:
+            if cfg.fill_holes and in_k.sum() >= cfg.min_region_points:
                 no_depth.append(k)
             continue
-        holes = np.flatnonzero((rid == k) & ~((z > 0) & (z < cfg.max_depth))) if cfg.fill_holes else sel[:0]
+        holes = np.flatnonzero(in_k & ~has_depth) if cfg.fill_holes else sel[:0]
         found = []  # (pixel indices, camera-frame points, normal, anchored plane or None) per plane
         Xc = rays[sel] * z[sel, None]  # [m, 3] camera frame
         zmed = float(np.median(z[sel]))
@@ -302,8 +304,7 @@ def _fill(cam: Camera, rows: np.ndarray, cols: np.ndarray, holes: np.ndarray, fo
     """For each plane found in a region, the hole pixels (no prior depth) it takes: those whose
     nearest pixel with depth belongs to it, cut with the plane where its anchors pin it down."""
     empty = (np.zeros(0, np.int64), np.zeros((0, 3)))
-    anchored = [f[3] is not None for f in found]
-    if len(holes) == 0 or not any(anchored):
+    if len(holes) == 0 or all(f[3] is None for f in found):
         return [empty] * len(found)
     from scipy.spatial import cKDTree
 
