@@ -10,7 +10,8 @@ Stages (each can be switched off for the paper's ablations, each is timed):
 
 Outputs: ``CUES/cues.ply`` (typed points), ``CUES/lines3d.npz``, ``CUES/lines3d.ply`` and
 ``CUES/cues_by_type.ply`` (to look at in MeshLab / CloudCompare), ``CUES/depth_alignments.json``
-(the per-image prior alignments `splat train` reads), ``CUES/report.json`` (counts per
+(the per-image prior alignments `splat train` reads), ``CUES/plane_anchors.npz`` (each image's kept
+plane points, for `splat train --loss.plane-anchor`; geocues.plane_anchors), ``CUES/report.json`` (counts per
 type, rejections with reasons, seconds per stage and per image, alignment residuals, notes on hard
 cases) and ``CUES/cache/`` (per-image texture results and the line stage's cache, reused by later
 runs). Every file is written atomically.
@@ -35,6 +36,7 @@ from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, wri
 from geocues.depth_align import (DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning,
                                   write_alignments)
 from geocues.lines import LineConfig, LineCues
+from geocues.plane_anchors import write_plane_anchors
 from geocues.plane_merge import merge_plane_points
 from geocues.plane_regions import split_regions_by_lines
 from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
@@ -229,9 +231,10 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
+    anchor_pts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))  # plane anchors: X, normal, image
     if cfg.planes:
-        plane_cloud, per_image, pr, plane_stats = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines,
-                                                               cache, timings, notes)
+        plane_cloud, per_image, pr, plane_stats, anchor_pts = _plane_stage(scene, cfg, kind, anchors, plane_ok,
+                                                                           lines, cache, timings, notes)
         rejections.update(pr)
 
     # ---- merge and write
@@ -251,11 +254,13 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     write_lines_npz(out_dir / "lines3d.npz", lc.segments, lc.n_views, lc.views, lc.colors,
                     lc.points, lc.point_colors, lc.point_line)
     write_lines_ply(out_dir / "lines3d.ply", lc.segments, lc.colors)  # for looking at: a line set
+    write_plane_anchors(out_dir, [c.name for c in scene.cameras], *anchor_pts)  # for --loss.plane-anchor
     timings["write"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {
         "scene": str(scene_dir), "n_images": n_img, "config_key": key, "config": asdict(cfg),
         "counts": cues.counts(), "n_points": len(cues), "n_lines": len(lc),
+        "n_plane_anchors": len(anchor_pts[0]),
         "stages": {"sfm": cfg.sfm, "lines": cfg.lines, "planes": cfg.planes, "priors": cfg.priors},
         "prior_kind": kind,
         "rejections": rejections, "seconds": timings,
@@ -290,9 +295,9 @@ def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:
 def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str]
-                 ) -> tuple[CueCloud, list[dict], dict[str, dict], dict]:
+                 ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
-    rows, rejections by stage, summary statistics)."""
+    rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image)."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -389,7 +394,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         rows.append(row)
     t0 = time.perf_counter()
     centers = np.array([c.center for c in scene.cameras])
-    cloud, merge_rej = merge_plane_points(centers, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
+    cloud, merge_rej, anchor_pts = merge_plane_points(centers, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
     rej_plane.update(merge_rej)
     timings["planes_merge"] = time.perf_counter() - t0
     timings["planes"] += timings["planes_merge"]
@@ -414,4 +419,4 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     stats = {"texture_cache_hits": cache_hits, "images_with_prior": n_prior, "images_aligned": n_aligned,
              "plane_modes": {m: sum(r["plane_mode"] == m for r in rows)
                              for m in ("prior", "prior_free", "none", "skipped_no_prior")}}
-    return cloud, rows, {"texture": rej_tex, "depth_align": rej_align, "planes": rej_plane}, stats
+    return cloud, rows, {"texture": rej_tex, "depth_align": rej_align, "planes": rej_plane}, stats, anchor_pts

@@ -209,13 +209,16 @@ def multiview_conflict(xyz: np.ndarray, view: np.ndarray, normal: np.ndarray, ra
 
 
 def merge_plane_points(centers: np.ndarray, cfg: PlaneConfig, xyz: list, rgb: list, nrm: list, pid: list,
-                       planes: list, plane_view: list) -> tuple[CueCloud, dict[str, int]]:
+                       planes: list, plane_view: list
+                       ) -> tuple[CueCloud, dict[str, int], tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """All images' plane points -> fused planes (optional) -> multi-view support and vote -> voxel
     grid -> PLANE cloud. centers: [V, 3] camera centres; the lists hold one array per image
-    (points, colours, normals, plane ids, planes, the view of each plane)."""
+    (points, colours, normals, plane ids, planes, the view of each plane). Returns (the cloud,
+    rejections, (the kept points before the voxel grid [M, 3], their plane normals [M, 3], the view
+    that made each [M]): the plane anchors of geocues.plane_anchors)."""
     rej: dict[str, int] = {}
     if not xyz:
-        return CueCloud.empty(), rej
+        return CueCloud.empty(), rej, (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))
     X, C, N = np.concatenate(xyz), np.concatenate(rgb), np.concatenate(nrm)
     P, PL, PV = np.concatenate(pid), np.concatenate(planes), np.concatenate(plane_view)
     if cfg.fuse_planes and len(PL):
@@ -239,4 +242,5 @@ def merge_plane_points(centers: np.ndarray, cfg: PlaneConfig, xyz: list, rgb: li
         drop |= agree < disagree
     X, C, N, view = X[~drop], C[~drop], N[~drop], view[~drop]
     vx, vc, vn, nv = voxel_downsample(X, C, N, view, cfg.voxel_size)
-    return CueCloud.make(vx, vc, CueType.PLANE, normal=vn, confidence=np.minimum(1.0, nv / 3.0)), rej
+    cloud = CueCloud.make(vx, vc, CueType.PLANE, normal=vn, confidence=np.minimum(1.0, nv / 3.0))
+    return cloud, rej, (X, N, view)

@@ -29,6 +29,7 @@ from typing import Any
 
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
+from geocues.plane_anchors import PLANE_ANCHORS_FILE
 from splat.checkpoint import TrainingInterrupted
 from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
@@ -112,6 +113,8 @@ def row_keys(spec: dict) -> list[str]:
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
     if tc["tsdf"].get("consistent_views") is None:  # depth filter off: rows meshed before it keep their key
         tc["tsdf"] = {k: v for k, v in tc["tsdf"].items() if not k.startswith("consisten")}
+    if not tc["loss"].get("plane_anchor"):  # plane anchors off: rows trained before them keep their key
+        tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "plane_anchor"}
     if not tc["loss"].get("lambda_mv"):  # L_mv off: rows trained before it existed keep their key
         tc["loss"] = {k: v for k, v in tc["loss"].items() if not (k == "lambda_mv" or k.startswith("mv_"))}
     keys = []
@@ -271,9 +274,10 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
     if cfg.seeds < 1 or cfg.jobs < 1 or cfg.iters < 1:
         raise ValueError(f"--seeds, --jobs and --iters must be >= 1 (got {cfg.seeds}, {cfg.jobs}, {cfg.iters})")
     scene = Scene.load(scene_dir, check_priors=False)
+    has_anchors = ((cues if cues.is_dir() else cues.parent) / PLANE_ANCHORS_FILE).is_file()
     specs, na = [], {}
     for row in dict.fromkeys(cfg.rows):
-        why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors)
+        why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors, has_anchors)
         if why is not None:
             na[row] = why
             continue

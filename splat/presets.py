@@ -44,7 +44,8 @@ class Preset:
     overrides: dict[str, Any] = field(default_factory=dict)
     """TrainConfig fields (dotted paths) and their values."""
     needs: tuple[str, ...] = ()
-    """"depth_priors" / "normal_priors": the row equals ``full`` on a scene without them."""
+    """"depth_priors" / "normal_priors": the row equals ``full`` on a scene without them;
+    "plane_anchors": the cue folder must hold them (cue folders written before they existed do not)."""
     iters_factor: float = 1.0
     """Multiplies the run's iterations (no-cues-long: 3x)."""
     extension: bool = False
@@ -73,6 +74,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
     Preset("literal-line-clone", "LINE clone at mu + grad (paper verbatim)",
            {"strategy.line_clone_literal": True}, extension=True),
     Preset("mv", "+ multi-view photometric consistency L_mv (PGSR)", {"loss.lambda_mv": 0.15}, extension=True),
+    Preset("plane-anchor", "+ L_a on each view's own plane cues", {"loss.plane_anchor": True},
+           needs=("plane_anchors",), extension=True),
 ]}
 
 DEFAULT_ROWS = tuple(PRESETS)
@@ -174,8 +177,11 @@ def write_config_file(path: str | Path, cfg: Any, extra: dict | None = None) -> 
     return Path(path)
 
 
-def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: bool) -> str | None:
-    """Why ``preset`` cannot differ from ``full`` on this scene ("no depth priors"), or None."""
+def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: bool,
+                  has_plane_anchors: bool = True) -> str | None:
+    """Why ``preset`` cannot run as itself on this scene and cue folder ("no depth priors"), or None."""
+    if "plane_anchors" in preset.needs and not has_plane_anchors:
+        return "cue folder without plane anchors (written by `geocues extract` since they exist)"
     have = {"depth_priors": has_depth_priors, "normal_priors": has_normal_priors}
-    lacking = [n.replace("_", " ") for n in preset.needs if not have[n]]
+    lacking = [n.replace("_", " ") for n in preset.needs if n in have and not have[n]]
     return f"no {' / '.join(x.removesuffix(' priors') for x in lacking)} priors" if lacking else None

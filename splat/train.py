@@ -34,6 +34,7 @@ from tqdm import tqdm
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.cue_io import CueCloud, read_cues_ply
 from geocues.depth_align import load_alignments, load_prior_kind
+from geocues.plane_anchors import load_plane_anchors
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat import checkpoint
@@ -285,8 +286,9 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
 
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
+    planes = load_plane_anchors(cues_ply) if cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0 else None
     train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
-                          prior_kind=prior_kind)
+                          prior_kind=prior_kind, plane_anchors=planes)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")

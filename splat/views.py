@@ -8,7 +8,10 @@ a depth map with values outside float16's normal range stays float32).
 With the per-image alignments of ``geocues extract`` (``geocues.depth_align.load_alignments``), a
 view also carries its depth prior *aligned to the cues* (metric, scale/shift/warp fitted to the line
 and SfM cues it sees) and that fit's 90th-percentile residual: the anchor of the trainer's
-anchored-depth term (splat/losses.py ``anchored_depth_loss``).
+anchored-depth term (splat/losses.py ``anchored_depth_loss``). With the extract's plane anchors
+(``--loss.plane-anchor``, geocues.plane_anchors), the pixels where a view's own plane cues lie and
+its aligned prior has no depth -- every such pixel, for a view without a prior -- take the plane's
+depth as their anchor.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from geocues.depth_align import DepthAlignment
+from geocues.plane_anchors import PlaneAnchors, anchor_depth
 from geocues.scene import Scene
 from splat.camera import Camera
 
@@ -58,7 +62,8 @@ class ViewSet:
 
     def __init__(self, scene: Scene, indices: list[int], device: torch.device | str = "cpu",
                  load_priors: bool = True, desc: str = "views",
-                 alignments: dict[str, DepthAlignment] | None = None, prior_kind: str = "depth"):
+                 alignments: dict[str, DepthAlignment] | None = None, prior_kind: str = "depth",
+                 plane_anchors: PlaneAnchors | None = None):
         self.scene, self.indices, self.device = scene, list(indices), torch.device(device)
         self._rgb: list[Tensor] = []
         self._depth: list[Tensor | None] = []
@@ -82,13 +87,17 @@ class ViewSet:
                 d = aligned if aligned is not None else np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
             self._depth.append(None if d is None else _compact(d))
             self._normal.append(None if n is None else torch.from_numpy(n).half())  # unit: fits
+            if plane_anchors is not None and len((pts := plane_anchors.of(cam.name))[0]):
+                on_plane = anchor_depth(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
+                aligned = on_plane if aligned is None else np.where(aligned > 0, aligned, on_plane)
             self._anchor.append(None if aligned is None else _compact(aligned))
             self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)
         n_anchor = sum(a is not None for a in self._anchor)
-        log.info("%s: %d views, %d with a depth prior (%d aligned to the cues), %d with a normal prior",
-                 desc, len(self), n_depth, n_anchor, n_normal)
+        log.info("%s: %d views, %d with a depth prior, %d with an anchor for L_a (%s), %d with a normal prior",
+                 desc, len(self), n_depth, n_anchor, "aligned prior" + (" or plane anchors" if plane_anchors
+                                                                         else ""), n_normal)
 
     def __len__(self) -> int:
         return len(self.indices)

@@ -371,3 +371,25 @@ def test_rows_keyed_under_earlier_key_rules_are_still_finished(tiny, tmp_path):
     assert _done(tmp_path / "row", keys) is not None and _done(tmp_path / "row", keys[:1]) is None
     expected, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, TRAIN_ARGS)
     assert expected[0]["keys"] == [expected[0]["key"]]  # the default depth has one key
+
+
+def test_plane_anchor_row_needs_the_anchors_file_and_leaves_other_rows_keys(tiny, tmp_path):
+    import shutil
+
+    from geocues.plane_anchors import write_plane_anchors
+    from splat.ablate import AblateConfig, plan, row_keys
+
+    base, root, cues = tiny
+    cfg = AblateConfig(rows=("full", "plane-anchor"), iters=30)
+    specs, na = plan(cfg, root, cues, tmp_path, TRAIN_ARGS)
+    assert [s["row"] for s in specs] == ["full"] and "plane anchors" in na["plane-anchor"]
+    before = json.loads(json.dumps(specs[0]))  # a row planned before the option existed
+    del before["train_config"]["loss"]["plane_anchor"]
+    assert row_keys(before) == specs[0]["keys"]
+    with_anchors = tmp_path / "cues"
+    with_anchors.mkdir()
+    shutil.copy(cues / "cues.ply", with_anchors)
+    write_plane_anchors(with_anchors, ["00000.png"], np.zeros((1, 3)), np.float32([[0, 0, 1]]), np.zeros(1))
+    specs, na = plan(cfg, root, with_anchors, tmp_path, TRAIN_ARGS)
+    assert [s["row"] for s in specs] == ["full", "plane-anchor"] and not na
+    assert specs[1]["train_config"]["loss"]["plane_anchor"] is True and specs[1]["key"] != specs[0]["key"]

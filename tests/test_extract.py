@@ -51,7 +51,7 @@ def _no_nan(out):
 class TestRun:
     def test_outputs_and_accuracy(self, scenes, tmp_path):
         out = ex.run(None, scenes["all"], tmp_path / "cues")
-        for f in ("cues.ply", "lines3d.npz", "report.json", "depth_alignments.json"):
+        for f in ("cues.ply", "lines3d.npz", "report.json", "depth_alignments.json", "plane_anchors.npz"):
             assert (out / f).is_file()
         cues = _no_nan(out)
         rep = _report(out)

@@ -1,0 +1,189 @@
+"""Plane anchors (geocues.plane_anchors, `splat train --loss.plane-anchor`): each image's own plane
+cues as an anchor for L_a where the image has no depth prior.
+
+What must hold: points fall in the COLMAP pixel containing their projection, nearest first; the file
+round-trips and names its fix when missing; `geocues extract` writes anchors that lie on the
+surface in the image that made them (a prior-free scene, where L_a had nothing before); the views
+of a prior-free scene get anchors from them; and L_a through them pulls a textureless wall rebuilt
+in front of itself back, which the RGB loss alone does not.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+import geocues.extract as ex
+from geocues.plane_anchors import PlaneAnchors, anchor_depth, load_plane_anchors, write_plane_anchors
+from geocues.scene import Scene
+
+from cues_synth import fake_line_cues, make_room_scene, render as render_room
+
+
+def test_anchor_depth_pixel_convention_zbuffer_and_culling():
+    K = np.array([[10.0, 0, 4.0], [0, 10.0, 3.0], [0, 0, 1]])
+    R, t = np.eye(3), np.zeros(3)
+    pts = np.array([
+        [0.0, 0.0, 2.0],     # u = 4.0, v = 3.0 -> pixel (3, 4)
+        [0.0, 0.0, 1.5],     # same pixel, nearer: wins
+        [-0.0005, 0.0, 1.0],  # u = 3.995 -> column 3 (the pixel containing it), row 3
+        [0.0, 0.0, -1.0],    # behind the camera
+        [1.0, 0.0, 1.0],     # u = 14: outside an 8-wide image
+    ])
+    d = anchor_depth(pts, None, K, R, t, 6, 8)
+    assert d.shape == (6, 8) and d.dtype == np.float32
+    assert d[3, 4] == pytest.approx(1.5) and d[3, 3] == pytest.approx(1.0)
+    assert np.count_nonzero(d) == 2
+    assert not anchor_depth(np.zeros((0, 3)), None, K, R, t, 6, 8).any()
+
+
+def test_anchor_depth_with_normals_is_the_planes_depth_at_the_pixel_centre():
+    """A floor seen at a slant: z = 2 + x (plane x - z + 2 = 0). A point at u = 4.9 belongs to the
+    pixel whose centre is at u = 4.5; its anchor is the plane's depth on that centre's ray."""
+    K = np.array([[10.0, 0, 4.0], [0, 10.0, 3.0], [0, 0, 1]])
+    n = np.array([[1.0, 0.0, -1.0]]) / np.sqrt(2)
+    x = 0.09 * 2 / (1 - 0.09)  # on the plane and on the ray u = 4.9 (x / z = 0.09)
+    p = np.array([[x, 0.0, 2 + x]])
+    d = anchor_depth(p, n, K, np.eye(3), np.zeros(3), 6, 8)
+    z_centre = 2 / (1 - 0.05)  # ray x / z = 0.05 meets x = z - 2
+    assert d[3, 4] == pytest.approx(z_centre, rel=1e-6) and abs(z_centre - p[0, 2]) > 0.08
+    assert anchor_depth(p, None, K, np.eye(3), np.zeros(3), 6, 8)[3, 4] == pytest.approx(p[0, 2], rel=1e-6)
+    grazing = anchor_depth(p, np.array([[0.0, 1.0, 0.0]]), K, np.eye(3),
+                           np.zeros(3), 6, 8)  # plane y = 0 holds the ray: the point's own depth
+    assert grazing[3, 4] == pytest.approx(p[0, 2], rel=1e-6)
+
+
+def test_file_round_trip_and_a_folder_without_it(tmp_path):
+    xyz = np.arange(15, dtype=np.float32).reshape(5, 3)
+    nrm = np.tile(np.float32([0, 0, 1]), (5, 1))
+    write_plane_anchors(tmp_path, ["a.png", "b.png", "c.png"], xyz, nrm, np.array([2, 0, 2, 0, 0]))
+    pa = load_plane_anchors(tmp_path / "cues.ply")  # a file in the folder works too
+    assert pa.counts() == {"a.png": 3, "b.png": 0, "c.png": 2}
+    np.testing.assert_array_equal(pa.of("c.png")[0], xyz[[0, 2]])
+    np.testing.assert_array_equal(pa.of("c.png")[1], nrm[[0, 2]])
+    assert pa.of("b.png")[0].shape == (0, 3) and pa.of("unknown.png")[1].shape == (0, 3)
+    with pytest.raises(ValueError, match="view index"):
+        PlaneAnchors(["a.png"], xyz, nrm, np.array([0, 1, 0, 0, 0]))
+    (tmp_path / "old_cues").mkdir()
+    with pytest.raises(FileNotFoundError, match="geocues extract"):
+        load_plane_anchors(tmp_path / "old_cues")
+
+
+@pytest.fixture(scope="module")
+def prior_free_cues(tmp_path_factory):
+    """A synthetic room without depth priors and its extracted cues (exact room edges as lines)."""
+    root = tmp_path_factory.mktemp("plane_anchors")
+    scene = make_room_scene(root / "scene", n_views=16, priors="none")
+    mp = pytest.MonkeyPatch()
+    mp.setattr(ex, "_run_lines", lambda scene, cfg, cache: fake_line_cues(scene.cameras))
+    try:
+        cues = ex.run(None, scene, root / "cues")
+    finally:
+        mp.undo()
+    return scene, cues
+
+
+def test_extract_writes_anchors_on_the_surface_in_their_own_image(prior_free_cues):
+    scene_dir, cues = prior_free_cues
+    scene = Scene.load(scene_dir)
+    pa = load_plane_anchors(cues)
+    counts = pa.counts()
+    assert sorted(counts) == sorted(c.name for c in scene.cameras)
+    report = json.loads((cues / "report.json").read_text())
+    assert sum(counts.values()) == report["n_plane_anchors"] > 0
+    made = {r["name"] for r in report["per_image"] if r.get("plane_points", 0) > 0}
+    assert {n for n, c in counts.items() if c} <= made  # an image anchors only points its own planes made
+    errs, covered = [], []
+    for cam in scene.cameras:
+        pts, nrm = pa.of(cam.name)
+        if not len(pts):
+            continue
+        d = anchor_depth(pts, nrm, cam.K, cam.R, cam.t, cam.height, cam.width)
+        _, gt, _ = render_room(cam.K, cam.R, cam.t, cam.width, cam.height)
+        hit = d > 0
+        errs.append(np.abs(d[hit] - gt[hit]))
+        covered.append(hit.sum() / len(pts))
+    err = np.concatenate(errs)
+    assert np.mean(err < 0.03) > 0.9, np.percentile(err, [50, 90])  # what the plane cues promise
+    assert min(covered) > 0.5, covered  # they were cut from this image's pixels: they land in it
+
+
+def test_views_of_a_prior_free_scene_get_plane_anchors(prior_free_cues):
+    from splat.views import ViewSet
+
+    scene_dir, cues = prior_free_cues
+    scene = Scene.load(scene_dir, downscale=2.0)  # training resolution differs from the extract's
+    without = ViewSet(scene, scene.train_indices)
+    assert all(without[k].depth_anchor is None for k in range(len(without)))
+    pa = load_plane_anchors(cues)
+    views = ViewSet(scene, scene.train_indices, plane_anchors=pa)
+    anchored = [views[k] for k in range(len(views)) if views[k].depth_anchor is not None]
+    assert {v.name for v in anchored} == {views[k].name for k in range(len(views)) if len(pa.of(views[k].name)[0])} != set()
+    for v in anchored:
+        cam = scene.cameras[v.index]
+        assert tuple(v.depth_anchor.shape) == (cam.height, cam.width) and math.isnan(v.anchor_p90)
+        _, gt, _ = render_room(cam.K, cam.R, cam.t, cam.width, cam.height)
+        a = v.depth_anchor.numpy()
+        assert np.median(np.abs(a[a > 0] - gt[a > 0])) < 0.02
+
+
+@pytest.mark.parametrize("plane_anchor", [False, True])
+def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchors(plane_anchor):
+    """Flat grey Gaussians on the room's surfaces, all moved 8 cm towards the cameras: the images
+    look the same (no texture), so the RGB loss cannot see the error; anchors at the true depth on
+    every other pixel (a plane cue's sampling) pull the surface back to within L_a's tolerance."""
+    from splat.bench import TRAIN_EYES, surface_gaussians, target_views
+    from splat.losses import LossConfig
+    from splat.rasterize import render
+    from splat.strategy import IndoorStrategy, IndoorStrategyConfig
+    from splat.train import LearningRates, TrainConfig, make_optimizers, train_step
+
+    truth = surface_gaussians(3000, sh_degree=0, seed=2)
+    truth["sh0"] = torch.full_like(truth["sh0"], 0.3)  # textureless
+    truth["opacities"] = torch.full_like(truth["opacities"], 4.0)
+    views = target_views(truth, 48, 36, sh_degree=0)
+    for v in views:
+        v.depth_prior = v.normal_prior = None  # prior-free
+        if plane_anchor:  # what ViewSet makes of a plane cue sampled on every other pixel
+            d = render(truth, v.camera, sh_degree=0)["median_depth"].detach()
+            v.depth_anchor = torch.zeros_like(d)
+            v.depth_anchor[::2, ::2] = d[::2, ::2]
+    eye = torch.tensor(TRAIN_EYES, dtype=torch.float32).mean(0)
+    start = {k: t.clone() for k, t in truth.items()}
+    to_eye = eye - start["means"]
+    start["means"] += 0.08 * to_eye / to_eye.norm(dim=1, keepdim=True)
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(t) for k, t in start.items()})
+    iters = 80
+    optimizers = make_optimizers(params, LearningRates(), 3.0)
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0))  # no density control
+    state = strategy.initialize_state(3.0)
+    state["cue_type"] = torch.full((len(params["means"]),), 2)
+    cfg = TrainConfig(iters=iters, sh_degree=0)
+    loss_cfg = replace(LossConfig(), use_nc=False, plane_anchor=plane_anchor)
+    g = torch.Generator().manual_seed(0)
+
+    def depth_error() -> float:
+        with torch.no_grad():
+            errs = []
+            for v in views:
+                d, t = render(params, v.camera, sh_degree=0)["median_depth"], render(truth, v.camera, sh_degree=0)
+                ok = t["alpha"] > 0.5
+                errs.append((d - t["median_depth"]).abs()[ok])
+            return float(torch.cat(errs).median())
+
+    before = depth_error()
+    for step in range(iters):
+        loss, terms, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step, 0, cfg,
+                                    loss_cfg, g)
+        assert math.isfinite(float(loss))
+    after = depth_error()
+    assert before > 0.05
+    if plane_anchor:
+        assert after < 0.045, (before, after)  # back to within L_a's 3 cm tolerance (+ margin)
+    else:
+        assert after > 0.8 * before, (before, after)  # RGB alone leaves the wall where it is
