@@ -5,8 +5,9 @@ TSDF weight threshold can be compared on the Gaussians every row already trained
 row (OUT/rows/<row>_s<seed>/train) and each variant this runs what `splat mesh` runs, scores the mesh
 with the ablation's own metrics, and fuses the exact-depth floor with the same weight threshold (the
 floor is exact depth: the rendered-depth choice does not apply to it). Variants are named
-``<depth>_w<threshold>[_c<views>]`` (``_c2``: fuse only rendered depths that 2 neighbouring renders
-agree with, ``--tsdf.consistent-views 2``); ``median_w3`` is what `splat train` fused before
+``<depth>_w<threshold>[_c<views>][_s<spread>]`` (``_c2``: fuse only rendered depths that 2 neighbouring
+renders agree with, ``--tsdf.consistent-views 2``; ``_s0.02``: only pixels whose expected and median
+depths agree within 2 %, ``--tsdf.max-depth-spread 0.02``); ``median_w3`` is what `splat train` fused before
 ``expected`` became the default (checked: it reproduces each row's score.json).
 
     python bench/remesh_ablation.py outputs/ablation_textured_s0 --name textured_s0 \
@@ -50,11 +51,13 @@ class Remesh:
     """rows to re-mesh (default: every finished row)."""
 
 
-def parse_variant(name: str) -> tuple[str, float, int | None]:
-    """``<depth>_w<threshold>[_c<views>]`` -> (depth, weight threshold, consistent_views or None)."""
+def parse_variant(name: str) -> tuple[str, float, int | None, float | None]:
+    """``<depth>_w<threshold>[_c<views>][_s<spread>]`` -> (depth, weight threshold, consistent_views
+    or None, max_depth_spread or None)."""
     depth, rest = name.split("_w")
+    rest, _, spread = rest.partition("_s")
     w, _, c = rest.partition("_c")
-    return depth, float(w), int(c) if c else None
+    return depth, float(w), int(c) if c else None, float(spread) if spread else None
 
 
 def main(cfg: Remesh) -> dict:
@@ -70,11 +73,11 @@ def main(cfg: Remesh) -> dict:
     result = {"ablation": str(cfg.ablation), "scene": str(scene), "scene_label": abl.get("scene_label"),
               "variants": {}}
     for variant in cfg.variants:
-        depth, w, consistent = parse_variant(variant)
+        depth, w, consistent, spread = parse_variant(variant)
         rows = {}
         base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
         tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w,
-                       consistent_views=consistent)
+                       consistent_views=consistent, max_depth_spread=spread)
         folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
         if folder is not None:
             floor_mesh = fuse_floor(scene, work / f"floor_w{w:g}.ply", gt_depth=folder,

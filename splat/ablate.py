@@ -113,6 +113,8 @@ def row_keys(spec: dict) -> list[str]:
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
     if tc["tsdf"].get("consistent_views") is None:  # depth filter off: rows meshed before it keep their key
         tc["tsdf"] = {k: v for k, v in tc["tsdf"].items() if not k.startswith("consisten")}
+    if tc["tsdf"].get("max_depth_spread") is None:  # spread filter off: rows meshed before it keep their key
+        tc["tsdf"] = {k: v for k, v in tc["tsdf"].items() if k != "max_depth_spread"}
     if not tc["loss"].get("plane_anchor"):  # plane anchors off: rows trained before them keep their key
         tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "plane_anchor"}
     if not tc["loss"].get("lambda_mv"):  # L_mv off: rows trained before it existed keep their key

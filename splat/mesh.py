@@ -84,6 +84,11 @@ class TSDFConfig:
     neighbouring views render a depth that agrees with it (forward-backward reprojection within
     ``consistency_px`` pixels and ``consistency_rel_depth``, the check of MVS fusion; an extension);
     None fuses every pixel. Exact depth (the floor) is never filtered."""
+    max_depth_spread: float | None = None
+    """fuse a rendered pixel only where its expected and median depths differ by at most this
+    fraction of the depth (an extension): where they part ways the pixel mixes surfaces — an object's
+    silhouette over the wall behind it, a floater — and its blended depth lies between them (the
+    halos in front of ICL's chair). None fuses every pixel with alpha > 0.5."""
     consistency_neighbours: int = 4
     """views compared with each fused view (chosen as `geocues mvs` chooses them) when ``consistent_views`` is set."""
     consistency_px: float = 1.0
@@ -115,6 +120,8 @@ class TSDFConfig:
         if self.consistent_views is not None and not 1 <= self.consistent_views <= self.consistency_neighbours:
             raise ValueError(f"consistent_views must be in 1..consistency_neighbours "
                              f"({self.consistency_neighbours}) or unset, got {self.consistent_views}")
+        if self.max_depth_spread is not None and not self.max_depth_spread > 0:
+            raise ValueError(f"max_depth_spread must be positive or unset, got {self.max_depth_spread}")
         if not (self.consistency_px > 0 and self.consistency_rel_depth > 0):
             raise ValueError(f"consistency_px and consistency_rel_depth must be positive, got "
                              f"{self.consistency_px}, {self.consistency_rel_depth}")

@@ -47,7 +47,8 @@ def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = 
                  background=(0.0, 0.0, 0.0), device="cpu", progress: bool = False):
     """Render each scene camera (``geocues.scene.Camera``: K, R, t, size) and fuse the rendered depth
     where alpha > 0.5 — the median or the expected depth, ``tsdf.depth`` — with the colours into a
-    TSDF; return the cleaned mesh. With ``tsdf.consistent_views`` every view is rendered first and a
+    TSDF; return the cleaned mesh. With ``tsdf.max_depth_spread`` a pixel whose expected and median
+    depths differ by more than that fraction of the depth is left out. With ``tsdf.consistent_views`` every view is rendered first and a
     depth is fused only where enough neighbouring renders agree (:func:`consistent_depths`)."""
     import numpy as np
     import torch
@@ -63,7 +64,10 @@ def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = 
     def rendered(cam):
         out = render(params, Camera.from_scene_camera(cam, device), sh_degree=sh_degree, backend=backend,
                      background=bg)
-        depth = torch.where(out["alpha"] > 0.5, out[key], torch.zeros_like(out[key]))
+        keep = out["alpha"] > 0.5
+        if tsdf.max_depth_spread is not None:  # mixed pixels: the blend and the median part ways
+            keep &= (out["depth"] - out["median_depth"]).abs() <= tsdf.max_depth_spread * out["depth"]
+        depth = torch.where(keep, out[key], torch.zeros_like(out[key]))
         return (depth.cpu().numpy().astype(np.float32), out["rgb"].clamp(0, 1).cpu().numpy().astype(np.float32))
 
     if tsdf.consistent_views is None:

@@ -72,3 +72,43 @@ def test_the_option_is_checked():
         TSDFConfig(consistent_views=0).validate()
     with pytest.raises(ValueError, match="positive"):
         TSDFConfig(consistent_views=1, consistency_rel_depth=0).validate()
+
+
+def _sheet_over_wall():
+    """Gaussians: an opaque wall at z = 3 m filling the view and a sheet of opacity 0.45 at z = 2 m over
+    its left part. There alpha is ~1, the expected depth ~2.55 m (a blend of the two) and the median
+    depth 3 m (transmittance is still 0.55 behind the sheet): a mixed pixel, as at a silhouette."""
+    import torch
+
+    def grid(xs, ys, z, opacity):
+        x, y = np.meshgrid(xs, ys)
+        n = x.size
+        return {"means": torch.tensor(np.stack([x.ravel(), y.ravel(), np.full(n, z)], 1), dtype=torch.float32),
+                "scales": torch.log(torch.tensor([[0.08, 0.08, 0.001]]).repeat(n, 1)),
+                "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                "opacities": torch.full((n,), float(np.log(opacity / (1 - opacity)))),
+                "sh0": torch.full((n, 1, 3), 0.5), "shN": torch.zeros((n, 0, 3))}
+
+    wall = grid(np.arange(-2.4, 2.41, 0.1), np.arange(-1.8, 1.81, 0.1), 3.0, 0.99)
+    sheet = grid(np.arange(-1.5, -0.09, 0.1), np.arange(-1.2, 1.21, 0.1), 2.0, 0.45)
+    return {k: torch.cat([wall[k], sheet[k]]) for k in wall}
+
+
+def test_max_depth_spread_leaves_out_mixed_pixels_and_keeps_the_rest():
+    from types import SimpleNamespace
+
+    from splat.mesh_run import fuse_cameras
+
+    cam = SimpleNamespace(K=np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]), R=np.eye(3), t=np.zeros(3),
+                          width=64, height=48, world_to_camera=np.eye(4))
+    params = _sheet_over_wall()
+    tsdf = TSDFConfig(voxel_size=0.05, min_component_diag=0.0)
+    z_all = np.asarray(fuse_cameras(params, [cam], 0, tsdf).vertices)[:, 2]
+    z_kept = np.asarray(fuse_cameras(params, [cam], 0, replace(tsdf, max_depth_spread=0.02)).vertices)[:, 2]
+    blend = lambda z: ((z > 2.3) & (z < 2.8)).sum()  # noqa: E731
+    assert blend(z_all) > 100  # unfiltered: a surface where no Gaussian is
+    assert blend(z_kept) == 0
+    assert (np.abs(z_kept - 3.0) < 0.05).sum() > 0.3 * (np.abs(z_all - 3.0) < 0.05).sum()  # the wall stays
+    assert np.isfinite(z_kept).all()
+    with pytest.raises(ValueError, match="max_depth_spread"):
+        TSDFConfig(max_depth_spread=0.0).validate()
