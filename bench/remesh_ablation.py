@@ -72,9 +72,11 @@ def main(cfg: Remesh) -> dict:
         runs = [p for p in runs if p.parent.name.rsplit("_s", 1)[0] in cfg.rows]
     result = {"ablation": str(cfg.ablation), "scene": str(scene), "scene_label": abl.get("scene_label"),
               "variants": {}}
+    path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"
+    done = json.loads(path.read_text())["variants"] if path.is_file() else {}  # a re-run scores only what is new
     for variant in cfg.variants:
         depth, w, consistent, spread = parse_variant(variant)
-        rows = {}
+        rows = dict(done.get(variant, {}))  # rows of an earlier run of this name stay
         base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
         tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w,
                        consistent_views=consistent, max_depth_spread=spread)
@@ -86,12 +88,15 @@ def main(cfg: Remesh) -> dict:
             rows["floor"] = score_mesh(floor_mesh, gt, scene, metrics)
         for run_dir in runs:
             row = run_dir.parent.name
+            if row in rows and (work / row / f"{variant}.ply").is_file():
+                continue
             t0 = time.perf_counter()
             out = mesh_run(MeshRunConfig(tsdf=tsdf), run_dir, work / row / f"{variant}.ply", overwrite=True)
             rows[row] = score_mesh(out, gt, scene, metrics) | {"mesh_s": time.perf_counter() - t0}
             print(variant, row, {k: round(rows[row][k], 4) for k in SHOW}, flush=True)
         result["variants"][variant] = rows
-    path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"
+    for variant, rows in done.items():  # earlier variants of this name stay in its file
+        result["variants"].setdefault(variant, rows)
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     print(format_table(result))
