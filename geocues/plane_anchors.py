@@ -94,6 +94,10 @@ def anchor_depth(xyz: np.ndarray, normal: np.ndarray | None, K: np.ndarray, R: n
     depth changes by centimetres within a pixel (rays within ``min_cos`` of grazing keep the point's)."""
     out = np.zeros((height, width), np.float32)
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    finite = np.isfinite(xyz).all(1)
+    xyz = xyz[finite]
+    if normal is not None:
+        normal = np.nan_to_num(np.asarray(normal, np.float64).reshape(-1, 3)[finite])  # NaN: no plane
     if len(xyz) == 0:
         return out
     R, K = np.asarray(R, np.float64), np.asarray(K, np.float64)
@@ -107,11 +111,11 @@ def anchor_depth(xyz: np.ndarray, normal: np.ndarray | None, K: np.ndarray, R: n
     inside = (col >= 0) & (col < width) & (row >= 0) & (row < height) & np.isfinite(z)
     Xc, z, col, row = Xc[inside], z[inside], col[inside], row[inside]
     if normal is not None:
-        n = (np.asarray(normal, np.float64).reshape(-1, 3)[front][inside]) @ R.T  # camera frame
+        n = normal[front][inside] @ R.T  # camera frame
         ray = np.stack([col + 0.5, row + 0.5, np.ones_like(z)], 1) @ np.linalg.inv(K).T  # z = 1
         num, den = np.sum(n * Xc, 1), np.sum(n * ray, 1)
-        grazing = np.abs(den) < min_cos * np.linalg.norm(ray, axis=1) * np.linalg.norm(n, axis=1)
-        z = np.where(grazing, z, num / np.where(grazing, 1.0, den))
+        grazing = np.abs(den) <= min_cos * np.linalg.norm(ray, axis=1) * np.linalg.norm(n, axis=1)
+        z = np.where(grazing, z, num / np.where(grazing, 1.0, den))  # a zero normal is "grazing"
         z = np.where(z > 1e-6, z, Xc[:, 2])
     flat = row.astype(np.int64) * width + col.astype(np.int64)
     zbuf = np.full(height * width, np.inf)

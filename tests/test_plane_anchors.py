@@ -187,3 +187,16 @@ def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchor
         assert after < 0.045, (before, after)  # back to within L_a's 3 cm tolerance (+ margin)
     else:
         assert after > 0.8 * before, (before, after)  # RGB alone leaves the wall where it is
+
+
+def test_anchor_depth_hard_cases_stay_finite():
+    """NaN or infinite points, zero normals, points on the camera plane or behind it: dropped or
+    given their own depth, never NaN in the map."""
+    K = np.array([[10.0, 0, 4.0], [0, 10.0, 3.0], [0, 0, 1]])
+    pts = np.array([[np.nan, 0, 1], [0, 0, np.inf], [0.1, 0.1, 0.0], [0, 0, -2], [0.0, 0.0, 1.0],
+                    [0.01, 0.0, 1.0]])
+    nrm = np.array([[0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 0, 1], [0, 0, 0], [np.nan, 0, 0]], float)
+    d = anchor_depth(pts, nrm, K, np.eye(3), np.zeros(3), 6, 8)
+    assert np.isfinite(d).all()
+    assert d[3, 4] == pytest.approx(1.0)  # the zero- and NaN-normal points keep their own depth
+    assert np.count_nonzero(d) == 1
