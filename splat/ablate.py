@@ -219,7 +219,7 @@ def _resumable(train_dir: Path, cfg) -> bool:
     except Exception as exc:  # a checkpoint cut short by the kill: the row starts again
         log.warning("%s cannot be read (%s): the row starts again", path, exc)
         return False
-    same = not checkpoint.config_diff(asdict(cfg), saved)
+    same = not checkpoint.config_diff(asdict(cfg), saved, asdict(type(cfg)()))
     if not same:
         log.warning("%s was written with other options: the row starts again", path)
     return same

@@ -83,11 +83,29 @@ def load(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def config_diff(cfg_dict: dict, saved: dict) -> list[str]:
-    """Top-level options whose values differ between a config (``asdict(cfg)``) and the one a
-    checkpoint was written with (compared as JSON, so tuples and lists agree); [] when equal."""
+def config_diff(cfg_dict: dict, saved: dict, defaults: dict | None = None) -> list[str]:
+    """Options (dotted paths) whose values differ between a config (``asdict(cfg)``) and the one a
+    checkpoint was written with (compared as JSON, so tuples and lists agree); [] when equal. With
+    ``defaults`` (``asdict`` of the default config), an option the checkpoint does not record and
+    this config leaves at its default is not a difference: it was added to the toolkit after the
+    checkpoint was written, and its default keeps the training the checkpoint's (an upgrade between
+    a kill and the resume must not throw the run away)."""
     now, then = json.loads(json.dumps(cfg_dict)), json.loads(json.dumps(saved))
-    return [k for k in now if now[k] != then.get(k)] + [k for k in then if k not in now]
+    dflt = json.loads(json.dumps(defaults)) if defaults is not None else {}
+
+    def diff(a: dict, b: dict, d: dict, prefix: str) -> list[str]:
+        out = []
+        for k, v in a.items():
+            if k not in b:
+                if not (k in d and v == d[k]):
+                    out.append(prefix + k)
+            elif isinstance(v, dict) and isinstance(b[k], dict):
+                out += diff(v, b[k], d.get(k) if isinstance(d.get(k), dict) else {}, f"{prefix}{k}.")
+            elif v != b[k]:
+                out.append(prefix + k)
+        return out + [prefix + k for k in b if k not in a]
+
+    return diff(now, then, dflt, "")
 
 
 def numpy_rng_state(rng: np.random.Generator) -> dict:

@@ -266,7 +266,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
-        diff = checkpoint.config_diff(asdict(cfg), ckpt["config"])
+        diff = checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
         if diff:
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}); resume with the same options")

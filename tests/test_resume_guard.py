@@ -238,3 +238,25 @@ def test_quiet_run_prints_no_progress_bars(scene, capsys):
                  "--sh-degree", "0", "--no-mesh", "-q"]) == 0
     err = capsys.readouterr().err
     assert "splat train:" not in err and "it/s" not in err
+
+
+def test_an_option_added_after_the_checkpoint_and_left_at_its_default_is_no_difference():
+    """A run killed, the toolkit upgraded (new options), the run resumed: options the checkpoint does
+    not record and the resume leaves at their defaults train the same, so they do not block it
+    (found when an ablation row checkpointed at step 1760 started again after an upgrade)."""
+    from dataclasses import asdict, replace
+
+    from splat import checkpoint
+    from splat.train import TrainConfig
+
+    cfg, defaults = TrainConfig(), asdict(TrainConfig())
+    saved = asdict(cfg)
+    del saved["loss"]["plane_anchor"], saved["tsdf"]["max_depth_spread"]  # written before they existed
+    assert checkpoint.config_diff(asdict(cfg), saved, defaults) == []
+    assert set(checkpoint.config_diff(asdict(cfg), saved)) == {"loss.plane_anchor", "tsdf.max_depth_spread"}
+    on = replace(cfg, loss=replace(cfg.loss, plane_anchor=True))
+    assert checkpoint.config_diff(asdict(on), saved, defaults) == ["loss.plane_anchor"]
+    other = asdict(cfg) | {"iters": cfg.iters + 1}
+    assert checkpoint.config_diff(asdict(cfg), other, defaults) == ["iters"]
+    gone = asdict(cfg) | {"removed_option": 1}  # an option this version no longer has
+    assert checkpoint.config_diff(asdict(cfg), gone, defaults) == ["removed_option"]
