@@ -81,7 +81,7 @@ def main(cfg: Remesh) -> dict:
         tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w,
                        consistent_views=consistent, max_depth_spread=spread)
         folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
-        if folder is not None:
+        if folder is not None and not ("floor" in rows and (work / f"floor_w{w:g}.ply").is_file()):
             floor_mesh = fuse_floor(scene, work / f"floor_w{w:g}.ply", gt_depth=folder,
                                     downscale=base_cfg.get("downscale", 1.0), test_every=base_cfg.get("test_every", 8),
                                     mesh_every=base_cfg.get("mesh_every", 1), tsdf=tsdf)

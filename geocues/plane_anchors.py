@@ -71,14 +71,18 @@ def write_plane_anchors(out_dir: str | Path, names: list[str], xyz: np.ndarray, 
     return path
 
 
+def plane_anchors_path(cues: str | Path) -> Path:
+    """Where the plane anchors of a `geocues extract` folder are (``cues``: the folder or a file in it)."""
+    folder = Path(cues)
+    return (folder if folder.is_dir() else folder.parent) / PLANE_ANCHORS_FILE
+
+
 def load_plane_anchors(cues: str | Path) -> PlaneAnchors:
     """The plane anchors of a `geocues extract` folder (``cues`` is the folder or a file in it).
     FileNotFoundError, naming the fix, for cue folders written before the file existed."""
-    folder = Path(cues)
-    folder = folder if folder.is_dir() else folder.parent
-    path = folder / PLANE_ANCHORS_FILE
+    path = plane_anchors_path(cues)
     if not path.is_file():
-        raise FileNotFoundError(f"{folder} has no {PLANE_ANCHORS_FILE} (written by `geocues extract` since "
+        raise FileNotFoundError(f"{path.parent} has no {PLANE_ANCHORS_FILE} (written by `geocues extract` since "
                                 f"plane anchors exist): run `geocues extract` again into a new folder")
     with np.load(path) as z:
         return PlaneAnchors([str(n) for n in z["names"]], z["xyz"], z["normal"], z["view"])

@@ -29,7 +29,7 @@ from typing import Any
 
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
-from geocues.plane_anchors import PLANE_ANCHORS_FILE
+from geocues.plane_anchors import plane_anchors_path
 from splat.checkpoint import TrainingInterrupted
 from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
@@ -99,6 +99,14 @@ def config_key(payload: dict) -> str:
     return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+_ADDED_LATER = (  # options added after rows were first keyed: (config section, its fields, "left off")
+    ("tsdf", lambda k: k.startswith("consisten"), lambda s: s.get("consistent_views") is None),
+    ("tsdf", lambda k: k == "max_depth_spread", lambda s: s.get("max_depth_spread") is None),
+    ("loss", lambda k: k == "plane_anchor", lambda s: not s.get("plane_anchor")),
+    ("loss", lambda k: k == "lambda_mv" or k.startswith("mv_"), lambda s: not s.get("lambda_mv")),
+)
+
+
 def row_keys(spec: dict) -> list[str]:
     """The key of a row (first): what it trains and how it is scored, without
     :data:`OPERATIONAL_FIELDS` and without options left unset (None), so that an option added later,
@@ -111,14 +119,9 @@ def row_keys(spec: dict) -> list[str]:
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
-    if tc["tsdf"].get("consistent_views") is None:  # depth filter off: rows meshed before it keep their key
-        tc["tsdf"] = {k: v for k, v in tc["tsdf"].items() if not k.startswith("consisten")}
-    if tc["tsdf"].get("max_depth_spread") is None:  # spread filter off: rows meshed before it keep their key
-        tc["tsdf"] = {k: v for k, v in tc["tsdf"].items() if k != "max_depth_spread"}
-    if not tc["loss"].get("plane_anchor"):  # plane anchors off: rows trained before them keep their key
-        tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "plane_anchor"}
-    if not tc["loss"].get("lambda_mv"):  # L_mv off: rows trained before it existed keep their key
-        tc["loss"] = {k: v for k, v in tc["loss"].items() if not (k == "lambda_mv" or k.startswith("mv_"))}
+    for section, is_field, is_off in _ADDED_LATER:  # off: rows run before the option keep their key
+        if is_off(tc[section]):
+            tc[section] = {k: v for k, v in tc[section].items() if not is_field(k)}
     keys = []
     if tc["tsdf"].get("depth") == "median":  # rows meshed before --tsdf.depth existed fused the median;
         keys.append(config_key(payload | {"train_config": tc | {"tsdf": {k: v for k, v in tc["tsdf"].items()
@@ -276,7 +279,7 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
     if cfg.seeds < 1 or cfg.jobs < 1 or cfg.iters < 1:
         raise ValueError(f"--seeds, --jobs and --iters must be >= 1 (got {cfg.seeds}, {cfg.jobs}, {cfg.iters})")
     scene = Scene.load(scene_dir, check_priors=False)
-    has_anchors = ((cues if cues.is_dir() else cues.parent) / PLANE_ANCHORS_FILE).is_file()
+    has_anchors = plane_anchors_path(cues).is_file()
     specs, na = [], {}
     for row in dict.fromkeys(cfg.rows):
         why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors, has_anchors)

@@ -267,14 +267,14 @@ class LossConfig:
     whose prior the cue report aligned (docs/training_losses.md)."""
     anchor_tol_min: float = 0.03
     """Smallest tolerance τ of L_a in metres."""
+    anchor_tol_p90: float = 0.5
+    """τ = max(anchor_tol_min, this × the view's alignment 90th-percentile residual); 0.5 measured
+    better than 1.0 at λ_a = 1 and 5 (docs/training_losses.md)."""
     plane_anchor: bool = False
     """L_a also holds, in each training view, the pixels where that view's own plane cues lie and its
     aligned prior has no depth (CUES/plane_anchors.npz; every such pixel when the view has no prior,
     so prior-free scenes get L_a on their weak-texture planes, with τ = anchor_tol_min there). An
     extension; needs lambda_anchor > 0."""
-    anchor_tol_p90: float = 0.5
-    """τ = max(anchor_tol_min, this × the view's alignment 90th-percentile residual); 0.5 measured
-    better than 1.0 at λ_a = 1 and 5 (docs/training_losses.md)."""
     lambda_mv: float = 0.0
     """λ_mv, weight of the multi-view photometric consistency L_mv (PGSR's; not in the paper; 0 = off):
     the rendered plane of a pixel warps its patch into a neighbouring training photo (splat/multiview.py)."""

@@ -48,8 +48,9 @@ def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = 
     """Render each scene camera (``geocues.scene.Camera``: K, R, t, size) and fuse the rendered depth
     where alpha > 0.5 — the median or the expected depth, ``tsdf.depth`` — with the colours into a
     TSDF; return the cleaned mesh. With ``tsdf.max_depth_spread`` a pixel whose expected and median
-    depths differ by more than that fraction of the depth is left out. With ``tsdf.consistent_views`` every view is rendered first and a
-    depth is fused only where enough neighbouring renders agree (:func:`consistent_depths`)."""
+    depths differ by more than that fraction of the depth is left out. With ``tsdf.consistent_views``
+    every view is rendered first and a depth is fused only where enough neighbouring renders agree
+    (:func:`consistent_depths`)."""
     import numpy as np
     import torch
 
