@@ -3,7 +3,8 @@
 Every iteration the trainer asks :meth:`NumericsGuard.check` whether the step it just took is
 sound: a finite loss and finite loss terms, finite gradients (checked through their sums: one
 NaN or Inf makes the sum non-finite), finite parameters after the optimizer step, a loss not far
-above its running level, and Gaussians still inside the scene's bounds. On the first bad step the
+above its running level (forgotten after each opacity reset of the density control, whose next
+losses are high by design), and Gaussians still inside the scene's bounds. On the first bad step the
 trainer rolls back to the last good snapshot and the guard lowers the learning rate of the
 parameters that went wrong (all of them when it cannot tell); after ``max_rollbacks`` bad steps in
 a row without passing the snapshot, training stops with :class:`TrainingDiverged`, which names what
@@ -127,6 +128,12 @@ class NumericsGuard:
         log.warning("step %d: %s (loss terms %s; Gaussians %s); rolled back to the last good state, "
                     "learning rate x%.2g for %s", event["step"], event["reason"], event["terms"],
                     event["gaussians"] or "-", self.cfg.lr_factor, ", ".join(event["params"]))
+
+    def on_opacity_reset(self) -> None:
+        """The density control set every opacity near zero: the next losses are far above the
+        running level by design (the model repaints itself), not divergence. Forget the level and
+        warm up again."""
+        self.loss_mean, self.n_good = None, 0
 
     def on_snapshot(self) -> None:
         self.bad_in_row = 0

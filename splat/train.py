@@ -369,6 +369,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                                               cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,
                                               source=source)
             event = density.get("guard") or guard.check_params(step, params)
+            if event is None and density.get("opacity_reset"):
+                guard.on_opacity_reset()
             if event is not None:
                 try:
                     guard.on_rollback(event)  # raises TrainingDiverged after too many in a row
