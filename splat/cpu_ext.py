@@ -5,22 +5,18 @@ One extension (``indoorgs_cpu``) holds the compositing kernel (``csrc/composite_
 :mod:`splat.project_cpu`). Importing this module compiles it with ``torch.utils.cpp_extension.load``
 into ``<repo>/.cache/torch_extensions/<name>/<hash>`` (or ``$INDOORGS_CACHE/torch_extensions/...``),
 where the hash covers the sources and headers, the compiler flags and the torch version; later
-imports reuse that build (about 0.5 s). If the build fails, the import raises ImportError carrying
+imports load that build directly (splat/ext_build.py). If the build fails, the import raises ImportError carrying
 the compiler's message, and :mod:`splat.composite` falls back to torch with a warning.
 """
 
 from __future__ import annotations
 
-import hashlib
-import logging
-import os
 import platform
-import time
 from pathlib import Path
 
 import torch
 
-log = logging.getLogger(__name__)
+from splat.ext_build import build_or_load, cache_dir
 
 EXT_NAME = "indoorgs_cpu"
 CSRC = Path(__file__).resolve().parent / "csrc"
@@ -36,33 +32,13 @@ if platform.machine().lower() in ("x86_64", "amd64"):
 
 def build_dir() -> Path:
     """``$INDOORGS_CACHE`` (or ``<repo>/.cache``) / torch_extensions / <name> / <hash of sources+flags>."""
-    root = os.environ.get("INDOORGS_CACHE")
-    base = Path(root) if root else Path(__file__).resolve().parents[1] / ".cache"
-    digest = hashlib.sha1(" ".join(CFLAGS + [torch.__version__]).encode())
-    for path in (*SOURCES, *HEADERS):  # torch's own check does not cover the headers
-        digest.update(path.read_bytes() if path.is_file() else b"")
-    return base / "torch_extensions" / EXT_NAME / digest.hexdigest()[:12]
+    return cache_dir(EXT_NAME, (*SOURCES, *HEADERS), CFLAGS + [torch.__version__])
 
 
 def _build():
-    """Compile (or load the cached build of) the extension; ImportError with the compiler output on failure."""
-    missing = [str(p) for p in SOURCES if not p.is_file()]
-    if missing:
-        raise ImportError(f"C++ sources not found: {missing}")
-    from torch.utils.cpp_extension import load
-
-    out_dir = build_dir()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    if not any(out_dir.glob(f"{EXT_NAME}*.so")):
-        log.info("building the C++ rasterizer kernels (first run only, about 1 min on 2 cores) in %s", out_dir)
-    try:
-        module = load(name=EXT_NAME, sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
-                      extra_ldflags=["-fopenmp"], build_directory=str(out_dir), verbose=False)
-    except Exception as exc:  # noqa: BLE001 - ninja/compiler errors come as RuntimeError/OSError/...
-        raise ImportError(f"building {EXT_NAME} in {out_dir} failed: {exc}") from exc
-    log.debug("C++ rasterizer extension ready in %.1f s (%s)", time.perf_counter() - t0, out_dir)
-    return module
+    """Load the cached build or compile the extension; ImportError with the compiler output on failure."""
+    return build_or_load(EXT_NAME, SOURCES, build_dir(), "C++ rasterizer kernels", cflags=CFLAGS,
+                         ldflags=["-fopenmp"])
 
 
 ext = _build()
