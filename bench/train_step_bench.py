@@ -57,6 +57,9 @@ class StepBench:
     """Adam implementations to time side by side (TrainConfig.adam)."""
     docs: bool = False
     """write the table into docs/training.md (between its train-step markers)."""
+    profile: str = ""
+    """Also profile 10 steps of each configuration with torch.profiler and append the operator table
+    (sorted by device time on CUDA, by CPU time otherwise) to this file."""
 
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")
@@ -90,6 +93,8 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, adam: str) -> d
             stages.append(stage_s)
         if not math.isfinite(float(loss)):
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
+    if cfg.profile:
+        _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {adam}")
     row = {"width": width, "height": height, "n": n, "adam": adam, "median_s": statistics.median(times),
            "min_s": min(times), "max_s": max(times),
            "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}
@@ -97,6 +102,22 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, adam: str) -> d
         row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
         torch.cuda.reset_peak_memory_stats()
     return row
+
+
+def _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg: StepBench, title: str) -> None:
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = cfg.device.startswith("cuda")
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=acts) as prof:
+        for step in range(10):
+            train_step(params, optimizers, strategy, state, views[step % len(views)], 100 + step, cfg.sh_degree,
+                       tcfg, loss_cfg, g)
+        if cuda:
+            torch.cuda.synchronize()
+    table = prof.key_averages().table(sort_by="cuda_time_total" if cuda else "cpu_time_total", row_limit=40)
+    with open(cfg.profile, "a") as f:
+        f.write(f"## {title} (10 steps)\n{table}\n")
 
 
 def main(cfg: StepBench) -> dict:
