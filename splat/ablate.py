@@ -104,6 +104,7 @@ _ADDED_LATER = (  # options added after rows were first keyed: (config section, 
     ("tsdf", lambda k: k == "max_depth_spread", lambda s: s.get("max_depth_spread") is None),
     ("loss", lambda k: k == "plane_anchor", lambda s: not s.get("plane_anchor")),
     ("loss", lambda k: k == "lambda_mv" or k.startswith("mv_"), lambda s: not s.get("lambda_mv")),
+    ("strategy", lambda k: k == "plane_rule", lambda s: s.get("plane_rule", "none") == "none"),
 )
 
 

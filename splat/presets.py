@@ -74,6 +74,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
     Preset("literal-line-clone", "LINE clone at mu + grad (paper verbatim)",
            {"strategy.line_clone_literal": True}, extension=True),
     Preset("mv", "+ multi-view photometric consistency L_mv (PGSR)", {"loss.lambda_mv": 0.15}, extension=True),
+    Preset("plane-tangent-adc", "+ PLANE grows within its plane (LINE's tangent clone / split)",
+           {"strategy.plane_rule": "tangent"}, extension=True),
     Preset("plane-anchor", "+ L_a on each view's own plane cues", {"loss.plane_anchor": True},
            needs=("plane_anchors",), extension=True),
 ]}

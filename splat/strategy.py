@@ -11,7 +11,7 @@ splat/densify_ops.py. The trainer calls, per iteration,
 Per type (``state["cue_type"]``, geocues.types.CueType):
   SFM (G_M)   3DGS clone / split in (start, sfm_pause] and (sfm_resume, stop); none in between.
   LINE (G_L)  tangent-space clone / split on every refine step in (start, stop).
-  PLANE (G_S) never cloned or split.
+  PLANE (G_S) never cloned or split (``plane_rule="tangent"``, an extension: as LINE).
 A type left out of ``custom_types`` gets plain 3DGS density control instead (the ablation rows).
 Every type is pruned (low opacity; too large in world after the first opacity reset) and has its
 opacity reset. "G_L takes precedence over G_M": on a refine step the LINE candidates are chosen
@@ -82,6 +82,10 @@ class IndoorStrategyConfig:
     """Budget: growth stops at this many Gaussians, highest mean gradients first (0 = no limit)."""
     precedence_sigmas: float = 2.0
     """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
+    plane_rule: str = "none"
+    """PLANE Gaussians under IndoorGS's rule: "none" (the paper: never cloned or split) or
+    "tangent" (extension: LINE's tangent clone / split, so a plane Gaussian grows within its own
+    plane and stays flat; for walls that the plane cues cover too thinly)."""
     custom_types: tuple[str, ...] = ("SFM", "LINE", "PLANE")
     """Types under IndoorGS's own rule (above). A type left out gets plain 3DGS density control:
     clone in place / free split on every refine step in (start, stop) -- the paper's Tab. 3 rows
@@ -143,6 +147,8 @@ class IndoorStrategy:
         if bad:
             raise ValueError(f"strategy.custom_types: unknown cue types {bad}; choose from {list(CueType.__members__)}")
         self._plain = [CueType[t].value for t in CueType.__members__ if t not in self.cfg.custom_types]
+        if self.cfg.plane_rule not in ("none", "tangent"):
+            raise ValueError(f"strategy.plane_rule must be 'none' or 'tangent', got {self.cfg.plane_rule!r}")
         self.schedule = Schedule.from_config(self.cfg)
 
     # -- state and checks ------------------------------------------------------------------------
@@ -259,6 +265,9 @@ class IndoorStrategy:
         is_line = (cue_type == CueType.LINE) & high if "LINE" in custom else torch.zeros_like(high)
         is_sfm = (cue_type == CueType.SFM) & high if ("SFM" in custom and sched.sfm_active(step)) \
             else torch.zeros_like(high)
+        # extension: PLANE under the LINE rule (tangent clone / split within its own plane)
+        is_plane = (cue_type == CueType.PLANE) & high if ("PLANE" in custom and cfg.plane_rule == "tangent") \
+            else torch.zeros_like(high)
         # types under plain 3DGS control: every refine step, clone in place / free split
         is_plain = torch.isin(cue_type, torch.tensor(self._plain, device=cue_type.device)) & high \
             if self._plain else torch.zeros_like(high)
@@ -269,13 +278,14 @@ class IndoorStrategy:
             near = near_any(means[is_sfm], means[is_line], cfg.precedence_sigmas * max_scale[is_line])
             deferred[torch.where(is_sfm)[0][near]] = True
             is_sfm &= ~deferred
-        grow = budget_mask(is_line | is_sfm | is_plain, state["grad2d"] / count,
+        grow = budget_mask(is_line | is_sfm | is_plane | is_plain, state["grad2d"] / count,
                            cfg.max_gaussians - params["means"].shape[0] if cfg.max_gaussians > 0 else None)
         clone, splt = grow & small, grow & ~small
 
-        # clone positions: LINE tangent clone (§4.2), SFM in place (3DGS)
+        # clone positions: LINE (and PLANE under "tangent") tangent clone (§4.2), SFM in place (3DGS)
+        tangent = ((cue_type == CueType.LINE) & ~is_plain) | is_plane  # [N]
         clone_means = params["means"][clone].clone()
-        line_rows = (cue_type[clone] == CueType.LINE) & ~is_plain[clone]
+        line_rows = tangent[clone]
         if line_rows.any():
             sel = torch.where(clone)[0][line_rows]
             grad3d = state["grad3d"][sel] / count[sel, None]
@@ -287,7 +297,7 @@ class IndoorStrategy:
         # split offsets: LINE tangent split (§4.2), SFM free split (3DGS)
         sel = torch.where(splt)[0]
         offsets = free_split_offsets(params["quats"][sel], params["scales"][sel])
-        line_rows = (cue_type[sel] == CueType.LINE) & ~is_plain[sel]
+        line_rows = tangent[sel]
         if line_rows.any():
             offsets[:, line_rows] = tangent_split_offsets(params["quats"][sel[line_rows]],
                                                           params["scales"][sel[line_rows]])

@@ -298,6 +298,21 @@ class TestSchedule:
         assert abs(float(d @ n)) < 1e-6
         torch.testing.assert_close(d.norm(), torch.tensor(0.005))  # one largest scale (line_clone_step = 1)
 
+    @pytest.mark.parametrize("scale,what", [(0.005, "cloned"), (0.5, "split")])
+    def test_plane_tangent_rule_grows_planes_within_their_plane(self, scale, what):
+        """plane_rule="tangent" (extension): a PLANE Gaussian is cloned / split like LINE, its new
+        centres in its own plane; the paper's rule ("none") leaves it alone."""
+        counts, params, _ = run_at(4000, types=(PLANE,), scale=scale)
+        assert counts[f"{what}_plane"] == 0 and params["means"].shape[0] == 1
+        counts, params, state = run_at(4000, types=(PLANE,), scale=scale, plane_rule="tangent")
+        assert counts[f"{what}_plane"] == 1 and params["means"].shape[0] == 2
+        assert state["cue_type"].tolist() == [PLANE, PLANE]
+        offsets = params["means"].detach() - torch.tensor([0.0, 0.0, 3.0])
+        n = flat_normal(params["quats"].detach(), params["scales"].detach())
+        assert (offsets * n).sum(-1).abs().max() < 1e-5 and offsets.norm(dim=-1).max() > 1e-4
+        with pytest.raises(ValueError, match="plane_rule"):
+            IndoorStrategy(IndoorStrategyConfig(plane_rule="free"))
+
     def test_line_takes_precedence_over_nearby_sfm(self):
         strategy, params, optimizers, state = setup((SFM, LINE, SFM))
         with torch.no_grad():
