@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     report["torch"] = torch.__version__
     report["device_name"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     (a.out / "gpu_train.json").write_text(json.dumps(report, indent=2))
-    print(json.dumps({k: report.get(k) for k in ("timings", "curve", "gaussians_final", "device_name")}, indent=1))
+    print(json.dumps({k: report.get(k) for k in ("timings", "accuracy_vs_time", "gaussians_final", "device_name")}, indent=1))
     if a.split_mb > 0:
         split_compact(a.out, a.split_mb)
     return 0

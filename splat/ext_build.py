@@ -1,14 +1,17 @@
 """Build or load one of the project's compiled extensions (C++ CPU, CUDA) from its cache folder.
 
 The folder is ``$INDOORGS_CACHE`` (or ``<repo>/.cache``) / torch_extensions / <name> / <hash>, the hash
-covering the sources, headers, flags, the torch version and whatever ``tag`` adds (CUDA version, GPU
-architecture). So a folder holding a finished build (its ``<name>.so`` and the ``built.ok`` marker
-written after the build loaded) is valid by construction and is imported directly, without
-``torch.utils.cpp_extension.load``: ninja would otherwise rebuild a cache copied to another machine or
-checkout (its log records the outputs' old times, older than the copied sources), and wait forever on
-the ``lock`` file of a build that was killed. Before building, a ``lock`` older than
-``STALE_LOCK_S`` (no build takes that long) is removed with a warning; a younger one is waited on
-with a message naming it.
+covering the sources, headers, flags, the torch version, the Python extension ABI and whatever ``tag``
+adds (CUDA version, GPU architecture). So a folder holding a finished build (its ``<name>.so`` and the
+``built.ok`` marker written after the build loaded) is valid by construction and is imported
+directly, without ``torch.utils.cpp_extension.load``: ninja would otherwise rebuild a cache copied to
+another machine or checkout (its log records the outputs' old times, older than the copied sources).
+
+Builds are serialised by an advisory ``flock`` on ``<folder>/build.flock``, which the kernel releases
+when its holder dies: a process that finds another one building says so and waits, then imports the
+finished build; a build killed half-way leaves no lock that blocks the next run (torch's own ``lock``
+file, which it would wait on for ever, is removed by whoever holds the flock: no other build can be
+running then).
 """
 
 from __future__ import annotations
@@ -17,7 +20,9 @@ import hashlib
 import importlib.util
 import logging
 import os
+import sysconfig
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
@@ -25,15 +30,15 @@ import torch
 
 log = logging.getLogger(__name__)
 
-STALE_LOCK_S = 20 * 60.0
 MARKER = "built.ok"
 
 
 def cache_dir(name: str, sources: tuple[Path, ...], tag: list[str]) -> Path:
-    """The build folder of extension ``name``: a hash of ``tag`` (flags, versions) and every file."""
+    """The build folder of extension ``name``: a hash of ``tag`` (flags, versions), the Python
+    extension suffix (interpreter ABI) and every file."""
     root = os.environ.get("INDOORGS_CACHE")
     base = Path(root) if root else Path(__file__).resolve().parents[1] / ".cache"
-    digest = hashlib.sha1(" ".join(tag).encode())
+    digest = hashlib.sha1(" ".join([*tag, str(sysconfig.get_config_var("EXT_SUFFIX"))]).encode())
     for path in sources:  # torch's own check does not cover the headers
         digest.update(path.read_bytes() if path.is_file() else b"")
     return base / "torch_extensions" / name / digest.hexdigest()[:12]
@@ -48,19 +53,41 @@ def _import_so(name: str, so: Path) -> ModuleType:
     return module
 
 
-def clear_stale_lock(out_dir: Path, stale_s: float = STALE_LOCK_S) -> None:
-    """Remove ``out_dir/lock`` left by a killed build (older than ``stale_s``); say so if one is younger."""
-    lock = out_dir / "lock"
+@contextmanager
+def build_lock(out_dir: Path):
+    """Hold the exclusive build lock of ``out_dir`` (waiting, with a message, while another process
+    builds there); on systems without ``fcntl`` nothing is locked."""
     try:
-        age = time.time() - lock.stat().st_mtime
-    except FileNotFoundError:
+        import fcntl
+    except ImportError:  # not POSIX: no serialisation beyond torch's own lock file
+        yield
         return
-    if age > stale_s:
-        log.warning("removing the lock file %s left %.0f min ago by a build that did not finish", lock, age / 60)
-        lock.unlink(missing_ok=True)
-    else:
-        log.info("another process is building in %s (its lock file is %.0f s old); waiting for it "
-                 "(delete the file if no build is running)", out_dir, age)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(out_dir / "build.flock", "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info("another process is building in %s; waiting for it", out_dir)
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _finished(name: str, out_dir: Path) -> ModuleType | None:
+    """The finished build in ``out_dir`` imported, or None (none there, or it does not import: then its
+    outputs are removed so that ninja builds them again)."""
+    so = out_dir / f"{name}.so"
+    if not ((out_dir / MARKER).is_file() and so.is_file()):
+        return None
+    try:
+        return _import_so(name, so)
+    except ImportError as exc:  # e.g. a cache copied from an incompatible machine
+        log.warning("could not import the cached build %s (%s); building again", so, exc)
+        for stale in (out_dir / MARKER, so, out_dir / ".ninja_log"):
+            stale.unlink(missing_ok=True)
+        return None
 
 
 def build_or_load(name: str, sources: tuple[Path, ...], out_dir: Path, what: str, *, cflags: list[str],
@@ -68,30 +95,29 @@ def build_or_load(name: str, sources: tuple[Path, ...], out_dir: Path, what: str
     """Import the finished build in ``out_dir`` or compile ``sources`` there with torch's JIT loader.
 
     ``what`` names the kernels in the one message a first build logs. Raises ImportError (with the
-    compiler's message) when the build fails.
+    compiler's message) when the build fails; the marker is written only after the build imported.
     """
     missing = [str(p) for p in sources if not p.is_file()]
     if missing:
         raise ImportError(f"{what} sources not found: {missing}")
-    so = out_dir / f"{name}.so"
-    if (out_dir / MARKER).is_file() and so.is_file():
-        try:
-            return _import_so(name, so)
-        except ImportError as exc:  # e.g. a cache copied from an incompatible machine: build again
-            log.warning("could not import the cached build %s (%s); building again", so, exc)
-            (out_dir / MARKER).unlink(missing_ok=True)
+    module = _finished(name, out_dir)
+    if module is not None:
+        return module
     from torch.utils.cpp_extension import load
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    clear_stale_lock(out_dir)
-    t0 = time.perf_counter()
-    log.info("building the %s (first run only, about 1-2 min) in %s", what, out_dir)
-    try:
-        module = load(name=name, sources=[str(p) for p in sources], extra_cflags=cflags,
-                      extra_cuda_cflags=cuda_cflags, extra_ldflags=ldflags, build_directory=str(out_dir),
-                      verbose=False)
-    except Exception as exc:  # noqa: BLE001 - ninja/compiler errors come as RuntimeError/OSError/...
-        raise ImportError(f"building {name} in {out_dir} failed: {exc}") from exc
-    (out_dir / MARKER).write_text(f"{torch.__version__}\n")
+    with build_lock(out_dir):
+        module = _finished(name, out_dir)  # built by the process this one waited for
+        if module is not None:
+            return module
+        (out_dir / "lock").unlink(missing_ok=True)  # torch's baton: stale, no other build can hold it now
+        t0 = time.perf_counter()
+        log.info("building the %s (first run only, about 1-2 min) in %s", what, out_dir)
+        try:
+            module = load(name=name, sources=[str(p) for p in sources], extra_cflags=cflags,
+                          extra_cuda_cflags=cuda_cflags, extra_ldflags=ldflags, build_directory=str(out_dir),
+                          verbose=False)
+        except Exception as exc:  # noqa: BLE001 - ninja/compiler errors come as RuntimeError/OSError/...
+            raise ImportError(f"building {name} in {out_dir} failed: {exc}") from exc
+        (out_dir / MARKER).write_text(f"{torch.__version__}\n")
     log.debug("%s ready in %.1f s (%s)", name, time.perf_counter() - t0, out_dir)
     return module

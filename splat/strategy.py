@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -82,10 +82,11 @@ class IndoorStrategyConfig:
     """Budget: growth stops at this many Gaussians, highest mean gradients first (0 = no limit)."""
     precedence_sigmas: float = 2.0
     """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
-    plane_rule: str = "none"
+    plane_rule: Literal["none", "tangent"] = "none"
     """PLANE Gaussians under IndoorGS's rule: "none" (the paper: never cloned or split) or
     "tangent" (extension: LINE's tangent clone / split, so a plane Gaussian grows within its own
-    plane and stays flat; for walls that the plane cues cover too thinly)."""
+    plane and stays flat; for walls that the plane cues cover too thinly). Applies while PLANE is
+    in custom_types; PLANE candidates do not defer nearby SFM ones (only LINE candidates do)."""
     custom_types: tuple[str, ...] = ("SFM", "LINE", "PLANE")
     """Types under IndoorGS's own rule (above). A type left out gets plain 3DGS density control:
     clone in place / free split on every refine step in (start, stop) -- the paper's Tab. 3 rows

@@ -327,7 +327,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         return checkpoint.capture(params, optimizers, state, {
             "step": step, "order": [int(i) for i in order], "numpy_rng": checkpoint.numpy_rng_state(rng),
             "gen": gen.get_state(), "curve": curve, "train_s": train_s, "log_bytes": log_bytes,
-            "lr_mult": guard.lr_mult, "guard_events": guard.events})
+            "lr_mult": guard.lr_mult, "guard_events": guard.events, "guard_level": [guard.loss_mean, guard.n_good]})
 
     def restore(snap: dict) -> int:
         nonlocal order, curve, train_s, log_bytes
@@ -335,6 +335,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         order, curve, train_s, log_bytes = extra["order"], extra["curve"], extra["train_s"], extra["log_bytes"]
         checkpoint.set_numpy_rng_state(rng, extra["numpy_rng"])
         gen.set_state(extra["gen"])
+        if "guard_level" in extra:  # the loss level the guard compares with (checkpoints of older runs lack it)
+            guard.loss_mean, guard.n_good = extra["guard_level"]
         return extra["step"]
 
     if ckpt is not None:

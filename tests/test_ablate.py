@@ -393,3 +393,15 @@ def test_plane_anchor_row_needs_the_anchors_file_and_leaves_other_rows_keys(tiny
     specs, na = plan(cfg, root, with_anchors, tmp_path, TRAIN_ARGS)
     assert [s["row"] for s in specs] == ["full", "plane-anchor"] and not na
     assert specs[1]["train_config"]["loss"]["plane_anchor"] is True and specs[1]["key"] != specs[0]["key"]
+
+
+def test_plane_rule_left_at_the_paper_keeps_finished_rows_keys(tiny, tmp_path):
+    """Rows planned before strategy.plane_rule existed keep their key; plane-tangent-adc gets its own."""
+    from splat.ablate import AblateConfig, plan, row_keys
+
+    base, root, cues = tiny
+    specs, _ = plan(AblateConfig(rows=("full", "plane-tangent-adc"), iters=30), root, cues, tmp_path, TRAIN_ARGS)
+    before = json.loads(json.dumps(specs[0]))
+    del before["train_config"]["strategy"]["plane_rule"]
+    assert row_keys(before) == specs[0]["keys"]
+    assert specs[1]["train_config"]["strategy"]["plane_rule"] == "tangent" and specs[1]["key"] != specs[0]["key"]

@@ -7,7 +7,9 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import threading
 import time
+import types
 
 import pytest
 
@@ -44,18 +46,78 @@ def test_a_finished_build_is_imported_without_the_jit_loader(tmp_path, monkeypat
         cpu_ext._build()
 
 
-def test_a_stale_lock_is_removed_and_a_fresh_one_is_waited_on(tmp_path, caplog):
-    lock = tmp_path / "lock"
-    lock.write_text("")
+def _fake_build(tmp_path, monkeypatch, load):
+    monkeypatch.setattr("torch.utils.cpp_extension.load", load)
+    src = tmp_path / "k.cpp"
+    src.write_text("// kernel\n")
+    return lambda: ext_build.build_or_load("fake_ext", (src,), tmp_path / "b", "test kernels", cflags=[])
+
+
+def test_a_killed_builds_lock_file_does_not_block_and_the_marker_follows_success(tmp_path, monkeypatch):
+    """torch's lock file left by a killed build (any age) is removed under the build lock; the marker
+    is written only after the build imported; a failed build leaves none."""
+    out = tmp_path / "b"
+    out.mkdir()
+    (out / "lock").write_text("")  # what torch's FileBaton would wait on for ever
+    seen = []
+
+    def load(**kw):
+        seen.append((out / "lock").exists())
+        return types.ModuleType(kw["name"])
+
+    build = _fake_build(tmp_path, monkeypatch, load)
+    assert build().__name__ == "fake_ext" and seen == [False]
+    assert (out / ext_build.MARKER).is_file()
+
+    (out / ext_build.MARKER).unlink()
+
+    def failing(**kw):
+        raise RuntimeError("deliberate_compiler_error")
+
+    build = _fake_build(tmp_path, monkeypatch, failing)
+    with pytest.raises(ImportError, match="deliberate_compiler_error"):
+        build()
+    assert not (out / ext_build.MARKER).exists()
+
+
+def test_a_second_process_waits_for_the_build_lock(tmp_path, monkeypatch, caplog):
+    """While another holder has the build lock, the build waits (with a message) and starts after."""
+    fcntl = pytest.importorskip("fcntl")
+    out = tmp_path / "b"
+    out.mkdir()
+    order = []
+
+    def load(**kw):
+        order.append("build")
+        return types.ModuleType(kw["name"])
+
+    build = _fake_build(tmp_path, monkeypatch, load)
+    holder = open(out / "build.flock", "a")  # another open file description: conflicts like a process
+    fcntl.flock(holder, fcntl.LOCK_EX)
+    worker = threading.Thread(target=build)
     with caplog.at_level(logging.INFO, logger="splat.ext_build"):
-        ext_build.clear_stale_lock(tmp_path)
-    assert lock.exists() and "waiting" in caplog.text  # a build may be running: say so, keep it
-    old = time.time() - ext_build.STALE_LOCK_S - 60
-    os.utime(lock, (old, old))
-    with caplog.at_level(logging.WARNING, logger="splat.ext_build"):
-        ext_build.clear_stale_lock(tmp_path)
-    assert not lock.exists() and "did not finish" in caplog.text
-    ext_build.clear_stale_lock(tmp_path)  # no lock: nothing to do
+        worker.start()
+        time.sleep(0.5)
+        order.append("released")
+        fcntl.flock(holder, fcntl.LOCK_UN)
+        holder.close()
+        worker.join(10)
+    assert order == ["released", "build"] and "waiting" in caplog.text
+
+
+def test_a_cached_build_that_does_not_import_is_built_again(tmp_path, monkeypatch):
+    out = tmp_path / "b"
+    out.mkdir()
+    for f in ("fake_ext.so", ext_build.MARKER, ".ninja_log"):
+        (out / f).write_text("not a shared object")
+    built = []
+
+    def load(**kw):
+        built.append(sorted(p.name for p in out.iterdir() if p.name in ("fake_ext.so", ".ninja_log")))
+        return types.ModuleType(kw["name"])
+
+    _fake_build(tmp_path, monkeypatch, load)()
+    assert built == [[]]  # the broken outputs were removed, so ninja compiles again
 
 
 def test_missing_sources_are_an_import_error(tmp_path):
