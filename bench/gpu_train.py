@@ -53,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     report["torch"] = torch.__version__
     report["device_name"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     (a.out / "gpu_train.json").write_text(json.dumps(report, indent=2))
-    print(json.dumps({k: report.get(k) for k in ("timings", "accuracy_vs_time", "gaussians_final", "device_name")}, indent=1))
+    keys = ("timings", "accuracy_vs_time", "gaussians_final", "device_name")
+    print(json.dumps({k: report.get(k) for k in keys}, indent=1))
     if a.split_mb > 0:
         split_compact(a.out, a.split_mb)
     return 0
@@ -92,7 +93,8 @@ def join_compact(parts_dir: Path, report: Path, run_dir: Path) -> Path:
     rep = json.loads(report.read_text())
     deg = rep["config"]["sh_degree"]
     n = len(z["means"])
-    params = {k: torch.from_numpy(z[k].astype(np.float32)) for k in ("means", "scales", "quats", "opacities", "sh0")}
+    keys = ("means", "scales", "quats", "opacities", "sh0")
+    params = {k: torch.from_numpy(z[k].astype(np.float32)) for k in keys}
     params["shN"] = torch.zeros(n, (deg + 1) ** 2 - 1, 3)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_ply(run_dir / "point_cloud.ply", params, torch.from_numpy(z["cue_type"].astype(np.int64)))

@@ -4,9 +4,10 @@ One extension (``indoorgs_cpu``) holds the compositing kernel (``csrc/composite_
 :mod:`splat.composite_cpu`) and the fused projection (``csrc/project_cpu.cpp``, used by
 :mod:`splat.project_cpu`). Importing this module compiles it with ``torch.utils.cpp_extension.load``
 into ``<repo>/.cache/torch_extensions/<name>/<hash>`` (or ``$INDOORGS_CACHE/torch_extensions/...``),
-where the hash covers the sources and headers, the compiler flags and the torch version; later
-imports load that build directly (splat/ext_build.py). If the build fails, the import raises ImportError carrying
-the compiler's message, and :mod:`splat.composite` falls back to torch with a warning.
+where the hash covers the sources and headers, the compiler flags, the torch version and the Python
+ABI; later imports load that build directly (splat/ext_build.py). If the build fails, the import
+raises ImportError carrying the compiler's message, and :mod:`splat.composite` falls back to torch
+with a warning.
 """
 
 from __future__ import annotations

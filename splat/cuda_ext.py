@@ -6,7 +6,8 @@ One extension (``indoorgs_cuda``) holds the tile-based compositing kernels
 with ``torch.utils.cpp_extension.load`` (nvcc and ninja needed) into
 ``<repo>/.cache/torch_extensions/indoorgs_cuda/<hash>`` (or ``$INDOORGS_CACHE/torch_extensions/...``),
 where the hash covers the sources and headers, the compiler flags, the torch and CUDA versions and
-the GPU's compute capability (torch builds for the GPU it sees); later imports load that build directly (splat/ext_build.py).
+the GPU's compute capability (torch builds for the GPU it sees) and the Python ABI; later imports
+load that build directly (splat/ext_build.py).
 Without a CUDA device, or if the build fails, the import raises ImportError (with the compiler's
 message) and :mod:`splat.composite` falls back to torch with a warning. :mod:`splat.composite` only
 imports this module when ``torch.cuda.is_available()``.
