@@ -41,7 +41,10 @@ def scene_table(data: dict) -> str:
     floor = (data.get("floor") or {}).get("final") if (data.get("floor") or {}).get("status") == "done" else None
     base = rows.get("no-cues", {}).get("mean") if rows.get("no-cues", {}).get("status") == "done" else None
     cfg = data["config"]
-    lines = [f"**{data['scene_label']}** — {cfg['iters']} iterations, {cfg['seeds']} seed(s), train options "
+    counts = sorted({r["n_seeds"] for r in rows.values() if r["status"] == "done"} or {cfg["seeds"]})
+    seeds = (f"{counts[0]} seed(s)" if len(counts) == 1
+             else f"{counts[0]}–{counts[-1]} seeds per row (mean; the count beside a row with more than one)")
+    lines = [f"**{data['scene_label']}** — {cfg['iters']} iterations, {seeds}, train options "
              f"`{' '.join(data['train_args']) or '(defaults)'}`", "",
              "| row | C-L1 (cm) | F@5cm | NC | C-L1 / floor | ΔF vs no-cues | ΔNC vs no-cues | test PSNR | train s |",
              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -57,7 +60,8 @@ def scene_table(data: dict) -> str:
         ratio = f"{m['chamfer_l1'] / floor['chamfer_l1']:.2f}" if floor else "–"
         df = f"{m['f_score'] - base['f_score']:+.3f}" if base and name != "no-cues" else ""
         dn = f"{m['normal_consistency'] - base['normal_consistency']:+.3f}" if base and name != "no-cues" else ""
-        lines.append(f"| `{name}` | {_f(m['chamfer_l1'], 100, 2)} | {_f(m['f_score'])} | "
+        label = f"`{name}`" + (f" ({r['n_seeds']} seeds)" if len(counts) > 1 and r["n_seeds"] > 1 else "")
+        lines.append(f"| {label} | {_f(m['chamfer_l1'], 100, 2)} | {_f(m['f_score'])} | "
                      f"{_f(m['normal_consistency'])} | {ratio} | {df} | {dn} | {_f(m.get('psnr'), 1, 2)} | "
                      f"{_f(m.get('train_s'), 1, 0)} |")
     return "\n".join(lines)

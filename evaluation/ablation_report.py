@@ -44,9 +44,12 @@ def ablation_markdown(summary: dict) -> str:
     rows = summary["rows"]
     full = next((r for r in rows if r["row"] == "full"), None)
     cfg = summary["config"]
+    counts = sorted({r["n_seeds"] for r in rows if r["status"] == "done"} or {cfg["seeds"]})
+    seeds = (f"{counts[0]} seed(s) per row" if len(counts) == 1
+             else f"{counts[0]}–{counts[-1]} seeds per row (the count beside a row with more than one)")
     lines = [f"# Ablation on {summary['scene_label']}", "",
              f"Scene `{summary['scene']}`, cues `{summary['cues']}`; {cfg['iters']} iterations per row "
-             f"(no-cues-long: 3x), {cfg['seeds']} seed(s) per row (mean ± std over seeds), "
+             f"(no-cues-long: 3x), {seeds} (mean ± std over seeds), "
              f"train options `{' '.join(summary['train_args']) or '(defaults)'}`. Mesh metrics: the "
              "`evaluate` protocol (MonoSDF sampling, culled to the scene's cameras, F-score at 5 cm). "
              "Paper: IndoorGS Tab. 3 (ScanNet++, 30k iterations). Δ: against `full` (Chamfer in cm).", "",
@@ -59,6 +62,8 @@ def ablation_markdown(summary: dict) -> str:
                      f"{_fmt(f['f_score'])} | {_fmt(f['normal_consistency'])} |  |  |  | – | – |")
     for r in rows:
         name = f"`{r['row']}` {r['label']}" + (" *(extension)*" if r.get("extension") else "")
+        if len(counts) > 1 and r["status"] == "done" and r["n_seeds"] > 1:
+            name += f" ({r['n_seeds']} seeds)"
         paper = " / ".join(f"{v:.3f}" for v in r["paper"]) if r.get("paper") else "–"
         if r["status"] == "n/a":
             lines.append(f"| {name} | {paper} | n/a ({r['reason']}) |  |  |  |  |  |  |  |")

@@ -371,13 +371,10 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
             todo.append(spec)
     log.info("ablation: %d rows x %d seeds; %d to run, %d finished, n/a: %s", len(specs) // max(cfg.seeds, 1),
              cfg.seeds, len(todo), len(results), na or "none")
-    # Rows an earlier run (`--rows X`) finished in OUT with the same options stay in the report.
-    others = [r for r in PRESETS if r not in cfg.rows and (out_dir / "rows" / f"{r}_s0").is_dir()]
-    for spec in plan(dataclasses.replace(cfg, rows=tuple(others)), scene_dir, cues, out_dir, train_args)[0] if others else []:
-        done = _done(Path(spec["out"]), spec["keys"])
-        if done is not None:
-            results[(spec["row"], spec["seed"])] = done
-    shown = [r for r in PRESETS if r in cfg.rows or any((r, s) in results for s in range(cfg.seeds))]
+    # Row runs an earlier run finished in OUT with the same options stay in the report: other rows
+    # (`--rows X` after `--rows Y`) and other seeds (`--seeds 1` after `--seeds 2`).
+    _add_finished_on_disk(cfg, scene_dir, cues, out_dir, train_args, results, todo)
+    shown = [r for r in PRESETS if r in cfg.rows or any(row == r for row, _ in results)]
     floor = _run_floor(cfg, scene_dir, out_dir, example)
 
     def summary() -> dict:
@@ -385,7 +382,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
                 "config": asdict(cfg) | {"gt": str(cfg.gt) if cfg.gt else None,
                                          "gt_depth": str(cfg.gt_depth) if cfg.gt_depth else None},
                 "train_args": train_args, "floor": floor,
-                "rows": [_row_summary(r, [results[(r, s)] for s in range(cfg.seeds) if (r, s) in results], na)
+                "rows": [_row_summary(r, [results[k] for k in sorted(results) if k[0] == r], na)
                          for r in shown]}
 
     def on_done(spec: dict, result: dict) -> None:
@@ -401,6 +398,33 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
                                   f"{out_dir}: run the same command again to continue") from None
     write_reports(summary(), out_dir)
     return out_dir
+
+
+def _seeds_on_disk(out_dir: Path) -> dict[str, int]:
+    """Each row with run folders in OUT/rows: one more than its highest seed found there."""
+    found: dict[str, int] = {}
+    for path in (out_dir / "rows").glob("*_s*"):
+        row, _, seed = path.name.rpartition("_s")
+        if path.is_dir() and row in PRESETS and seed.isdigit():
+            found[row] = max(found.get(row, 0), int(seed) + 1)
+    return found
+
+
+def _add_finished_on_disk(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_args: list[str],
+                          results: dict, todo: list[dict]) -> None:
+    """Add to ``results`` every row run in OUT finished with this ablation's options that this run
+    neither planned nor skipped (keys that differ mean other options: those stay out)."""
+    planned = set(results) | {(spec["row"], spec["seed"]) for spec in todo}
+    on_disk = _seeds_on_disk(out_dir)
+    if not on_disk:
+        return
+    earlier = dataclasses.replace(cfg, rows=tuple(on_disk), seeds=max(on_disk.values()))
+    for spec in plan(earlier, scene_dir, cues, out_dir, train_args)[0]:
+        if (spec["row"], spec["seed"]) in planned or spec["seed"] >= on_disk[spec["row"]]:
+            continue
+        done = _done(Path(spec["out"]), spec["keys"])
+        if done is not None:
+            results[(spec["row"], spec["seed"])] = done
 
 
 def _remove_outputs(out_dir: Path) -> None:

@@ -261,13 +261,37 @@ def test_a_row_killed_while_scoring_keeps_its_finished_training(tiny, ablation, 
                                                 "gt": None, "metrics": {}})
 
 
-def test_seeds_give_mean_and_spread(tiny):
-    out = _run(tiny, "seeds", ["no-lnc"], seeds=2, floor=False)
-    row = json.loads((out / "ablation.json").read_text())["rows"][0]
+@pytest.fixture(scope="module")
+def seeded(tiny):
+    return _run(tiny, "seeds", ["no-lnc"], seeds=2, floor=False)
+
+
+def test_seeds_give_mean_and_spread(seeded):
+    row = json.loads((seeded / "ablation.json").read_text())["rows"][0]
     assert row["n_seeds"] == 2 and [r["seed"] for r in row["runs"]] == [0, 1]
     f = [r["final"]["f_score"] for r in row["runs"]]
     assert row["mean"]["f_score"] == pytest.approx(np.mean(f))
     assert row["std"]["f_score"] == pytest.approx(np.std(f))
+
+
+def test_a_run_with_fewer_seeds_keeps_the_finished_seeds(tiny, seeded, monkeypatch):
+    """`--seeds 1` (of this row or of other rows) after `--seeds 2` in the same OUT: the report keeps
+    seed 1's finished run, with the same mean and spread as before."""
+    import splat.ablate as ablate
+
+    before = json.loads((seeded / "ablation.json").read_text())["rows"][0]
+    out = tiny[0] / "fewer_seeds"
+    shutil.copytree(seeded, out)
+    ran = []
+    monkeypatch.setattr(ablate, "run_row", lambda spec: ran.append(spec["row"]))
+    for rows in (["no-lnc"], []):
+        _run(tiny, "fewer_seeds", rows, seeds=1, floor=False)
+        data = json.loads((out / "ablation.json").read_text())
+        row = data["rows"][0]
+        assert ran == [] and row["row"] == "no-lnc" and row["n_seeds"] == 2
+        assert [r["seed"] for r in row["runs"]] == [0, 1]
+        assert row["mean"] == before["mean"] and row["std"] == before["std"]
+        assert "2 seed(s) per row" in (out / "report.md").read_text()
 
 
 def test_preset_overrides_and_cli_options():
