@@ -15,6 +15,7 @@ from cli._dispatch import dispatch
 from cli.rooms_cli import make_room
 from evaluation.cue_metrics import CueMetricsConfig
 from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, format_table, save_json
+from evaluation.sim_priors import SimPriorsConfig
 from geocues.atomic import atomic_path, check_output_file
 
 
@@ -138,6 +139,28 @@ def report(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
     return 0
 
 
+def simulate_priors(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
+                    out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+                    overwrite: bool = False,
+                    cfg: Annotated[SimPriorsConfig, tyro.conf.arg(name="")] = SimPriorsConfig()) -> int:
+    """SIMULATED monocular depth/normal priors for a real scene with exact depth (e.g. ICL-NUIM).
+
+    OUT is SCENE (images, model, gt linked) plus priors/ made from the exact depth and the GT mesh
+    with the benchmark rooms' simulated errors; OUT/scene.json marks them simulated. For the
+    `splat ablate` rows that need priors; label such results "simulated priors".
+
+    Args:
+        scene: the scene folder (COLMAP model, images/, gt/mesh.ply or --gt-mesh).
+        out: the new scene folder.
+        overwrite: replace OUT if it exists.
+        cfg: sources and simulated errors.
+    """
+    from evaluation.sim_priors import simulate_scene_priors
+
+    print(f"wrote {simulate_scene_priors(scene, out, cfg, overwrite=overwrite)}")
+    return 0
+
+
 def scene_option_to_positional(argv: list[str]) -> list[str]:
     """The old spelling `--scene SCENE` (before SCENE became positional, as in `geocues`/`splat`):
     moved to the end of the arguments as the positional SCENE, with a one-line deprecation note."""
@@ -166,13 +189,14 @@ def scene_option_to_positional(argv: list[str]) -> list[str]:
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
 # The default command (metrics of a mesh) is registered under "mesh" and runs without its name.
-COMMANDS: dict = {"mesh": mesh, "make-room": make_room, "cues": cues, "report": report}
+COMMANDS: dict = {"mesh": mesh, "make-room": make_room, "cues": cues, "report": report,
+                  "simulate-priors": simulate_priors}
 DEFAULT = "mesh"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] != "make-room" and any(a == "--scene" or a.startswith("--scene=") for a in argv):
+    if argv and argv[0] not in ("make-room", "simulate-priors") and any(a == "--scene" or a.startswith("--scene=") for a in argv):
         try:
             argv = scene_option_to_positional(argv)
         except ValueError as exc:

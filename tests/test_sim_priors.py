@@ -1,0 +1,72 @@
+"""`evaluate simulate-priors`: simulated priors for a scene with exact depth, marked simulated,
+within the simulated error of the truth once the per-image scale and shift are undone."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cues_synth import make_room_scene, render
+from geocues.scene import Scene
+from test_ablate import write_gt
+
+
+def normals_from_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame normals of the exact depth by central differences (0 at borders and edges),
+    facing the camera: an oracle independent of the mesh ray casting under test."""
+    h, w = depth.shape
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    P = np.stack([(j - K[0, 2]) / K[0, 0] * depth, (i - K[1, 2]) / K[1, 1] * depth, depth], -1)
+    n = np.zeros_like(P)
+    n[1:-1, 1:-1] = np.cross(P[1:-1, 2:] - P[1:-1, :-2], P[2:, 1:-1] - P[:-2, 1:-1])
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    n = np.where((np.einsum("hwc,hwc->hw", n, P) > 0)[..., None], -n, n)
+    smooth = np.zeros((h, w), bool)
+    smooth[1:-1, 1:-1] = np.abs(depth[1:-1, 2:] + depth[1:-1, :-2] - 2 * depth[1:-1, 1:-1]) < 0.01
+    return np.where(smooth[..., None], n, 0.0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = make_room_scene(tmp_path_factory.mktemp("sim") / "room", n_views=4, w=64, h=48, priors="none")
+    write_gt(root)
+    return root
+
+
+def test_priors_follow_the_truth_up_to_the_simulated_errors(scene, tmp_path):
+    from evaluation.sim_priors import SimPriorsConfig, simulate_scene_priors
+
+    out = simulate_scene_priors(scene, tmp_path / "sim", SimPriorsConfig(seed=3))
+    meta = json.loads((out / "scene.json").read_text())["priors"]
+    assert meta["simulated"] is True and meta["seed"] == 3 and len(meta["per_image"]) == 4
+    loaded = Scene.load(out)
+    assert loaded.has_depth_priors and loaded.has_normal_priors
+    warp = meta["config"]["depth_warp"]
+    for cam in loaded.cameras:
+        _, depth, _ = render(cam.K, cam.R, cam.t, cam.width, cam.height)
+        normal = normals_from_depth(depth, cam.K)
+        prior = np.load(out / "priors" / "depth" / f"{cam.stem}.npy")
+        par = meta["per_image"][cam.stem]["depth"]
+        valid = (depth > 0) & (prior > 0)
+        undone = (prior[valid] - par["shift"]) / par["scale"]
+        rel = np.abs(undone / depth[valid] - 1.0)
+        assert np.median(rel) < 1.5 * warp and np.percentile(rel, 90) < 3.5 * warp + 0.02
+        n = np.load(out / "priors" / "normal" / f"{cam.stem}.npy")
+        ok = (np.linalg.norm(n, axis=-1) > 0.5) & (np.linalg.norm(normal, axis=-1) > 0.5)
+        assert ok.mean() > 0.7
+        angle = np.degrees(np.arccos(np.clip(np.einsum("hwc,hwc->hw", n, normal)[ok], -1, 1)))
+        assert np.median(angle) < 10.0  # blur, ~3 degree tilt and noise; a flipped axis gives ~180
+
+
+def test_a_scene_without_exact_depth_is_a_clear_error(scene, tmp_path):
+    from evaluation.sim_priors import SimPriorsConfig, simulate_scene_priors
+
+    with pytest.raises(FileNotFoundError, match="GT depth"):
+        simulate_scene_priors(scene, tmp_path / "a", SimPriorsConfig(gt_depth=tmp_path / "nowhere"))
+    with pytest.raises(FileNotFoundError, match="GT mesh"):
+        simulate_scene_priors(scene, tmp_path / "b", SimPriorsConfig(gt_mesh=tmp_path / "none.ply"))
+    (tmp_path / "c").mkdir()
+    with pytest.raises(ValueError, match="already exists"):
+        simulate_scene_priors(scene, tmp_path / "c")
