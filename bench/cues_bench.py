@@ -86,36 +86,14 @@ class BenchConfig:
     """Extraction options (priors is set per mode)."""
 
 
-def simulated_prior_scene(scene_dir: Path, depth_dir: Path, out: Path, png_scale: float, seed: int) -> Path:
-    """A copy of ``scene_dir`` (images and model linked) with SIMULATED depth priors made from the
-    GT depth PNGs in ``depth_dir`` by the rooms' monocular-prior simulator."""
-    import cv2
+def simulated_prior_scene(scene_dir: Path, depth_dir: Path, out: Path, png_scale: float, seed: int,
+                          gt_mesh: Path | None = None) -> Path:
+    """``scene_dir`` (images and model linked) with SIMULATED priors made from the GT depth in
+    ``depth_dir`` and the GT mesh's normals: `evaluate simulate-priors` (evaluation.sim_priors)."""
+    from evaluation.sim_priors import SimPriorsConfig, simulate_scene_priors
 
-    from evaluation.rooms.priors import PriorConfig, simulate_depth_prior
-
-    scene = Scene.load(scene_dir, check_priors=False)
-    if out.exists():
-        shutil.rmtree(out)
-    (out / "priors" / "depth").mkdir(parents=True)
-    os.symlink((scene.root / "images").resolve(), out / "images")
-    (out / "sparse").mkdir()
-    os.symlink(scene.model_dir.resolve(), out / "sparse" / "0")
-    cfg = PriorConfig()
-    per_image = {}
-    for cam in scene.cameras:
-        png = depth_dir / f"{cam.stem}.png"
-        if not png.is_file():
-            raise FileNotFoundError(f"no GT depth for {cam.name}: {png}")
-        depth = cv2.imread(str(png), cv2.IMREAD_UNCHANGED).astype(np.float32) / png_scale
-        prior, params = simulate_depth_prior(depth, np.random.default_rng([seed, cam.index]), cfg)
-        np.save(out / "priors" / "depth" / f"{cam.stem}.npy", prior)
-        per_image[cam.stem] = {"scale": params["scale"], "shift": params["shift"]}
-    meta = {"priors": {"simulated": True, "depth": "SIMULATED from ground-truth depth "
-                       f"({depth_dir}) by evaluation.rooms.priors.simulate_depth_prior",
-                       "config": cfg.to_dict(), "per_image": per_image},
-            "source_scene": str(scene_dir)}
-    (out / "scene.json").write_text(json.dumps(meta, indent=1))
-    return out
+    cfg = SimPriorsConfig(seed=seed, gt_depth=depth_dir, gt_depth_png_scale=png_scale, gt_mesh=gt_mesh)
+    return simulate_scene_priors(scene_dir, out, cfg, overwrite=True)
 
 
 def measure(cues_dir: Path, gt: GroundTruth, cfg: BenchConfig) -> dict:
@@ -157,7 +135,8 @@ def run(cfg: BenchConfig) -> Path:
     cfg.out.mkdir(parents=True, exist_ok=True)
     if cfg.simulate_priors_from is not None:
         scene_dir = simulated_prior_scene(scene_dir, Path(cfg.simulate_priors_from),
-                                          cfg.out / f"{cfg.name}_simprior_scene", cfg.depth_png_scale, cfg.seed)
+                                          cfg.out / f"{cfg.name}_simprior_scene", cfg.depth_png_scale, cfg.seed,
+                                          Path(cfg.gt) if cfg.gt else None)
     scene = Scene.load(scene_dir)
     gt_path = Path(cfg.gt) if cfg.gt else scene.gt_mesh_path
     if gt_path is None:

@@ -80,6 +80,20 @@ class ExtractConfig:
     """Plane-like cues."""
 
 
+# Plane options added after cue folders were made that change nothing while fuse_surfaces is off:
+# then they stay out of the configuration key, so a re-run of an older folder is still the same run.
+_SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "fuse_prior_rel", "fuse_prior_dist")
+
+
+def _key_config(cfg: ExtractConfig) -> dict:
+    """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` left out while off)."""
+    d = asdict(cfg)
+    if not cfg.plane.fuse_surfaces:
+        for k in _SURFACE_FIELDS:
+            d["plane"].pop(k)
+    return d
+
+
 def _json_default(o):
     if isinstance(o, (np.integer,)):
         return int(o)
@@ -162,7 +176,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         log.warning("%s", far)
     kind = _prior_kind(cfg, scene)
     # the scene's content, not only its path: a scene regenerated in place is extracted again
-    key = config_key(cfg, scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")),
+    key = config_key(_key_config(cfg), scene_dir.resolve(), tree_stamp(scene_dir, ("images", "priors", "sparse")),
                      file_stamp(scene.root / "scene.json", *scene.sources))
     report_path = out_dir / "report.json"
     if report_path.is_file() and not overwrite:
@@ -312,6 +326,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     fits: list[DepthAlignment] = []
     has_priors = scene.has_depth_priors
     strict = anchors.cue_type == int(CueType.SFM)  # SfM anchors count only inside a region
+    candidates: list = []  # the images' prior planes, for surface fusion (cfg.plane.fuse_surfaces)
     lines_of: dict[int, list[int]] = {}  # camera -> lines it supports (they cut its regions)
     for li, v in enumerate(lines.views if lines is not None else []):
         for c in np.asarray(v, np.int64).tolist():
@@ -360,7 +375,8 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         elif aligned is not None:
             pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[pc], cfg.plane,
                                        seed=cfg.seed + i, inside_only=strict[pc],
-                                       anchors_group=anchors.group[pc])
+                                       anchors_group=anchors.group[pc], anchor_ids=pc)
+            candidates += pp.candidates
             row["plane_mode"] = "prior"
             if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in
                 row["regions_prior_free"] = len(pp.no_depth_regions)
@@ -393,11 +409,27 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         row["planes_s"] = t3 - t2
         rows.append(row)
     t0 = time.perf_counter()
+    surface_stats = None
+    if cfg.plane.fuse_surfaces:
+        from geocues.plane_surfaces import fuse_surfaces
+
+        fused, surface_stats = fuse_surfaces(candidates, scene.cameras, anchors.xyz, anchors.group, cfg.plane)
+        for view, fx, frgb, fn, fplane in fused:
+            xyz.append(fx)
+            rgb.append(frgb)
+            nrm.append(fn.astype(np.float32))
+            pid.append(np.full(len(fx), n_planes, np.int64))
+            planes.append(fplane[None])
+            plane_view.append(np.array([view]))
+            n_planes += 1
+        log.info("surface fusion: %s", surface_stats)
+    timings["planes_surfaces"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     centers = np.array([c.center for c in scene.cameras])
     cloud, merge_rej, anchor_pts = merge_plane_points(centers, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
     rej_plane.update(merge_rej)
     timings["planes_merge"] = time.perf_counter() - t0
-    timings["planes"] += timings["planes_merge"]
+    timings["planes"] += timings["planes_merge"] + timings["planes_surfaces"]
     if not has_priors:
         notes.append("the scene has no depth priors: plane-like cues are prior-free for every image "
                      "(`geocues mvs SCENE -o SCENE_MVS` computes depth priors from the photos; on ICL living "
@@ -419,4 +451,6 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     stats = {"texture_cache_hits": cache_hits, "images_with_prior": n_prior, "images_aligned": n_aligned,
              "plane_modes": {m: sum(r["plane_mode"] == m for r in rows)
                              for m in ("prior", "prior_free", "none", "skipped_no_prior")}}
+    if surface_stats is not None:
+        stats["surface_fusion"] = surface_stats
     return cloud, rows, {"texture": rej_tex, "depth_align": rej_align, "planes": rej_plane}, stats, anchor_pts

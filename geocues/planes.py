@@ -121,6 +121,18 @@ class PlaneConfig:
     """Planes closer than this angle ..."""
     fuse_dist: float = 0.05
     """... and passing within this distance (metres) of each other's centroid are one surface."""
+    fuse_surfaces: bool = False
+    """Group the prior planes of all images into surfaces and pin each surface with the anchors of
+    every image that sees it, before cutting the rays (an extension, geocues.plane_surfaces): walls
+    whose images each see one border line get cues across, not only along that line."""
+    surface_angle_deg: float = 20.0
+    """Surface fusion: an image's prior plane joins a surface if their normals differ by less than this
+    (the warp of a monocular prior tilts its planes: 9-19 degrees measured on the bare room) ..."""
+    fuse_prior_rel: float = 0.05
+    """... and its aligned prior lies within this fraction of its depth of the surface (the prior's
+    low-frequency warp; also the per-pixel test of the cut) ..."""
+    fuse_prior_dist: float = 0.05
+    """... or within this distance (metres), whichever is larger."""
     min_plane_views: int = 1
     """With fusion: drop points of surfaces found in fewer images than this."""
     min_views: int = 3
@@ -147,6 +159,7 @@ class PlanePoints:
     n_accepted: int = 0  # regions that produced points
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> regions (or planes)
     no_depth_regions: list[int] = field(default_factory=list)  # regions without prior depth (fill_holes)
+    candidates: list = field(default_factory=list)  # SurfaceCandidate per prior plane (fuse_surfaces)
 
     def concat(self, other: "PlanePoints") -> "PlanePoints":
         """These points and ``other``'s (of the same image and regions: their planes follow ours)."""
@@ -198,7 +211,8 @@ def _bump(d: dict[str, int], key: str, n: int = 1) -> None:
 def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           aligned_depth: np.ndarray, anchors_xyz: np.ndarray, cfg: PlaneConfig,
                           seed: int = 0, inside_only: np.ndarray | None = None,
-                          anchors_group: np.ndarray | None = None) -> PlanePoints:
+                          anchors_group: np.ndarray | None = None, anchor_ids: np.ndarray | None = None
+                          ) -> PlanePoints:
     """Plane-like points of one image from its aligned depth prior [H, W] (metres, 0 = invalid).
 
     ``anchors_xyz`` [P, 3]: line / SfM cue points that may be visible in the image; those flagged
@@ -206,7 +220,10 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     ``anchors_group`` [P] (line index, or < 0 for SfM points) weighs each line like one point.
     Each region's back-projected prior is split into planes by sequential RANSAC; a plane is kept
     if the nearby anchors agree with it -- after it is snapped onto them (``snap_to_plane``), which
-    removes the prior's residual low-frequency error -- and its pixels' rays are cut with it."""
+    removes the prior's residual low-frequency error -- and its pixels' rays are cut with it.
+    With ``fuse_surfaces`` nothing is cut here: every plane becomes a SurfaceCandidate (in the
+    result's ``candidates``, its agreeing anchors named by ``anchor_ids`` [P], default 0..P-1) for
+    geocues.plane_surfaces."""
     h, w = cam.height, cam.width
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
         raise ValueError(f"{cam.name}: regions {regions.shape}, depth {aligned_depth.shape} and "
@@ -224,6 +241,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                               inside_only=inside_only, depth=aligned_depth, occl_rel=cfg.occlusion_rel)
     groups = np.arange(len(anchors_xyz)) if anchors_group is None else np.asarray(anchors_group)
     out = _Collector(cam, image, rows, cols)
+    candidates: list = []
     accepted = 0
     no_depth = []  # regions left to the prior-free fit (fill_holes)
     has_depth = (z > 0) & (z < cfg.max_depth)
@@ -260,6 +278,10 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             # agreement with the nearby cues (paper: keep points close to the 3D line samples)
             near_plane = np.abs(a_c @ n_c + d_c) < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
             r = rays[sel[keep]]
+            if cfg.fuse_surfaces:
+                candidates.append(_candidate(cam, image, n_c, d_c, rows[sel[keep]], cols[sel[keep]], z[sel[keep]],
+                                             a_c, a_w, near_plane, a_ids, anchor_ids, cfg))
+                continue
             if near_plane.sum() < cfg.min_agree_anchors:
                 if cfg.require_anchors:
                     _bump(rej, "no_nearby_cues" if len(a_ids) < cfg.min_agree_anchors else "disagrees_with_cues")
@@ -296,7 +318,25 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
         accepted += got_any
     res = out.result(n_regions, accepted, rej)
     res.no_depth_regions = no_depth
+    res.candidates = candidates
     return res
+
+
+def _candidate(cam: Camera, image: np.ndarray, n_c: np.ndarray, d_c: float, rows: np.ndarray, cols: np.ndarray,
+               z: np.ndarray, a_c: np.ndarray, a_w: np.ndarray, near_plane: np.ndarray, a_ids: np.ndarray,
+               anchor_ids: np.ndarray | None, cfg: PlaneConfig):
+    """One prior plane as a SurfaceCandidate; its anchors are the nearby ones it agrees with (the
+    same test as without fusion), none if they are too few or disagree."""
+    from geocues.plane_surfaces import SurfaceCandidate
+
+    agree = a_ids[:0]
+    if near_plane.sum() >= cfg.min_agree_anchors:
+        ap = AnchoredPlane(a_c[near_plane], a_w[near_plane], n_c, cfg.anchor_sigma,
+                           np.radians(cfg.prior_normal_std_deg), huber=cfg.agree_dist)
+        if weighted_median(np.abs(ap.residual), a_w[near_plane]) < cfg.agree_dist:
+            agree = a_ids[near_plane][np.abs(ap.residual) < cfg.agree_dist]
+    ids = agree if anchor_ids is None else np.asarray(anchor_ids)[agree]
+    return SurfaceCandidate.from_camera_plane(cam, n_c, d_c, rows, cols, z, image[rows, cols], ids)
 
 
 def _fill(cam: Camera, rows: np.ndarray, cols: np.ndarray, holes: np.ndarray, found: list, cfg: PlaneConfig,

@@ -82,8 +82,9 @@ class WeakTexture:
 
 
 def config_key(cfg: object, *extra: object) -> str:
-    """Short stable hash of a config dataclass (and extra values) for cache keys."""
-    blob = json.dumps([asdict(cfg), [str(e) for e in extra]], sort_keys=True, default=str)
+    """Short stable hash of a config dataclass or dict (and extra values) for cache keys."""
+    blob = json.dumps([cfg if isinstance(cfg, dict) else asdict(cfg), [str(e) for e in extra]],
+                      sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 

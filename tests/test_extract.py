@@ -17,6 +17,7 @@ from geocues.cue_io import read_cues_ply, read_lines_npz
 from geocues.types import CueType
 
 from cues_synth import distance_to_surface, fake_line_cues, make_room_scene
+from test_planes import _wall_normals_ok
 
 
 @pytest.fixture(autouse=True)
@@ -99,6 +100,22 @@ class TestRun:
         name = {"sfm": "SFM", "lines": "LINE", "planes": "PLANE"}[off]
         assert rep["counts"][name] == 0 and off not in rep["seconds"]
         assert sum(rep["counts"].values()) > 0
+
+    def test_surface_fusion_run(self, scenes, tmp_path):
+        """--plane.fuse-surfaces end to end: plane cues on the room's faces with their normals, the
+        fusion's statistics in the report, no NaN; a plain run of that folder is another config."""
+        cfg = ex.ExtractConfig()
+        cfg.plane.fuse_surfaces = True
+        out = ex.run(cfg, scenes["all"], tmp_path / "fused")
+        rep = _report(out)
+        stats = rep["planes"]["surface_fusion"]
+        assert stats["surfaces_of_several_images"] >= 3 and stats["surfaces"] <= stats["surface_candidates"]
+        plane = _no_nan(out).of_type(CueType.PLANE)
+        assert len(plane) > 100 and np.mean(distance_to_surface(plane.xyz) < 0.01) > 0.95
+        assert _wall_normals_ok(plane.xyz, plane.normal) > 0.9
+        assert rep["seconds"]["planes_surfaces"] >= 0
+        with pytest.raises(ValueError, match="overwrite"):
+            ex.run(None, scenes["all"], out)
 
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
         out = ex.run(ex.ExtractConfig(priors=False), scenes["all"], tmp_path / "free")
