@@ -82,7 +82,8 @@ class ExtractConfig:
 
 # Plane options added after cue folders were made that change nothing while fuse_surfaces is off:
 # then they stay out of the configuration key, so a re-run of an older folder is still the same run.
-_SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "fuse_prior_rel", "fuse_prior_dist")
+_SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg", "fuse_prior_rel",
+                   "fuse_prior_dist")
 
 
 def _key_config(cfg: ExtractConfig) -> dict:

@@ -30,6 +30,13 @@ if TYPE_CHECKING:
     from geocues.scene import Camera
 
 
+def pixel_rays_at(cam: Camera, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Camera.pixel_rays()[rows, cols] without the whole image's grid: [m, 3], z = 1."""
+    x = (cols + 0.5 - cam.K[0, 2]) / cam.K[0, 0]
+    y = (rows + 0.5 - cam.K[1, 2]) / cam.K[1, 1]
+    return np.stack([x, y, np.ones_like(x, dtype=np.float64)], axis=1)
+
+
 @dataclass
 class SurfaceCandidate:
     """One image's plane of one weak-texture region, before any cut: world plane n·X + d = 0 from
@@ -57,7 +64,7 @@ class SurfaceCandidate:
     def prior_points(self, cam: Camera, max_n: int = 256) -> np.ndarray:
         """Up to ``max_n`` of the pixels' prior points in world coordinates [k, 3] (evenly spaced)."""
         step = max(1, len(self.rows) // max_n)
-        r = cam.pixel_rays()[self.rows[::step], self.cols[::step]] * self.z_prior[::step, None]
+        r = pixel_rays_at(cam, self.rows[::step], self.cols[::step]) * self.z_prior[::step, None]
         return (r - cam.t) @ cam.R
 
 
@@ -77,8 +84,8 @@ def _tolerance(z: np.ndarray | float, cfg: PlaneConfig) -> np.ndarray | float:
 
 def _fit(ids: np.ndarray, n0: np.ndarray, xyz: np.ndarray, group: np.ndarray, cfg: PlaneConfig
          ) -> tuple[AnchoredPlane, np.ndarray]:
-    """The plane of anchors ``ids`` and the ids it keeps: anchor groups (a line; the SfM points
-    together) whose median residual exceeds ``anchor_sigma`` are dropped, worst first, and the
+    """The plane of anchors ``ids`` and the ids it keeps: anchor groups (a line, an SfM point) whose
+    mean absolute residual exceeds ``anchor_sigma`` are dropped, worst first, and the
     plane refitted. Images accept anchors within ``agree_dist`` of their own plane; a line a few
     centimetres off the surface (a threshold's edge beside the floor line) then gets in, and the
     fit of all of them would split the difference, tilting the plane across the whole surface."""
@@ -87,11 +94,15 @@ def _fit(ids: np.ndarray, n0: np.ndarray, xyz: np.ndarray, group: np.ndarray, cf
         ap = AnchoredPlane(xyz[ids], group_weights(g), n0, cfg.anchor_sigma,
                            np.radians(cfg.prior_normal_std_deg), huber=cfg.agree_dist)
         uniq, inv = np.unique(g, return_inverse=True)
-        med = np.array([np.median(np.abs(ap.residual[inv == k])) for k in range(len(uniq))])
-        worst = int(np.argmax(med))
-        if med[worst] <= cfg.anchor_sigma or len(uniq) <= 1:
+        inv = inv.ravel()
+        mean = np.bincount(inv, np.abs(ap.residual)) / np.bincount(inv)  # mean |residual| per group
+        worst = int(np.argmax(mean))
+        if mean[worst] <= cfg.anchor_sigma or len(uniq) <= 1:
             return ap, ids
-        ids = ids[inv != worst]
+        drop = (mean > 3.0 * cfg.anchor_sigma) | (np.arange(len(uniq)) == worst)  # clear outliers at once
+        if drop.all():
+            drop = np.arange(len(uniq)) == worst
+        ids = ids[~drop[inv]]
 
 
 def group_surfaces(cands: list[SurfaceCandidate], cams: list[Camera], anchors_xyz: np.ndarray,
@@ -99,8 +110,9 @@ def group_surfaces(cands: list[SurfaceCandidate], cams: list[Camera], anchors_xy
     """Greedy grouping, the candidate with the most anchors first. A candidate joins a surface if
     its anchors and the surface's are coplanar -- the plane refitted to all of them keeps every
     line of both (:func:`_fit`) -- and that plane is within ``surface_angle_deg`` of the candidate's
-    prior plane and of the surface's plane before, with the candidate's prior points within the
-    warp tolerance of it (median). A candidate without anchors joins on the last two tests alone.
+    prior plane and of the surface's plane before, within ``surface_consensus_deg`` of the mean of
+    the members' prior normals, with every member's prior points within the warp tolerance of it
+    (median). A candidate without anchors joins on the last two tests alone.
     Candidates are visited in up to 3 rounds, so a plane pinned by a new line can take more."""
     if not cands:
         return []
@@ -124,7 +136,8 @@ def group_surfaces(cands: list[SurfaceCandidate], cams: list[Camera], anchors_xy
                         & (np.abs(cen[free] @ plane.n + plane.d) <= 2.0 * _tolerance(zmed[free], cfg))]
             added = 0
             for q in near:
-                joined = _join(cands[q], pts[q], zmed[q], plane, ids, anchors_xyz, anchors_group, cos_max, cfg)
+                joined = _join(cands[q], pts[q], zmed[q], plane, ids, anchors_xyz, anchors_group, cos_max, cfg,
+                               [(pts[m], zmed[m]) for m in members], normals[members + [int(q)]])
                 if joined is None:
                     continue
                 plane, ids = joined
@@ -138,9 +151,11 @@ def group_surfaces(cands: list[SurfaceCandidate], cams: list[Camera], anchors_xy
 
 
 def _join(cand: SurfaceCandidate, pts: np.ndarray, zmed: float, plane: AnchoredPlane, ids: np.ndarray,
-          anchors_xyz: np.ndarray, anchors_group: np.ndarray, cos_max: float, cfg: PlaneConfig
+          anchors_xyz: np.ndarray, anchors_group: np.ndarray, cos_max: float, cfg: PlaneConfig,
+          members: list[tuple[np.ndarray, float]], member_normals: np.ndarray
           ) -> tuple[AnchoredPlane, np.ndarray] | None:
-    """The surface's (plane, anchor ids) with ``cand`` in it, or None if it does not belong."""
+    """The surface's (plane, anchor ids) with ``cand`` in it, or None if it does not belong.
+    ``members``: (prior points, median depth) of the surface's members so far."""
     new = plane, ids
     if len(cand.anchor_ids):
         union = np.union1d(ids, cand.anchor_ids)
@@ -149,6 +164,14 @@ def _join(cand: SurfaceCandidate, pts: np.ndarray, zmed: float, plane: AnchoredP
             return None  # not coplanar: its cues put it elsewhere (a cabinet front before a wall)
         if abs(float(joint.n @ plane.n)) < cos_max:
             return None  # two parallel lines are always coplanar: the plane must stay the surface's
+        if any(np.median(np.abs(mp @ joint.n + joint.d)) > _tolerance(mz, cfg) for mp, mz in members):
+            return None  # ... and its members' priors must still lie on it (two vertical corner lines
+            #              of different walls span a plane through the room that no image sees)
+        signs = np.where(member_normals @ joint.n < 0, -1.0, 1.0)  # the members' prior planes, on average,
+        consensus = (member_normals * signs[:, None]).mean(axis=0)  # must not be turned away from: each
+        if float(joint.n @ consensus) < np.linalg.norm(consensus) * np.cos(np.radians(cfg.surface_consensus_deg)):
+            return None  # is tilted by its own warp, their mean much less (a line of an object before a
+            #              wall, parallel to the wall's only line, turned it by 11 degrees on a held-out room)
         new = joint, kept
     p = new[0]
     if abs(float(cand.n @ p.n)) < cos_max or np.median(np.abs(pts @ p.n + p.d)) > _tolerance(zmed, cfg):
@@ -166,7 +189,7 @@ def cut_with_surface(cand: SurfaceCandidate, cam: Camera, surface: Surface, anch
     ap = surface.plane
     n_c = cam.R @ ap.n
     d_c = ap.d - float(n_c @ cam.t)
-    r = cam.pixel_rays()[cand.rows, cand.cols]
+    r = pixel_rays_at(cam, cand.rows, cand.cols)
     z = ray_plane_depth(r, n_c, d_c)
     ok = np.isfinite(z) & (z > 0) & (z < cfg.max_depth) & \
         (np.abs(r @ n_c) / np.linalg.norm(r, axis=1) >= cfg.min_ray_cos)

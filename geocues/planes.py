@@ -128,6 +128,9 @@ class PlaneConfig:
     surface_angle_deg: float = 20.0
     """Surface fusion: an image's prior plane joins a surface if their normals differ by less than this
     (the warp of a monocular prior tilts its planes: 9-19 degrees measured on the bare room) ..."""
+    surface_consensus_deg: float = 5.0
+    """... and a plane refitted to the anchors it brings stays within this angle of the mean of the
+    surface's prior normals (each prior plane is tilted by its own warp; their mean much less) ..."""
     fuse_prior_rel: float = 0.05
     """... and its aligned prior lies within this fraction of its depth of the surface (the prior's
     low-frequency warp; also the per-pixel test of the cut) ..."""
