@@ -41,14 +41,11 @@ class SimPriorsConfig:
     """The simulated errors (as `evaluate make-room`)."""
 
 
-def gt_normals_camera(mesh_scene, cam) -> np.ndarray:
+def gt_normals_camera(mesh_scene, cam, dirs_cam: np.ndarray) -> np.ndarray:
     """Camera-frame unit normals [H, W, 3] of the GT surface seen by ``cam`` (facing the camera;
-    0 where the ray misses), ray-cast through the pixel centres."""
+    0 where the ray misses), ray-cast along ``dirs_cam`` = ``cam.pixel_rays()``."""
     import open3d as o3d
 
-    from evaluation.rooms.render import pixel_directions
-
-    dirs_cam = pixel_directions(cam.K, cam.width, cam.height, np.array([[0.5, 0.5]]))[:, :, 0]
     R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
     origin = -R.T @ t
     dirs_world = dirs_cam @ R  # rows: R^T d
@@ -68,7 +65,6 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
     import open3d as o3d
     from tqdm import tqdm
 
-    from evaluation.rooms.render import pixel_directions
     from geocues.atomic import atomic_dir, check_output_dir
     from geocues.scene import Scene
     from splat.floor import find_gt_depth_dir, load_gt_depth
@@ -100,8 +96,8 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
         (tmp / "priors" / "normal").mkdir(parents=True)
         for k, cam in enumerate(tqdm(scene.cameras, desc="simulate priors", unit="view")):
             depth = load_gt_depth(depth_dir, cam.stem, (cam.height, cam.width), cfg.gt_depth_png_scale)
-            normal = gt_normals_camera(mesh_scene, cam)
-            dirs = pixel_directions(cam.K, cam.width, cam.height, np.array([[0.5, 0.5]]))[:, :, 0]
+            dirs = cam.pixel_rays()
+            normal = gt_normals_camera(mesh_scene, cam, dirs)
             dprior, dpar = simulate_depth_prior(depth, rngs[k], cfg.priors)
             nprior, npar = simulate_normal_prior(normal, dirs, rngs[k], cfg.priors)
             np.save(tmp / "priors" / "depth" / f"{cam.stem}.npy", dprior)

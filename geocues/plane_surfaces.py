@@ -30,13 +30,6 @@ if TYPE_CHECKING:
     from geocues.scene import Camera
 
 
-def pixel_rays_at(cam: Camera, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Camera.pixel_rays()[rows, cols] without the whole image's grid: [m, 3], z = 1."""
-    x = (cols + 0.5 - cam.K[0, 2]) / cam.K[0, 0]
-    y = (rows + 0.5 - cam.K[1, 2]) / cam.K[1, 1]
-    return np.stack([x, y, np.ones_like(x, dtype=np.float64)], axis=1)
-
-
 @dataclass
 class SurfaceCandidate:
     """One image's plane of one weak-texture region, before any cut: world plane n·X + d = 0 from
@@ -64,7 +57,7 @@ class SurfaceCandidate:
     def prior_points(self, cam: Camera, max_n: int = 256) -> np.ndarray:
         """Up to ``max_n`` of the pixels' prior points in world coordinates [k, 3] (evenly spaced)."""
         step = max(1, len(self.rows) // max_n)
-        r = pixel_rays_at(cam, self.rows[::step], self.cols[::step]) * self.z_prior[::step, None]
+        r = cam.rays_at(self.rows[::step], self.cols[::step]) * self.z_prior[::step, None]
         return (r - cam.t) @ cam.R
 
 
@@ -189,7 +182,7 @@ def cut_with_surface(cand: SurfaceCandidate, cam: Camera, surface: Surface, anch
     ap = surface.plane
     n_c = cam.R @ ap.n
     d_c = ap.d - float(n_c @ cam.t)
-    r = pixel_rays_at(cam, cand.rows, cand.cols)
+    r = cam.rays_at(cand.rows, cand.cols)
     z = ray_plane_depth(r, n_c, d_c)
     ok = np.isfinite(z) & (z > 0) & (z < cfg.max_depth) & \
         (np.abs(r @ n_c) / np.linalg.norm(r, axis=1) >= cfg.min_ray_cos)
@@ -223,9 +216,9 @@ def fuse_surfaces(cands: list[SurfaceCandidate], cams: list[Camera], anchors_xyz
             keep, Xw = cut_with_surface(cand, cam, surf, anchors_xyz, cfg)
             if not len(Xw):
                 continue
-            n = surf.plane.n if float(surf.plane.n @ (cam.center - Xw.mean(axis=0))) > 0 else -surf.plane.n
-            out.append((cand.view, Xw, cand.rgb[keep], np.broadcast_to(n, Xw.shape).copy(),
-                        np.r_[n, -float(n @ Xw.mean(axis=0))]))
+            mid = Xw.mean(axis=0)
+            n = surf.plane.n if float(surf.plane.n @ (cam.center - mid)) > 0 else -surf.plane.n
+            out.append((cand.view, Xw, cand.rgb[keep], np.broadcast_to(n, Xw.shape).copy(), np.r_[n, -float(n @ mid)]))
         grouped += len(surf.members)
     stats = {"surface_candidates": len(cands), "surfaces": len(surfaces),
              "surfaces_of_several_images": sum(len({cands[q].view for q in s.members}) > 1 for s in surfaces),

@@ -77,10 +77,14 @@ class Camera:
 
     def pixel_rays(self) -> np.ndarray:
         """Camera-frame ray directions (z = 1) through every pixel centre, [H, W, 3]."""
-        j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
-        x = (j - self.K[0, 2]) / self.K[0, 0]
-        y = (i - self.K[1, 2]) / self.K[1, 1]
-        return np.stack([x, y, np.ones_like(x)], axis=-1)
+        i, j = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")
+        return self.rays_at(i, j)
+
+    def rays_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """``pixel_rays()[rows, cols]`` without the whole image's grid: [..., 3], z = 1."""
+        x = (np.asarray(cols) + 0.5 - self.K[0, 2]) / self.K[0, 0]
+        y = (np.asarray(rows) + 0.5 - self.K[1, 2]) / self.K[1, 1]
+        return np.stack([x, y, np.ones_like(x, dtype=np.float64)], axis=-1)
 
 
 @dataclass
