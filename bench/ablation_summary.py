@@ -4,7 +4,8 @@
     python bench/ablation_summary.py --demo outputs/demo  # also README.md's demo figures and plot
 
 For each ``bench/results/ablation_<scene>/ablation.json`` (copied there from a `splat ablate` OUT
-with ``--collect OUT NAME``), a table of every row: Chamfer-L1, F@5cm, NC, test PSNR, training
+with ``--collect OUT NAME``; merged with the rows already there when the setup is the same, so an
+ablation can be finished over several sessions), a table of every row: Chamfer-L1, F@5cm, NC, test PSNR, training
 seconds, the ratio of Chamfer-L1 to the floor's and the deltas against `no-cues`. The text between
 ``<!-- ablation-summary -->`` and ``<!-- /ablation-summary -->`` in docs/training.md is replaced.
 With ``--demo DIR`` the main job's figures (DIR/ablation/ablation.json) go between
@@ -67,10 +68,24 @@ def scene_table(data: dict) -> str:
     return "\n".join(lines)
 
 
-def collect(out: Path, name: str) -> Path:
-    """Copy a `splat ablate` OUT's reports (not its training folders) to bench/results/ablation_NAME/."""
+def collect(out: Path, name: str, replace: bool = False) -> Path:
+    """Copy a `splat ablate` OUT's reports (not its training folders) to bench/results/ablation_NAME/.
+    Where that folder already holds an ablation of the same setup, the two are merged (rows and seeds
+    finished only there stay; ``replace`` drops them) and the report and plot are redrawn."""
+    import sys
+
+    sys.path.insert(0, str(REPO))
+    from evaluation.ablation_report import merge_summaries, write_reports
+
     dst = RESULTS / f"ablation_{name}"
     dst.mkdir(parents=True, exist_ok=True)
+    if (dst / "ablation.json").is_file() and not replace:
+        old, new = (json.loads((d / "ablation.json").read_text()) for d in (dst, out))
+        try:
+            write_reports(merge_summaries(old, new), dst)
+        except ValueError as exc:
+            raise SystemExit(f"{dst}: {exc} (--replace overwrites it)") from None
+        return dst
     for f in ("ablation.json", "report.md", "accuracy_vs_time.png"):
         shutil.copyfile(out / f, dst / f)
     return dst
@@ -80,10 +95,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--collect", nargs=2, metavar=("OUT", "NAME"), action="append", default=[],
                     help="copy the reports of a `splat ablate` OUT to bench/results/ablation_NAME first")
+    ap.add_argument("--replace", action="store_true",
+                    help="--collect replaces bench/results/ablation_NAME instead of merging into it")
     ap.add_argument("--demo", type=Path, help="the main job's output folder (outputs/demo)")
     args = ap.parse_args()
     for out, name in args.collect:
-        print(f"collected {collect(Path(out), name)}")
+        print(f"collected {collect(Path(out), name, args.replace)}")
     parts = []
     for path in sorted(RESULTS.glob("ablation_*/ablation.json")):
         data = json.loads(path.read_text())

@@ -14,6 +14,52 @@ from geocues.atomic import atomic_path
 
 PANELS = (("chamfer_l1", "Chamfer-L1 (cm)", 100.0), ("f_score", "F-score @ 5 cm", 1.0),
           ("normal_consistency", "normal consistency", 1.0), ("psnr", "test PSNR (dB)", 1.0))
+METRICS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f_score", "normal_consistency")
+# What must agree for two ablations' rows to share one table (the rows, seeds and how they were
+# dispatched may differ).
+_SAME_SETUP = ("iters", "gt", "gt_depth", "gt_depth_png_scale", "checkpoints", "metrics", "floor")
+
+
+def row_stats(runs: list[dict]) -> dict:
+    """A finished row's part of the summary: its runs (one per seed) with mean and spread of the
+    final metrics, test PSNR/SSIM and training seconds."""
+    import numpy as np
+
+    keys = METRICS + ("psnr", "ssim", "train_s")
+    finals = [r["final"] | {"train_s": r["train_s"]} for r in runs]
+    values = {k: [f[k] for f in finals if f.get(k) is not None] for k in keys}
+    return {"status": "done", "n_seeds": len(runs),
+            "mean": {k: float(np.mean(v)) if v else None for k, v in values.items()},
+            "std": {k: float(np.std(v)) if v else None for k, v in values.items()},
+            "runs": sorted(runs, key=lambda r: r["seed"])}
+
+
+def merge_summaries(old: dict, new: dict) -> dict:
+    """``new`` with the finished runs of ``old`` it lacks: the same ablation continued in another
+    OUT (a fresh checkout, another machine). Both must have the same scene label, training options,
+    iterations, scoring and floor; a row's run (row, seed) finished in both is taken from ``new``.
+    Raises ValueError naming what differs."""
+    differ = [k for k in ("scene_label", "train_args") if old.get(k) != new.get(k)]
+    differ += [f"config.{k}" for k in _SAME_SETUP if old["config"].get(k) != new["config"].get(k)]
+    old_floor, new_floor = old.get("floor") or {}, new.get("floor") or {}
+    if old_floor.get("key") and new_floor.get("key") and old_floor["key"] != new_floor["key"]:
+        differ.append("floor (other training views or TSDF settings)")
+    if differ:
+        raise ValueError(f"the two ablations differ in {', '.join(differ)}: their rows do not share a table")
+    old_rows = {r["row"]: r for r in old["rows"]}
+    rows = []
+    for row in new["rows"]:
+        before = old_rows.pop(row["row"], None)
+        if before is not None and before["status"] == "done" and row["status"] != "n/a":
+            runs = {r["seed"]: r for r in before["runs"]}
+            runs.update({r["seed"]: r for r in row.get("runs", [])})
+            row = {k: v for k, v in row.items() if k not in ("reason",)} | row_stats(list(runs.values()))
+        rows.append(row)
+    order = [r["row"] for r in old["rows"]]
+    rows += [r for r in old_rows.values()]  # rows only the earlier ablation ran, in its order
+    rows.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
+    floor = new_floor if new_floor.get("status") == "done" else old.get("floor")
+    return new | {"rows": rows, "floor": floor}
 
 
 def _fmt(value, scale: float = 1.0, digits: int = 3) -> str:

@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from evaluation.ablation_report import METRICS, row_stats
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.plane_anchors import plane_anchors_path
@@ -35,7 +36,7 @@ from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, m
 
 log = logging.getLogger(__name__)
 
-METRICS = ("accuracy", "completeness", "chamfer_l1", "precision", "recall", "f_score", "normal_consistency")
+RUN_FIELDS = ("seed", "key", "curve", "final", "train_s", "wall_s", "gaussians_init", "gaussians_final")
 
 
 @dataclass
@@ -446,8 +447,6 @@ def _short(final: dict) -> str:
 
 
 def _row_summary(row: str, runs: list[dict], na: dict[str, str]) -> dict:
-    import numpy as np
-
     preset = get_preset(row)
     out = {"row": row, "label": preset.label, "paper": preset.paper, "extension": preset.extension,
            "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in preset.overrides.items()},
@@ -456,11 +455,4 @@ def _row_summary(row: str, runs: list[dict], na: dict[str, str]) -> dict:
         return out | {"status": "n/a", "reason": na[row]}
     if not runs:
         return out | {"status": "pending"}
-    keys = METRICS + ("psnr", "ssim", "train_s")
-    finals = [r["final"] | {"train_s": r["train_s"]} for r in runs]
-    values = {k: [f[k] for f in finals if f.get(k) is not None] for k in keys}
-    mean = {k: float(np.mean(v)) if v else None for k, v in values.items()}
-    std = {k: float(np.std(v)) if v else None for k, v in values.items()}
-    return out | {"status": "done", "n_seeds": len(runs), "mean": mean, "std": std,
-                  "runs": [{k: r[k] for k in ("seed", "curve", "final", "train_s", "wall_s",
-                                              "gaussians_init", "gaussians_final")} for r in runs]}
+    return out | row_stats([{k: r[k] for k in RUN_FIELDS if k in r} for r in runs])
