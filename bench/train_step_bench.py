@@ -1,7 +1,7 @@
 """Seconds per training iteration: the whole `splat train` step, not the rasterizer alone.
 
     python bench/train_step_bench.py --name cpu2 [--device cpu|cuda] [--sizes 320x240 640x480] \
-        [--counts 50000 100000 300000] [--iters 20] [--adams torch fused]
+        [--counts 50000 100000 300000] [--iters 20] [--variants baseline fused-adam today]
 
 One iteration is ``splat.train.train_step``: render, the IndoorGS loss terms (L_rgb, L_d, L_n,
 L_s and L_nc, all on; not the anchored-depth term L_a, which these views have no anchor for and
@@ -13,8 +13,10 @@ depth/normal priors, and training starts from a perturbed copy. Median seconds o
 steps after 3 warm-up steps (CUDA synchronised), and the median of each stage of the step (render =
 projection + compositing forward; loss = every loss term's forward; backward = all gradients,
 compositing and projection included; optimizer; density), from ``train_step(stage_s=...)``.
-Each configuration runs once per ``--adams`` implementation side by side ("torch" = the code before
-the fused Adam, "fused" = today's default), so old and new are timed under the same conditions.
+Each configuration runs once per ``--variants`` entry side by side, so old and new are timed under
+the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
+step when issue 15 was filed), "fused-adam" (torch's single-kernel Adam only), "today" (the
+defaults: fused Adam and the C++ SSIM of splat/ssim_cpu.py).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
 """
 
@@ -53,8 +55,8 @@ class StepBench:
     iters: int = 20
     sh_degree: int = 3
     backend: str = "auto"
-    adams: tuple[str, ...] = ("torch", "fused")
-    """Adam implementations to time side by side (TrainConfig.adam)."""
+    variants: tuple[str, ...] = ("baseline", "today")
+    """Implementations to time side by side (names of :data:`VARIANTS`)."""
     docs: bool = False
     """write the table into docs/training.md (between its train-step markers)."""
     profile: str = ""
@@ -63,9 +65,12 @@ class StepBench:
 
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")
+# The same training step computed by other code: (TrainConfig.adam, LossConfig.ssim).
+VARIANTS = {"baseline": ("torch", "torch"), "fused-adam": ("fused", "torch"), "today": ("fused", "fused")}
 
 
-def time_config(width: int, height: int, n: int, cfg: StepBench, adam: str) -> dict:
+def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
+    adam, ssim = VARIANTS[variant]
     truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
     views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
     g = torch.Generator().manual_seed(0)
@@ -78,7 +83,7 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, adam: str) -> d
     state = strategy.initialize_state(3.0)
     state["cue_type"] = (torch.arange(n) % 3).to(cfg.device)
     tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree, adam=adam)
-    loss_cfg = replace(LossConfig(), nc_from_iter=0)  # every term on
+    loss_cfg = replace(LossConfig(), nc_from_iter=0, ssim=ssim)  # every term on
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     times, stages = [], []
     for step in range(1, cfg.iters + 4):
@@ -94,8 +99,8 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, adam: str) -> d
         if not math.isfinite(float(loss)):
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
     if cfg.profile:
-        _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {adam}")
-    row = {"width": width, "height": height, "n": n, "adam": adam, "median_s": statistics.median(times),
+        _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {variant}")
+    row = {"width": width, "height": height, "n": n, "variant": variant, "adam": adam, "ssim": ssim, "median_s": statistics.median(times),
            "min_s": min(times), "max_s": max(times),
            "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}
     if cfg.device.startswith("cuda"):
@@ -121,15 +126,18 @@ def _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg:
 
 
 def main(cfg: StepBench) -> dict:
+    unknown = [v for v in cfg.variants if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown --variants {unknown}; choose from {list(VARIANTS)}")
     rows = []
-    print(f"{'size':>8s} {'n':>7s} {'adam':>6s} {'s/iter':>7s}  " + " ".join(f"{k:>9s}" for k in STAGES))
+    print(f"{'size':>8s} {'n':>7s} {'variant':>10s} {'s/iter':>7s}  " + " ".join(f"{k:>9s}" for k in STAGES))
     for size in cfg.sizes:
         w, h = (int(v) for v in size.split("x"))
         for n in cfg.counts:
-            for adam in cfg.adams:
-                row = time_config(w, h, n, cfg, adam)
+            for variant in cfg.variants:
+                row = time_config(w, h, n, cfg, variant)
                 rows.append(row)
-                print(f"{size:>8s} {n:>7d} {adam:>6s} {row['median_s']:7.3f}  "
+                print(f"{size:>8s} {n:>7d} {variant:>10s} {row['median_s']:7.3f}  "
                       + " ".join(f"{row['stages_s'][k]:9.4f}" for k in STAGES), flush=True)
     result = {"config": asdict(cfg), "torch": torch.__version__, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
@@ -145,14 +153,20 @@ def main(cfg: StepBench) -> dict:
 
 
 def format_table(result: dict) -> str:
-    """Markdown: seconds per iteration per Adam with the per-stage split, one line per configuration."""
-    lines = ["| image | Gaussians | Adam | s/iter | " + " | ".join(STAGES) + " |",
+    """Markdown: seconds per iteration per variant with the per-stage split, one line per configuration."""
+    lines = ["| image | Gaussians | variant (Adam, SSIM) | s/iter | " + " | ".join(STAGES) + " |",
              "|---|---:|---|---:|" + "---:|" * len(STAGES)]
     for r in result["rows"]:
         st = r.get("stages_s", {})
-        lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {r.get('adam', 'torch')} | {r['median_s']:.3f} | "
+        lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {_variant(r)} | {r['median_s']:.3f} | "
                      + " | ".join(f"{st.get(k, float('nan')):.3f}" for k in STAGES) + " |")
     return "\n".join(lines)
+
+
+def _variant(row: dict) -> str:
+    """A row's variant as the table shows it (rows written before variants: their Adam)."""
+    adam, ssim = row.get("adam", "torch"), row.get("ssim", "torch")
+    return f"{row['variant']} ({adam}, {ssim})" if "variant" in row else f"Adam {adam}"
 
 
 def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md") -> None:

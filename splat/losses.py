@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from evaluation.image_metrics import ssim_map
 from splat.multiview import SourceView, multiview_ncc_loss, to_gray
+from splat.ssim_cpu import ssim_mean
 
 log = logging.getLogger(__name__)
 
@@ -45,17 +45,18 @@ def _masked_mean(values: Tensor, mask: Tensor) -> Tensor:
     return picked.sum() / mask.sum().clamp(min=1).to(values.dtype)
 
 
-def rgb_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2) -> Tensor:
+def rgb_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, fused_ssim: bool = True) -> Tensor:
     """L_rgb (IndoorGS §4.3, 3DGS Eq. 7): (1 − λ) L1 + λ (1 − SSIM).
 
     pred, gt: [H, W, 3] colours in [0, 1]. L1 is the mean over pixels and channels; SSIM is the
-    3DGS one (11 × 11 Gaussian window, σ = 1.5, zero padding) from ``evaluation.image_metrics``.
+    3DGS one (11 × 11 Gaussian window, σ = 1.5, zero padding) of ``evaluation.image_metrics``, on
+    the CPU by the fused C++ kernel of splat/ssim_cpu.py unless ``fused_ssim`` is False.
     Returns a 0-dim tensor.
     """
     _check_shape("pred", pred, (None, None, 3))
     _check_shape("gt", gt, tuple(pred.shape))
     l1 = (pred - gt).abs().mean()
-    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_map(pred, gt.to(pred.dtype)).mean())
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_mean(pred, gt.to(pred.dtype), fused_ssim))
 
 
 def sample_patch_grid(height: int, width: int, patch_size: int, n_patches: int,
@@ -233,6 +234,10 @@ class LossConfig:
 
     lambda_dssim: float = 0.2
     """Weight of the D-SSIM part of L_rgb (3DGS)."""
+    ssim: str = "fused"
+    """SSIM of L_rgb: "fused" (the C++ kernel with its analytic gradient on the CPU, splat/ssim_cpu.py)
+    or "torch" (autograd through evaluation.image_metrics.ssim_map); the same loss and gradient up to
+    float rounding (tests/test_ssim_cpu.py). CUDA tensors always take torch's."""
     lambda_depth: float = 0.1
     """λ_d, weight of the patch-PCC depth-prior loss L_d."""
     lambda_normal: float = 0.5
@@ -318,7 +323,8 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
     h, w = out["depth"].shape
     _check_shape("cue_type", cue_type, (params["scales"].shape[0],))
     covered = out["alpha"] > cfg.min_alpha_valid
-    terms: dict[str, tuple[float, Tensor]] = {"rgb": (1.0, rgb_loss(out["rgb"], gt_rgb, cfg.lambda_dssim))}
+    terms: dict[str, tuple[float, Tensor]] = {"rgb": (1.0, rgb_loss(out["rgb"], gt_rgb, cfg.lambda_dssim,
+                                                                          cfg.ssim == "fused"))}
     if cfg.use_depth and depth_prior is not None:
         _check_shape("depth_prior", depth_prior, (h, w))
         valid = covered & (depth_prior > 0) & torch.isfinite(depth_prior) & (out["depth"] > 0)

@@ -4,9 +4,11 @@
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "CPU rasterizer kernels: tile-based alpha compositing and fused Gaussian projection "
-            "(forward + analytic backward)";
+            "and the training loss's SSIM (forward + analytic backward)";
   m.def("forward", &composite_forward, "composite forward (see splat/composite.py)");
   m.def("backward", &composite_backward, "composite backward (see splat/composite.py)");
   m.def("project_forward", &project_forward, "projection forward (see splat/project_cpu.py)");
   m.def("project_backward", &project_backward, "projection backward (see splat/project_cpu.py)");
+  m.def("ssim_forward", &ssim_forward, "fused SSIM forward (see splat/ssim_cpu.py)");
+  m.def("ssim_backward", &ssim_backward, "fused SSIM backward (see splat/ssim_cpu.py)");
 }

@@ -1,4 +1,5 @@
-// Entry points of the CPU rasterizer extension (defined in composite_cpu.cpp and project_cpu.cpp,
+// Entry points of the CPU rasterizer extension (defined in composite_cpu.cpp, project_cpu.cpp and
+// ssim_cpu.cpp,
 // bound to Python in bindings.cpp; the Python wrappers are splat/composite_cpu.py and
 // splat/project_cpu.py).
 
@@ -33,3 +34,7 @@ std::vector<torch::Tensor> project_backward(
     torch::Tensor g_op, torch::Tensor g_col, torch::Tensor g_sl, torch::Tensor g_nrm, int64_t W,
     int64_t H, double near, double far, double eps2d, double min_cos, bool antialiased,
     int64_t sh_degree);
+std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor g, double C1,
+                                        double C2);
+torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y, torch::Tensor d_mx,
+                            torch::Tensor d_xx, torch::Tensor d_xy, torch::Tensor g);

@@ -1,0 +1,70 @@
+"""The training loss's SSIM, fused on the CPU: mean SSIM and its analytic gradient in C++.
+
+``ssim_mean(pred, gt)`` is ``evaluation.image_metrics.ssim_map(pred, gt).mean()`` (11 × 11 Gaussian
+window, σ = 1.5, zero padding, as 3DGS), the torch oracle it is tested against in float64
+(tests/test_ssim_cpu.py). The kernel (``splat/csrc/ssim_cpu.cpp``) computes the five local moments
+in two passes over the image and keeps the three partial-derivative maps for the backward, which is
+three blurs and one multiply-add per pixel — where torch's autograd runs ten convolutions forward,
+their transposes backward, and a dozen full-size temporaries. It takes float32 and float64 CPU
+tensors; the gradient flows to ``pred`` only. ``fused=False``, a CUDA tensor, a ``gt`` that needs
+a gradient, or an extension that failed to build take the torch path.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from evaluation.image_metrics import gaussian_window, ssim_map
+
+log = logging.getLogger(__name__)
+
+C1, C2 = 0.01**2, 0.03**2  # data range 1
+_WINDOW = gaussian_window(11, 1.5, dtype=torch.float64)
+
+_EXT: list = []  # [the extension or None], loaded on first use
+
+
+def _ext():
+    if not _EXT:
+        try:
+            from splat.cpu_ext import ext
+        except ImportError as exc:  # the rasterizer warns about the failed build too
+            log.warning("fused SSIM unavailable (%s): torch's SSIM is used", str(exc).splitlines()[0])
+            ext = None
+        _EXT.append(ext)
+    return _EXT[0]
+
+
+class _SSIMMeanCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, pred: Tensor, gt: Tensor) -> Tensor:
+        mean, d_mx, d_xx, d_xy = _ext().ssim_forward(pred, gt, _WINDOW, C1, C2)
+        ctx.save_for_backward(pred, gt, d_mx, d_xx, d_xy)
+        return mean
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        pred, gt, d_mx, d_xx, d_xy = ctx.saved_tensors
+        return _ext().ssim_backward(grad.detach().to(torch.float64).cpu(), pred, gt, d_mx, d_xx, d_xy, _WINDOW), None
+
+
+def fused_available() -> bool:
+    """Whether the C++ extension (with the fused SSIM) is built and loaded."""
+    return _ext() is not None
+
+
+def ssim_mean(pred: Tensor, gt: Tensor, fused: bool = True) -> Tensor:
+    """Mean SSIM of ``pred`` [H, W, C] against ``gt`` (same shape), a 0-dim tensor with a gradient
+    to ``pred``; the fused C++ kernel where it applies (see the module), else the torch oracle."""
+    if pred.dim() != 3 or pred.shape != gt.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must both be [H, W, C]")
+    gt = gt.to(pred.dtype)
+    if (not fused or pred.device.type != "cpu" or gt.requires_grad
+            or pred.dtype not in (torch.float32, torch.float64) or _ext() is None):
+        return ssim_map(pred, gt).mean()
+    return _SSIMMeanCPU.apply(pred.contiguous(), gt.contiguous())
