@@ -8,6 +8,7 @@ default command, run when the first argument is not a subcommand name (``evaluat
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from typing import Callable
 
@@ -50,6 +51,25 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
         logger.setLevel(level)
         if not logger.handlers:
             logger.addHandler(handler)
+
+
+def _interrupt(signum, _frame) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def sigterm_as_interrupt():
+    """SIGTERM (`kill`, a job scheduler) stops a command as Ctrl-C does: one line, outputs kept.
+    pycolmap's glog installs a handler on import that dumps a native stack trace on SIGTERM, and it
+    would replace one installed before it, so pycolmap is imported first (where installed).
+    Returns the handler it replaced (None outside the main thread, where nothing is changed)."""
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:
+        pass
+    try:
+        return signal.signal(signal.SIGTERM, _interrupt)
+    except ValueError:  # not the main thread (an embedding application): leave its handlers alone
+        return None
 
 
 def _usage(prog: str, commands: dict[str, Callable], default: str | None) -> str:
@@ -95,6 +115,15 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
         except SystemExit:
             print(GLOBAL_HELP)
             return 0
+    old_sigterm = sigterm_as_interrupt()
+    try:
+        return _run(fn, rest, sub_prog, verbose)
+    finally:
+        if old_sigterm is not None:
+            signal.signal(signal.SIGTERM, old_sigterm)
+
+
+def _run(fn: Callable, rest: list[str], sub_prog: str, verbose: bool) -> int:
     try:
         if hasattr(fn, "run_argv"):  # the command parses its own argv (e.g. passes options through)
             result = fn.run_argv(rest)

@@ -207,3 +207,40 @@ def test_ctrl_c_in_any_command_is_one_line(capsys):
         "tool slow: interrupted; finished outputs are kept, run the same command again to redo the rest"]
     with pytest.raises(KeyboardInterrupt):  # -v keeps the traceback
         dispatch("tool", {"slow": slow}, argv=["slow", "-v"])
+
+
+def test_sigterm_in_any_command_is_one_line_not_a_native_stack_trace():
+    """`kill PID` of a command that imported pycolmap (whose glog dumps a native stack trace on
+    SIGTERM and exits 0) ends like Ctrl-C: exit code 130 and one line."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import os, signal, time\n"
+            "from cli._dispatch import dispatch\n"
+            "def work() -> int:\n"
+            "    '''Imports pycolmap, then is killed.'''\n"
+            "    import pycolmap  # noqa: F401\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    time.sleep(5)\n"
+            "    return 0\n"
+            "raise SystemExit(dispatch('tool', {'work': work}, argv=['work']))\n")
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "tool work: interrupted; finished outputs are kept, run the same command again to redo the rest"]
+
+
+def test_dispatch_restores_the_callers_sigterm_handler():
+    import signal
+
+    from cli._dispatch import dispatch
+
+    def quick() -> int:
+        """Returns at once."""
+        return 0
+
+    before = signal.getsignal(signal.SIGTERM)
+    assert dispatch("tool", {"quick": quick}, argv=["quick"]) == 0
+    assert signal.getsignal(signal.SIGTERM) is before
