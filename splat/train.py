@@ -21,6 +21,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import shutil
 import time
 from dataclasses import asdict, replace
@@ -40,7 +41,7 @@ from geocues.types import CueType
 from splat import checkpoint
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
-from splat.gaussians import init_from_cues, load_ply, save_ply, scene_scale
+from splat.gaussians import cue_type_path, init_from_cues, load_ply, scene_scale
 from splat.guard import NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
 from splat.mesh import write_mesh
@@ -85,6 +86,15 @@ def means_lr(step: int, total: int, lr: LearningRates, scale: float) -> float:
 def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[str, Tensor]:
     bg = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
     return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=bg)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """``dst`` as a hard link to ``src`` (a copy where the file system has none)."""
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
 
 
 def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, view: View, step: int,
@@ -428,8 +438,10 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
 
     t0 = time.perf_counter()
     final = evaluate_views(params, test_views, cfg.sh_degree, cfg, work / "test_renders")
-    save_ply(work / "point_cloud.ply", params, state["cue_type"])
-    write_3dgs_run(work, params, state["cue_type"], scene, asdict(cfg), cfg.iters)
+    ply = write_3dgs_run(work, params, state["cue_type"], scene, asdict(cfg), cfg.iters)
+    for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
+        if src.is_file():
+            _link_or_copy(src, work / src.name)
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()

@@ -68,6 +68,11 @@ def test_train_writes_every_output(trained):
     assert report["gaussians_final"]["PLANE"] <= report["gaussians_init"]["PLANE"]
     assert len(cue_type) <= 20_000  # the budget holds
     assert set(report["timings"]) >= {"load_and_init_s", "train_s", "mesh_s", "total_s"}
+    # the 3DGS layout holds the same model (SIBR / other tools read it), written once and linked
+    iters = report["config"]["iters"]
+    other = out / "point_cloud" / f"iteration_{iters}" / "point_cloud.ply"
+    assert other.read_bytes() == (out / "point_cloud.ply").read_bytes()
+    assert (out / "cue_type.npy").read_bytes() == (other.parent / "cue_type.npy").read_bytes()
 
 
 def test_training_reduces_the_loss_and_improves_test_views(trained):
