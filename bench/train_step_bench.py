@@ -16,12 +16,13 @@ compositing and projection included; optimizer; density), from ``train_step(stag
 Each configuration runs once per ``--variants`` entry side by side, so old and new are timed under
 the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
 step when issue 15 was filed), "fused-adam" (torch's single-kernel Adam only), "today" (the
-defaults: fused Adam and the C++ SSIM of splat/ssim_cpu.py).
+defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -59,18 +60,54 @@ class StepBench:
     """Implementations to time side by side (names of :data:`VARIANTS`)."""
     docs: bool = False
     """write the table into docs/training.md (between its train-step markers)."""
+    detail: bool = True
+    """Also split the stages (CPU): projection and compositing forward and backward, each loss term's
+    forward, and the rest of the backward (the loss terms' gradients), by timing those functions."""
     profile: str = ""
     """Also profile 10 steps of each configuration with torch.profiler and append the operator table
     (sorted by device time on CUDA, by CPU time otherwise) to this file."""
 
 
 STAGES = ("render", "loss", "backward", "optimizer", "density")
-# The same training step computed by other code: (TrainConfig.adam, LossConfig.ssim).
+LOSS_TERMS = ("rgb_loss", "depth_pcc_loss", "anchored_depth_loss", "normal_prior_loss", "flatten_loss",
+              "depth_normal_consistency_loss", "multiview_ncc_loss")
+
+
+@contextlib.contextmanager
+def detail_timers(acc: dict[str, float]):
+    """Within the block, the CPU projection and compositing autograd Functions and every loss term
+    add their seconds to ``acc`` (projection_fwd/bwd, composite_fwd/bwd, loss:<term>); the bench
+    patches them, the library is not touched."""
+    from splat import composite_cpu, losses, project_cpu
+
+    def timed(fn, key):
+        def wrapper(*args, **kw):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kw)
+            finally:
+                acc[key] = acc.get(key, 0.0) + time.perf_counter() - t
+        return wrapper
+
+    saved = []
+    for cls, name in ((project_cpu._ProjectCPU, "projection"), (composite_cpu._CompositeCPU, "composite")):
+        for attr, suffix in (("forward", "fwd"), ("backward", "bwd")):
+            saved.append((cls, attr, cls.__dict__[attr]))
+            setattr(cls, attr, staticmethod(timed(getattr(cls, attr), f"{name}_{suffix}")))
+    for term in LOSS_TERMS:
+        saved.append((losses, term, getattr(losses, term)))
+        setattr(losses, term, timed(getattr(losses, term), f"loss:{term.removesuffix('_loss')}"))
+    try:
+        yield acc
+    finally:
+        for owner, attr, value in saved:
+            setattr(owner, attr, value)
+# The same training step computed by other code: (TrainConfig.adam, LossConfig.kernels).
 VARIANTS = {"baseline": ("torch", "torch"), "fused-adam": ("fused", "torch"), "today": ("fused", "fused")}
 
 
 def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
-    adam, ssim = VARIANTS[variant]
+    adam, kernels = VARIANTS[variant]
     truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
     views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
     g = torch.Generator().manual_seed(0)
@@ -83,15 +120,17 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
     state = strategy.initialize_state(3.0)
     state["cue_type"] = (torch.arange(n) % 3).to(cfg.device)
     tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree, adam=adam)
-    loss_cfg = replace(LossConfig(), nc_from_iter=0, ssim=ssim)  # every term on
+    loss_cfg = replace(LossConfig(), nc_from_iter=0, kernels=kernels)  # every term on
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     times, stages = [], []
+    detail = cfg.detail and cfg.device == "cpu"
     for step in range(1, cfg.iters + 4):
         stage_s: dict[str, float] = {}
         sync()
         t0 = time.perf_counter()
-        loss, _, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step,
-                                cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s)
+        with detail_timers(stage_s) if detail else contextlib.nullcontext():
+            loss, _, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step,
+                                    cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s)
         sync()
         if step > 3:
             times.append(time.perf_counter() - t0)
@@ -100,9 +139,14 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
     if cfg.profile:
         _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {variant}")
-    row = {"width": width, "height": height, "n": n, "variant": variant, "adam": adam, "ssim": ssim, "median_s": statistics.median(times),
+    row = {"width": width, "height": height, "n": n, "variant": variant, "adam": adam, "loss_kernels": kernels, "median_s": statistics.median(times),
            "min_s": min(times), "max_s": max(times),
            "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}
+    if detail:  # the backward's rest: the loss terms' gradients and the autograd glue
+        for st in stages:
+            st["backward_rest"] = st["backward"] - st.get("composite_bwd", 0.0) - st.get("projection_bwd", 0.0)
+        keys = sorted({k for st in stages for k in st} - set(STAGES))
+        row["detail_s"] = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in keys}
     if cfg.device.startswith("cuda"):
         row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
         torch.cuda.reset_peak_memory_stats()
@@ -139,6 +183,8 @@ def main(cfg: StepBench) -> dict:
                 rows.append(row)
                 print(f"{size:>8s} {n:>7d} {variant:>10s} {row['median_s']:7.3f}  "
                       + " ".join(f"{row['stages_s'][k]:9.4f}" for k in STAGES), flush=True)
+                if row.get("detail_s"):
+                    print(" " * 37 + ", ".join(f"{k} {v:.4f}" for k, v in row["detail_s"].items()), flush=True)
     result = {"config": asdict(cfg), "torch": torch.__version__, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
               "load_avg": os.getloadavg(), "rows": rows,
@@ -154,7 +200,7 @@ def main(cfg: StepBench) -> dict:
 
 def format_table(result: dict) -> str:
     """Markdown: seconds per iteration per variant with the per-stage split, one line per configuration."""
-    lines = ["| image | Gaussians | variant (Adam, SSIM) | s/iter | " + " | ".join(STAGES) + " |",
+    lines = ["| image | Gaussians | variant | s/iter | " + " | ".join(STAGES) + " |",
              "|---|---:|---|---:|" + "---:|" * len(STAGES)]
     for r in result["rows"]:
         st = r.get("stages_s", {})
@@ -165,8 +211,8 @@ def format_table(result: dict) -> str:
 
 def _variant(row: dict) -> str:
     """A row's variant as the table shows it (rows written before variants: their Adam)."""
-    adam, ssim = row.get("adam", "torch"), row.get("ssim", "torch")
-    return f"{row['variant']} ({adam}, {ssim})" if "variant" in row else f"Adam {adam}"
+    adam, kernels = row.get("adam", "torch"), row.get("loss_kernels", "torch")
+    return f"{row['variant']} ({adam} Adam, {kernels} loss kernels)" if "variant" in row else f"Adam {adam}"
 
 
 def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md") -> None:

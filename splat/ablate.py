@@ -120,8 +120,8 @@ def row_keys(spec: dict) -> list[str]:
     tc = {k: v for k, v in spec["train_config"].items() if k not in OPERATIONAL_FIELDS and v is not None}
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
-    if tc["loss"].get("ssim") == "fused":  # the same: the fused SSIM is torch's up to rounding (tested)
-        tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "ssim"}
+    if tc["loss"].get("kernels") == "fused":  # the same: the fused loss kernels are torch's up to rounding
+        tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "kernels"}
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
     for section, is_field, is_off in _ADDED_LATER:  # off: rows run before the option keep their key
         if is_off(tc[section]):

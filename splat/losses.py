@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from splat.multiview import SourceView, multiview_ncc_loss, to_gray
-from splat.ssim_cpu import ssim_mean
+from splat.losses_cpu import fused_applies, nc_loss, ssim_mean
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ def rgb_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, fused_ssim: bo
 
     pred, gt: [H, W, 3] colours in [0, 1]. L1 is the mean over pixels and channels; SSIM is the
     3DGS one (11 × 11 Gaussian window, σ = 1.5, zero padding) of ``evaluation.image_metrics``, on
-    the CPU by the fused C++ kernel of splat/ssim_cpu.py unless ``fused_ssim`` is False.
+    the CPU by the fused C++ kernel of splat/losses_cpu.py unless ``fused_ssim`` is False.
     Returns a 0-dim tensor.
     """
     _check_shape("pred", pred, (None, None, 3))
@@ -190,7 +190,7 @@ def depth_to_normal(depth: Tensor, K: Tensor) -> Tensor:
 
 
 def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, valid: Tensor,
-                                  detach_depth_normal: bool = False) -> Tensor:
+                                  detach_depth_normal: bool = False, fused: bool = True) -> Tensor:
     """L_nc (IndoorGS §4.3): mean over pixels of (1 − N̂ · N_depth), N_depth = ``depth_to_normal``.
 
     normal: [H, W, 3] rendered normals; depth: [H, W] rendered z-depth (m; the trainer passes the
@@ -198,10 +198,14 @@ def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, vali
     where valid and both normals are defined. The paper writes a sum; the mean keeps λ_nc = 0.1
     independent of the image size (as in PGSR / RaDe-GS). By default the gradient flows into both
     the normals and the depth (2DGS / RaDe-GS / PGSR); ``detach_depth_normal`` stops it at N_depth.
+    On the CPU the fused C++ kernel of splat/losses_cpu.py computes it (this function is its
+    oracle, ``fused=False``).
     """
     _check_shape("normal", normal, (None, None, 3))
     _check_shape("depth", depth, tuple(normal.shape[:2]))
     _check_shape("valid", valid, tuple(normal.shape[:2]))
+    if fused and valid.dtype == torch.bool and normal.dtype == depth.dtype and fused_applies(normal, depth):
+        return nc_loss(normal, depth, K, valid, detach_depth_normal)
     n_depth = depth_to_normal(depth, K)
     if detach_depth_normal:
         n_depth = n_depth.detach()
@@ -234,10 +238,10 @@ class LossConfig:
 
     lambda_dssim: float = 0.2
     """Weight of the D-SSIM part of L_rgb (3DGS)."""
-    ssim: str = "fused"
-    """SSIM of L_rgb: "fused" (the C++ kernel with its analytic gradient on the CPU, splat/ssim_cpu.py)
-    or "torch" (autograd through evaluation.image_metrics.ssim_map); the same loss and gradient up to
-    float rounding (tests/test_ssim_cpu.py). CUDA tensors always take torch's."""
+    kernels: str = "fused"
+    """SSIM of L_rgb and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
+    splat/losses_cpu.py) or "torch" (autograd through their torch code); the same loss and gradient
+    up to float rounding (tests/test_losses_cpu.py). CUDA tensors always take torch's."""
     lambda_depth: float = 0.1
     """λ_d, weight of the patch-PCC depth-prior loss L_d."""
     lambda_normal: float = 0.5
@@ -324,7 +328,7 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
     _check_shape("cue_type", cue_type, (params["scales"].shape[0],))
     covered = out["alpha"] > cfg.min_alpha_valid
     terms: dict[str, tuple[float, Tensor]] = {"rgb": (1.0, rgb_loss(out["rgb"], gt_rgb, cfg.lambda_dssim,
-                                                                          cfg.ssim == "fused"))}
+                                                                          cfg.kernels == "fused"))}
     if cfg.use_depth and depth_prior is not None:
         _check_shape("depth_prior", depth_prior, (h, w))
         valid = covered & (depth_prior > 0) & torch.isfinite(depth_prior) & (out["depth"] > 0)
@@ -342,7 +346,7 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
         terms["flat"] = (cfg.lambda_flat, flatten_loss(params["scales"], mask))
     if cfg.use_nc and step >= cfg.nc_from_iter:
         terms["nc"] = (cfg.lambda_nc, depth_normal_consistency_loss(out["normal"], out["depth"], camera_K, covered,
-                                                                    cfg.nc_detach_depth))
+                                                                    cfg.nc_detach_depth, cfg.kernels == "fused"))
     extra = {}
     if cfg.lambda_mv > 0 and source is not None and step >= cfg.mv_from_iter:
         mv, stats = multiview_ncc_loss(out["depth"], out["normal"], to_gray(gt_rgb), camera_K, source,

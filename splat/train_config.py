@@ -104,8 +104,8 @@ class TrainConfig:
 
         if self.adam not in ("fused", "torch"):
             raise ValueError(f"--adam must be 'fused' or 'torch', got {self.adam!r}")
-        if self.loss.ssim not in ("fused", "torch"):
-            raise ValueError(f"--loss.ssim must be 'fused' or 'torch', got {self.loss.ssim!r}")
+        if self.loss.kernels not in ("fused", "torch"):
+            raise ValueError(f"--loss.kernels must be 'fused' or 'torch', got {self.loss.kernels!r}")
         if self.iters <= 0:
             raise ValueError(f"--iters must be positive, got {self.iters}")
         finite_pos("downscale", self.downscale)

@@ -116,7 +116,7 @@ def test_fused_adam_is_torch_adam_through_row_rewrites():
                         LearningRates(), 1.0, "sgd")
 
 
-def _short_run(adam: str, iters: int, ssim: str = "fused") -> tuple[float, dict]:
+def _short_run(adam: str, iters: int, kernels: str = "fused") -> tuple[float, dict]:
     truth = surface_gaussians(2000, sh_degree=1, seed=2)
     views = target_views(truth, W, H, "cpu", sh_degree=1)
     g = torch.Generator().manual_seed(0)
@@ -129,7 +129,7 @@ def _short_run(adam: str, iters: int, ssim: str = "fused") -> tuple[float, dict]
     state = strategy.initialize_state(3.0)
     state["cue_type"] = torch.arange(len(params["means"])) % 3
     cfg = TrainConfig(iters=ITERS, device="cpu", sh_degree=1, adam=adam)
-    loss_cfg = replace(LossConfig(), nc_from_iter=0, ssim=ssim)
+    loss_cfg = replace(LossConfig(), nc_from_iter=0, kernels=kernels)
     for step in range(iters):
         train_step(params, optimizers, strategy, state, views[step % len(views)], step, 1, cfg, loss_cfg, g)
     counts = torch.bincount(state["cue_type"], minlength=3).tolist()
@@ -147,11 +147,11 @@ def test_fused_adam_trains_to_the_same_metrics():
     assert all(abs(x - y) <= 0.03 * max(y, 10) for x, y in zip(ca, cb)), (ca, cb)
 
 
-def test_fused_ssim_trains_to_the_same_metrics():
-    """The loss's fused C++ SSIM (the default) against autograd through the torch SSIM, under the
+def test_fused_loss_kernels_train_to_the_same_metrics():
+    """The loss's fused C++ SSIM and L_nc (the default) against autograd through torch's, under the
     same tolerance as the fused Adam: the values and gradients agree to float rounding
-    (tests/test_ssim_cpu.py), which the run amplifies."""
-    pa, ca = _short_run("fused", ITERS, ssim="fused")
-    pb, cb = _short_run("fused", ITERS, ssim="torch")
+    (tests/test_losses_cpu.py), which the run amplifies."""
+    pa, ca = _short_run("fused", ITERS, kernels="fused")
+    pb, cb = _short_run("fused", ITERS, kernels="torch")
     assert abs(pa - pb) < 0.5, (pa, pb)
     assert all(abs(x - y) <= 0.03 * max(y, 10) for x, y in zip(ca, cb)), (ca, cb)

@@ -1,5 +1,5 @@
 // Entry points of the CPU rasterizer extension (defined in composite_cpu.cpp, project_cpu.cpp and
-// ssim_cpu.cpp,
+// losses_cpu.cpp,
 // bound to Python in bindings.cpp; the Python wrappers are splat/composite_cpu.py and
 // splat/project_cpu.py).
 
@@ -38,3 +38,8 @@ std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch:
                                         double C2);
 torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y, torch::Tensor d_mx,
                             torch::Tensor d_xx, torch::Tensor d_xy, torch::Tensor g);
+std::vector<torch::Tensor> nc_forward(torch::Tensor normal, torch::Tensor depth, torch::Tensor valid,
+                                      double fx, double fy, double cx, double cy);
+std::vector<torch::Tensor> nc_backward(torch::Tensor grad, torch::Tensor normal, torch::Tensor depth,
+                                       torch::Tensor valid, double fx, double fy, double cx, double cy,
+                                       int64_t count, bool detach_depth);

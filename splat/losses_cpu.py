@@ -1,13 +1,19 @@
-"""The training loss's SSIM, fused on the CPU: mean SSIM and its analytic gradient in C++.
+"""Loss terms fused on the CPU: SSIM of L_rgb and L_nc, values and analytic gradients in C++.
 
 ``ssim_mean(pred, gt)`` is ``evaluation.image_metrics.ssim_map(pred, gt).mean()`` (11 × 11 Gaussian
 window, σ = 1.5, zero padding, as 3DGS), the torch oracle it is tested against in float64
-(tests/test_ssim_cpu.py). The kernel (``splat/csrc/ssim_cpu.cpp``) computes the five local moments
+(tests/test_losses_cpu.py). The kernel (``splat/csrc/losses_cpu.cpp``) computes the five local moments
 in two passes over the image and keeps the three partial-derivative maps for the backward, which is
 three blurs and one multiply-add per pixel — where torch's autograd runs ten convolutions forward,
 their transposes backward, and a dozen full-size temporaries. It takes float32 and float64 CPU
 tensors; the gradient flows to ``pred`` only. ``fused=False``, a CUDA tensor, a ``gt`` that needs
 a gradient, or an extension that failed to build take the torch path.
+
+``nc_loss(normal, depth, K, valid, detach_depth)`` is L_nc of splat/losses.py
+(``depth_normal_consistency_loss``, its torch oracle, which calls it where :func:`fused_applies`):
+one pass over the pixels forward, and a backward that recomputes each pixel's depth normal and
+gathers the gradients of its four neighbours — where autograd keeps a dozen [H, W, 3] temporaries
+of ``depth_to_normal`` and runs their backward one by one.
 """
 
 from __future__ import annotations
@@ -68,3 +74,35 @@ def ssim_mean(pred: Tensor, gt: Tensor, fused: bool = True) -> Tensor:
             or pred.dtype not in (torch.float32, torch.float64) or _ext() is None):
         return ssim_map(pred, gt).mean()
     return _SSIMMeanCPU.apply(pred.contiguous(), gt.contiguous())
+
+
+def fused_applies(*tensors: Tensor) -> bool:
+    """Whether the fused kernels take these tensors: float32/float64 on the CPU, extension built."""
+    return (all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
+            and _ext() is not None)
+
+
+class _NCLossCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, normal: Tensor, depth: Tensor, valid: Tensor, intr: tuple, detach_depth: bool) -> Tensor:
+        value, count = _ext().nc_forward(normal, depth, valid, *intr)
+        ctx.save_for_backward(normal, depth, valid)
+        ctx.intr, ctx.count, ctx.detach_depth = intr, int(count), detach_depth
+        return value
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        normal, depth, valid = ctx.saved_tensors
+        g_n, g_d = _ext().nc_backward(grad.detach().to(torch.float64).cpu(), normal, depth, valid, *ctx.intr,
+                                      ctx.count, ctx.detach_depth)
+        return g_n, (None if ctx.detach_depth else g_d), None, None, None
+
+
+def nc_loss(normal: Tensor, depth: Tensor, K: Tensor, valid: Tensor, detach_depth: bool = False) -> Tensor:
+    """L_nc by the C++ kernel (see the module; the caller checks :func:`fused_applies`). normal
+    [H, W, 3], depth [H, W] of one dtype, K [3, 3], valid [H, W] bool. A 0-dim tensor."""
+    k = K.detach().to(torch.float64).cpu()
+    intr = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    return _NCLossCPU.apply(normal.contiguous(), depth.to(normal.dtype).contiguous(), valid.contiguous(), intr,
+                            detach_depth)
