@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from splat.multiview import SourceView, multiview_ncc_loss, to_gray
-from splat.losses_cpu import fused_applies, nc_loss, ssim_mean
+from splat.losses_cpu import fused_applies, nc_loss, normal_prior_loss_fused, ssim_mean
 
 log = logging.getLogger(__name__)
 
@@ -128,16 +128,21 @@ def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int,
     return loss
 
 
-def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
+def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor, fused: bool = True) -> Tensor:
     """L_n (IndoorGS §4.3): mean |N̂ − N_mono|₁ over the valid pixels.
 
     normal, prior: [H, W, 3] unit camera-frame normals; valid: [H, W] bool. The L1 norm is summed
     over the 3 components and averaged over pixels (range [0, 2√3]); pixels where either normal is
-    all zero (undefined) are dropped as well. Empty mask: graph-connected 0.
+    all zero (undefined) are dropped as well. Empty mask: graph-connected 0. On the CPU the fused
+    kernel of splat/losses_cpu.py computes it (this code is its oracle, ``fused=False``); a prior
+    that needs a gradient takes this code.
     """
     _check_shape("normal", normal, (None, None, 3))
     _check_shape("prior", prior, tuple(normal.shape))
     _check_shape("valid", valid, tuple(normal.shape[:2]))
+    if (fused and valid.dtype == torch.bool and not prior.requires_grad and prior.dtype == normal.dtype
+            and fused_applies(normal, prior)):
+        return normal_prior_loss_fused(normal, prior, valid)
     # an Inf prior pixel passes the "not all zero" test: non-finite pixels are invalid (fuzz finding)
     mask = valid & (normal.detach().abs().sum(-1) > 0) & (prior.abs().sum(-1) > 0) & torch.isfinite(prior).all(-1)
     return _masked_mean((normal - prior.to(normal.dtype)).abs().sum(-1), mask)
@@ -239,7 +244,7 @@ class LossConfig:
     lambda_dssim: float = 0.2
     """Weight of the D-SSIM part of L_rgb (3DGS)."""
     kernels: str = "fused"
-    """SSIM of L_rgb and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
+    """SSIM of L_rgb, L_n and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
     splat/losses_cpu.py) or "torch" (autograd through their torch code); the same loss and gradient
     up to float rounding (tests/test_losses_cpu.py). CUDA tensors always take torch's."""
     lambda_depth: float = 0.1
@@ -340,7 +345,8 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
         terms["anchor"] = (cfg.lambda_anchor, anchored_depth_loss(out["depth"], depth_anchor,
                                                                   covered & (out["depth"] > 0), tol))
     if cfg.use_normal and normal_prior is not None:
-        terms["normal"] = (cfg.lambda_normal, normal_prior_loss(out["normal"], normal_prior, covered))
+        terms["normal"] = (cfg.lambda_normal, normal_prior_loss(out["normal"], normal_prior, covered,
+                                                                cfg.kernels == "fused"))
     if cfg.use_flat:
         mask = torch.isin(cue_type, torch.tensor(cfg.flat_types, dtype=cue_type.dtype, device=cue_type.device))
         terms["flat"] = (cfg.lambda_flat, flatten_loss(params["scales"], mask))

@@ -1,4 +1,4 @@
-"""Loss terms fused on the CPU: SSIM of L_rgb and L_nc, values and analytic gradients in C++.
+"""Loss terms fused on the CPU: SSIM of L_rgb, L_n and L_nc, values and analytic gradients in C++.
 
 ``ssim_mean(pred, gt)`` is ``evaluation.image_metrics.ssim_map(pred, gt).mean()`` (11 × 11 Gaussian
 window, σ = 1.5, zero padding, as 3DGS), the torch oracle it is tested against in float64
@@ -13,7 +13,8 @@ a gradient, or an extension that failed to build take the torch path.
 (``depth_normal_consistency_loss``, its torch oracle, which calls it where :func:`fused_applies`):
 one pass over the pixels forward, and a backward that recomputes each pixel's depth normal and
 gathers the gradients of its four neighbours — where autograd keeps a dozen [H, W, 3] temporaries
-of ``depth_to_normal`` and runs their backward one by one.
+of ``depth_to_normal`` and runs their backward one by one. ``normal_prior_loss_fused`` is L_n
+(``normal_prior_loss``, its oracle): the mask, the L1 sum and its sign gradient in one pass each.
 """
 
 from __future__ import annotations
@@ -106,3 +107,24 @@ def nc_loss(normal: Tensor, depth: Tensor, K: Tensor, valid: Tensor, detach_dept
     intr = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
     return _NCLossCPU.apply(normal.contiguous(), depth.to(normal.dtype).contiguous(), valid.contiguous(), intr,
                             detach_depth)
+
+
+class _NormalPriorCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
+        value, count = _ext().normal_prior_forward(normal, prior, valid)
+        ctx.save_for_backward(normal, prior, valid)
+        ctx.count = int(count)
+        return value
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        normal, prior, valid = ctx.saved_tensors
+        return _ext().normal_prior_backward(grad.detach().to(torch.float64).cpu(), normal, prior, valid,
+                                            ctx.count), None, None
+
+
+def normal_prior_loss_fused(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
+    """L_n by the C++ kernel (the caller checks :func:`fused_applies`); gradient to ``normal`` only."""
+    return _NormalPriorCPU.apply(normal.contiguous(), prior.to(normal.dtype).contiguous(), valid.contiguous())

@@ -176,3 +176,43 @@ def test_nc_hard_cases_stay_finite(case):
     assert torch.isfinite(v1) and torch.isfinite(gn1).all() and torch.isfinite(gd1).all()
     assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(gn1, gn0, atol=1e-12)
     assert torch.allclose(gd1, gd0, rtol=1e-9, atol=1e-9 * max(1.0, float(gd0.abs().max())))
+
+
+# ---- L_n -----------------------------------------------------------------------------------------
+
+from splat.losses import normal_prior_loss  # noqa: E402
+
+
+def _np_grads(fused, normal, prior, valid):
+    n = normal.clone().requires_grad_(True)
+    value = normal_prior_loss(n, prior, valid, fused=fused)
+    value.backward()
+    return value.detach(), n.grad
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_normal_prior_matches_the_torch_oracle(dtype):
+    """Zero (undefined) rendered normals and priors, Inf / NaN prior pixels, masked pixels, and
+    components equal to the prior's (sign 0)."""
+    g = torch.Generator().manual_seed(1)
+    normal = torch.nn.functional.normalize(torch.randn(30, 40, 3, generator=g, dtype=torch.float64), dim=-1)
+    prior = torch.nn.functional.normalize(torch.randn(30, 40, 3, generator=g, dtype=torch.float64), dim=-1)
+    normal[:3] = 0.0
+    prior[5:7] = 0.0
+    prior[8, 3, 1] = float("inf")
+    prior[9, 4, 0] = float("nan")
+    prior[10, :, 2] = normal[10, :, 2]
+    valid = torch.rand(30, 40, generator=g) > 0.3
+    normal, prior = normal.to(dtype), prior.to(dtype)
+    v0, g0 = _np_grads(False, normal, prior, valid)
+    v1, g1 = _np_grads(True, normal, prior, valid)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    assert torch.isfinite(v1) and torch.isfinite(g1).all()
+    assert abs(float(v1) - float(v0)) < tol
+    assert torch.allclose(g1, g0, atol=tol)
+
+
+def test_normal_prior_with_nothing_valid_is_zero_with_zero_gradient():
+    normal = torch.nn.functional.normalize(torch.randn(8, 8, 3, dtype=torch.float64), dim=-1)
+    v, grad = _np_grads(True, normal, normal.flip(0), torch.zeros(8, 8, dtype=torch.bool))
+    assert float(v) == 0.0 and not grad.abs().any()

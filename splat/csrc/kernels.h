@@ -43,3 +43,6 @@ std::vector<torch::Tensor> nc_forward(torch::Tensor normal, torch::Tensor depth,
 std::vector<torch::Tensor> nc_backward(torch::Tensor grad, torch::Tensor normal, torch::Tensor depth,
                                        torch::Tensor valid, double fx, double fy, double cx, double cy,
                                        int64_t count, bool detach_depth);
+std::vector<torch::Tensor> normal_prior_forward(torch::Tensor normal, torch::Tensor prior, torch::Tensor valid);
+torch::Tensor normal_prior_backward(torch::Tensor grad, torch::Tensor normal, torch::Tensor prior,
+                                    torch::Tensor valid, int64_t count);

@@ -19,6 +19,7 @@
 #include <torch/extension.h>
 
 #include <algorithm>
+#include <cmath>
 #include <vector>
 
 namespace losses_cpu {
@@ -147,6 +148,10 @@ torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y
   return out;
 }
 
+// 3. L_n, the normal-prior loss (splat/losses.py normal_prior_loss, the torch oracle): the mean
+// over pixels (valid, rendered normal N != 0, prior P != 0 and finite) of |N - P|_1; its gradient
+// sign(N - P) / count at those pixels (sign(0) = 0, as torch's abs).
+//
 // 2. L_nc, the depth-normal consistency (splat/losses.py depth_normal_consistency_loss and
 // depth_to_normal, the torch oracle): at every interior pixel p with its four neighbours' depths
 // and its own > 0, P = d (u, v, 1) back-projects the pixel centre, n = (P[j+1] - P[j-1]) x
@@ -296,4 +301,74 @@ std::vector<torch::Tensor> nc_backward(torch::Tensor grad, torch::Tensor normal,
                                gN.data_ptr<scalar_t>(), gD.data_ptr<scalar_t>());
   });
   return {gN, gD};
+}
+
+namespace losses_cpu {
+
+template <typename T>
+inline bool np_used(const T* N, const T* P, const bool* ok, int64_t p) {
+  const T* n = N + 3 * p;
+  const T* q = P + 3 * p;
+  return ok[p] && (n[0] != 0 || n[1] != 0 || n[2] != 0) && (q[0] != 0 || q[1] != 0 || q[2] != 0) &&
+         std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]);
+}
+
+template <typename T>
+double np_forward_impl(const T* N, const T* P, const bool* ok, int64_t n_pix, int64_t& count) {
+  double tot = 0.0;
+  int64_t cnt = 0;
+#pragma omp parallel for num_threads(threads_for(n_pix)) schedule(static) reduction(+ : tot, cnt)
+  for (int64_t p = 0; p < n_pix; ++p) {
+    if (!np_used(N, P, ok, p)) continue;
+    tot += double(std::abs(N[3 * p] - P[3 * p]) + std::abs(N[3 * p + 1] - P[3 * p + 1]) +
+                  std::abs(N[3 * p + 2] - P[3 * p + 2]));
+    ++cnt;
+  }
+  count = cnt;
+  return tot;
+}
+
+template <typename T>
+void np_backward_impl(const T* N, const T* P, const bool* ok, int64_t n_pix, T c, T* out) {
+#pragma omp parallel for num_threads(threads_for(n_pix)) schedule(static)
+  for (int64_t p = 0; p < n_pix; ++p) {
+    if (!np_used(N, P, ok, p)) continue;
+    for (int k = 0; k < 3; ++k) {
+      const T e = N[3 * p + k] - P[3 * p + k];
+      out[3 * p + k] = e > 0 ? c : (e < 0 ? -c : T(0));
+    }
+  }
+}
+
+}  // namespace losses_cpu
+
+// Returns {L_n (0-dim), count (0-dim int64)}.
+std::vector<torch::Tensor> normal_prior_forward(torch::Tensor normal, torch::Tensor prior, torch::Tensor valid) {
+  using namespace losses_cpu;
+  TORCH_CHECK(normal.device().is_cpu() && normal.is_contiguous() && prior.is_contiguous() &&
+                  valid.is_contiguous() && valid.scalar_type() == torch::kBool,
+              "losses_cpu: contiguous CPU normal, prior and bool valid expected");
+  TORCH_CHECK(normal.scalar_type() == prior.scalar_type(), "losses_cpu: mixed float dtypes");
+  const int64_t n_pix = valid.numel();
+  double total = 0.0;
+  int64_t count = 0;
+  AT_DISPATCH_FLOATING_TYPES(normal.scalar_type(), "normal_prior_forward", [&] {
+    total = np_forward_impl<scalar_t>(normal.data_ptr<scalar_t>(), prior.data_ptr<scalar_t>(),
+                                      valid.data_ptr<bool>(), n_pix, count);
+  });
+  const double mean = count > 0 ? total / double(count) : 0.0;
+  return {torch::full({}, mean, normal.options()), torch::full({}, count, normal.options().dtype(torch::kInt64))};
+}
+
+torch::Tensor normal_prior_backward(torch::Tensor grad, torch::Tensor normal, torch::Tensor prior,
+                                    torch::Tensor valid, int64_t count) {
+  using namespace losses_cpu;
+  torch::Tensor out = torch::zeros_like(normal);
+  if (count == 0) return out;
+  const double c = grad.item<double>() / double(count);
+  AT_DISPATCH_FLOATING_TYPES(normal.scalar_type(), "normal_prior_backward", [&] {
+    np_backward_impl<scalar_t>(normal.data_ptr<scalar_t>(), prior.data_ptr<scalar_t>(), valid.data_ptr<bool>(),
+                               valid.numel(), scalar_t(c), out.data_ptr<scalar_t>());
+  });
+  return out;
 }
