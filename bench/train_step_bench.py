@@ -206,6 +206,16 @@ def format_table(result: dict) -> str:
         st = r.get("stages_s", {})
         lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {_variant(r)} | {r['median_s']:.3f} | "
                      + " | ".join(f"{st.get(k, float('nan')):.3f}" for k in STAGES) + " |")
+    detailed = [r for r in result["rows"] if r.get("detail_s")]
+    if detailed:
+        keys = sorted({k for r in detailed for k in r["detail_s"]})
+        lines += ["", "Inside the stages (seconds; loss terms are their forward, `backward_rest` the backward "
+                  "without compositing and projection, i.e. the loss terms' gradients):", "",
+                  "| image | Gaussians | variant | " + " | ".join(k.replace("_", " ") for k in keys) + " |",
+                  "|---|---:|---|" + "---:|" * len(keys)]
+        for r in detailed:
+            lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {r['variant']} | "
+                         + " | ".join(f"{r['detail_s'].get(k, 0.0):.4f}" for k in keys) + " |")
     return "\n".join(lines)
 
 

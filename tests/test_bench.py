@@ -74,3 +74,34 @@ def test_bench_cli_tiny_run(tmp_path):
     assert runs["torch"]["speedup_vs_torch"] == 1.0
     assert runs["cpu"]["speedup_vs_torch"] > 0
     assert runs["cpu"]["n_visible"] == runs["torch"]["n_visible"]
+
+
+def test_train_step_bench_splits_the_stages_and_restores_what_it_timed():
+    """bench/train_step_bench.py on a tiny problem: both variants, every stage and the split inside
+    them; the library functions it wraps for the split are the originals afterwards."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    from splat import composite_cpu, losses, project_cpu
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "train_step_bench.py"
+    spec = importlib.util.spec_from_file_location("train_step_bench", path)
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench  # dataclasses look their module up there
+    spec.loader.exec_module(bench)
+    before = (composite_cpu._CompositeCPU.__dict__["forward"], project_cpu._ProjectCPU.__dict__["backward"],
+              losses.rgb_loss, losses.depth_normal_consistency_loss)
+    cfg = bench.StepBench(name="test", sizes=("96x72",), counts=(1500,), iters=2)
+    rows = [bench.time_config(96, 72, 1500, cfg, v) for v in ("baseline", "today")]
+    after = (composite_cpu._CompositeCPU.__dict__["forward"], project_cpu._ProjectCPU.__dict__["backward"],
+             losses.rgb_loss, losses.depth_normal_consistency_loss)
+    assert after == before
+    for row in rows:
+        assert set(row["stages_s"]) == set(bench.STAGES) and row["median_s"] > 0
+        d = row["detail_s"]
+        assert {"composite_fwd", "composite_bwd", "projection_fwd", "projection_bwd", "backward_rest",
+                "loss:rgb", "loss:depth_normal_consistency", "loss:normal_prior"} <= set(d)
+        assert d["composite_fwd"] + d["projection_fwd"] <= row["stages_s"]["render"] * 1.05 + 1e-3
+    assert rows[0]["loss_kernels"] == "torch" and rows[1]["loss_kernels"] == "fused"
+    assert "Inside the stages" in bench.format_table({"rows": rows})
