@@ -244,14 +244,16 @@ class IndoorStrategy:
             return  # nothing rendered with gradients (e.g. an evaluation step)
         if tuple(means2d.shape) != (n, 2):
             raise ValueError(f"info['means2d'] must have shape ({n}, 2), got {tuple(means2d.shape)}")
+        # Dense updates masked by visibility (no boolean indexing: a gather and a scatter per state
+        # tensor cost more than the whole pass); adding 0 leaves the invisible rows bit-identical.
         visible = info["radii"] > 0  # [N]
-        grad = means2d.grad.detach()[visible].float()  # [V, 2] pixel units
-        grad = grad * torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=grad.device)
-        state["grad2d"][visible] += grad.norm(dim=-1)
+        scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=means2d.device)
+        grad = (means2d.grad.detach().float() * scale).norm(dim=-1)  # [N] pixel units
+        state["grad2d"] += torch.where(visible, grad, 0.0)
         means_grad = params["means"].grad
         if means_grad is not None:
-            state["grad3d"][visible] += means_grad.detach()[visible].float()
-        state["count"][visible] += 1.0
+            state["grad3d"] += torch.where(visible[:, None], means_grad.detach().float(), 0.0)
+        state["count"] += visible.to(state["count"].dtype)
 
     # -- refine ----------------------------------------------------------------------------------
     @torch.no_grad()
