@@ -72,7 +72,7 @@ def coverage(points: np.ndarray, gt_samples: np.ndarray, dist: float) -> float:
 
     if len(points) == 0:
         return 0.0
-    return float(np.mean(cKDTree(points).query(gt_samples, k=1, workers=-1)[0] <= dist))
+    return float(np.mean(cKDTree(points).query(gt_samples, k=1, workers=1)[0] <= dist))
 
 
 def cue_accuracy(cues: CueCloud, gt: GroundTruth, cfg: CueMetricsConfig) -> dict:
