@@ -40,7 +40,7 @@ def _ext():
         try:
             from splat.cpu_ext import ext
         except ImportError as exc:  # the rasterizer warns about the failed build too
-            log.warning("fused SSIM unavailable (%s): torch's SSIM is used", str(exc).splitlines()[0])
+            log.warning("fused loss kernels unavailable (%s): torch's loss code is used", str(exc).splitlines()[0])
             ext = None
         _EXT.append(ext)
     return _EXT[0]
@@ -71,8 +71,7 @@ def ssim_mean(pred: Tensor, gt: Tensor, fused: bool = True) -> Tensor:
     if pred.dim() != 3 or pred.shape != gt.shape:
         raise ValueError(f"pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must both be [H, W, C]")
     gt = gt.to(pred.dtype)
-    if (not fused or pred.device.type != "cpu" or gt.requires_grad
-            or pred.dtype not in (torch.float32, torch.float64) or _ext() is None):
+    if not fused or gt.requires_grad or not fused_applies(pred):
         return ssim_map(pred, gt).mean()
     return _SSIMMeanCPU.apply(pred.contiguous(), gt.contiguous())
 
