@@ -8,6 +8,7 @@ default command, run when the first argument is not a subcommand name (``evaluat
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 from typing import Callable
@@ -86,6 +87,15 @@ def _usage(prog: str, commands: dict[str, Callable], default: str | None) -> str
 def dispatch(prog: str, commands: dict[str, Callable], default: str | None = None,
              argv: list[str] | None = None) -> int:
     """Pick the subcommand from ``argv[0]`` and let tyro parse the rest against its signature."""
+    try:
+        return _dispatch(prog, commands, default, argv)
+    except BrokenPipeError:  # `splat ablate --help | head`: the reader left; stop quietly as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return 1
+
+
+def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
+              argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         if default is not None and argv:

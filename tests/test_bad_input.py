@@ -244,3 +244,26 @@ def test_dispatch_restores_the_callers_sigterm_handler():
     before = signal.getsignal(signal.SIGTERM)
     assert dispatch("tool", {"quick": quick}, argv=["quick"]) == 0
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_help_into_a_closed_pipe_is_quiet():
+    """`splat ablate --help | head -2`: the reader leaves early; the command stops without a
+    BrokenPipeError traceback (exit 1, as Python's own tools on EPIPE)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import time\n"
+            "from cli._dispatch import dispatch\n"
+            "time.sleep(1.0)  # the reader has left by now\n"
+            "def work(count: int = 1) -> int:\n"
+            "    '''Writes more than the reader takes.'''\n"
+            "    return 0\n"
+            "raise SystemExit(dispatch('tool', {'work': work}, argv=['work', '--help']))\n")
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=repo, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader leaves before the command writes
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) in (0, 1), err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
