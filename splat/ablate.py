@@ -20,7 +20,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
@@ -31,6 +30,7 @@ from evaluation.ablation_report import METRICS, row_stats
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.plane_anchors import plane_anchors_path
+from splat.ablate_exec import execute
 from splat.checkpoint import TrainingInterrupted
 from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
@@ -301,46 +301,6 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
     return specs, na
 
 
-def _execute(cfg: AblateConfig, todo: list[dict], on_done) -> None:
-    if not todo:
-        return
-    if cfg.ray is not None:
-        import ray  # optional extra: pip install .[ray]
-
-        if not ray.is_initialized():
-            ray.init(address=None if cfg.ray == "local" else cfg.ray)
-        threads = cfg.num_threads or 1
-        remote = ray.remote(num_cpus=threads)(run_row)
-        pending = {remote.remote({**spec, "threads": threads}): spec for spec in todo}
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            spec = pending.pop(ready[0])
-            on_done(spec, ray.get(ready[0]))
-        return
-    if cfg.jobs == 1:
-        for spec in todo:
-            on_done(spec, run_row({**spec, "threads": cfg.num_threads or None}))
-        return
-    import concurrent.futures as cf
-    import multiprocessing as mp
-
-    threads = cfg.num_threads or max(1, (os.cpu_count() or 1) // cfg.jobs)
-    with cf.ProcessPoolExecutor(max_workers=cfg.jobs, mp_context=mp.get_context("spawn"),
-                                initializer=_worker_init) as pool:
-        futures = {pool.submit(run_row, {**spec, "threads": threads}): spec for spec in todo}
-        for fut in cf.as_completed(futures):
-            on_done(futures[fut], fut.result())
-
-
-def _worker_init() -> None:
-    from functools import partialmethod
-
-    import tqdm
-
-    tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
-    logging.basicConfig(level=logging.WARNING)
-
-
 # What an ablation writes into OUT: what ``overwrite`` removes (nothing else a user put there).
 OUTPUTS = ("rows", "floor", "ablation.json", "report.md", "accuracy_vs_time.png")
 
@@ -395,7 +355,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
 
     write_reports(summary(), out_dir)
     try:
-        _execute(cfg, todo, on_done)
+        execute(todo, on_done, run_row, jobs=cfg.jobs, num_threads=cfg.num_threads, ray=cfg.ray)
     except TrainingInterrupted as exc:  # the same command resumes the row from its checkpoint
         raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {len(results)} row runs are finished in "
                                   f"{out_dir}: run the same command again to continue") from None

@@ -411,6 +411,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 if density:
                     row["density"] = density
                 log_file.write(json.dumps(row) + "\n")
+                log_file.flush()  # readable while the run works (`splat ablate --jobs` progress, tail -f)
                 bar.set_postfix(loss=f"{float(loss):.4f}", n=len(state["cue_type"]))
             if step in checkpoints:
                 metrics = evaluate_views(params, test_views, sh_degree, cfg)

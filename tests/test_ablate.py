@@ -346,6 +346,36 @@ def test_ray_dispatch_gives_the_rows_of_jobs_1(tiny, ablation):
                 assert a[key] == b[key], (name, key, a[key], b[key])
 
 
+def test_jobs_2_gives_the_rows_of_jobs_1_with_a_bar_per_row(tiny, ablation, capsys):
+    """Rows in two worker processes: the same numbers as one after another (same seeds, configs and
+    thread count), and the parent draws one progress bar per row from the runs' logs."""
+    out = _run(tiny, "jobs2", ["full", "no-cues"], jobs=2, num_threads=1)
+    err = capsys.readouterr().err
+    local = {r["row"]: r for r in json.loads((ablation / "ablation.json").read_text())["rows"]}
+    par = {r["row"]: r for r in json.loads((out / "ablation.json").read_text())["rows"]}
+    for name in ("full", "no-cues"):
+        a, b = local[name]["runs"][0]["final"], par[name]["runs"][0]["final"]
+        for key in ("psnr", "f_score", "chamfer_l1", "normal_consistency", "n_gaussians"):
+            assert a[key] == b[key], (name, key, a[key], b[key])
+        assert f"{name} s0" in err and "30/30" in err, err[-2000:]
+
+
+def test_logged_step_reads_the_tail_of_a_working_run(tmp_path):
+    from splat.ablate_exec import logged_step
+
+    spec = {"out": str(tmp_path / "row")}
+    assert logged_step(spec) == 0  # nothing started yet
+    work = tmp_path / "row" / "train.partial"
+    work.mkdir(parents=True)
+    lines = [json.dumps({"step": s, "loss": 0.1, "pad": "x" * 200}) for s in range(0, 1000, 50)]
+    (work / "train_log.jsonl").write_text("\n".join(lines) + '\n{"step": 10')  # a line half-written
+    assert logged_step(spec) == 951
+    (work / "train_log.jsonl").rename(tmp_path / "row" / "train.partial" / "moved")
+    work.rename(tmp_path / "row" / "train")
+    (tmp_path / "row" / "train" / "train_log.jsonl").write_text(json.dumps({"step": 29}) + "\n")
+    assert logged_step(spec) == 30
+
+
 def test_evaluate_report_of_a_run(ablation):
     from cli.evaluate_cli import main
 

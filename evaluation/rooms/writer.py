@@ -22,8 +22,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -105,6 +108,23 @@ def contact_sheet(images: list[np.ndarray], cols: int = 3, width: int = 320) -> 
     return np.concatenate(rows, axis=0)
 
 
+def _in_order(fn, items: list, workers: int):
+    """``fn(item)`` for every item, computed in ``workers`` threads at most ``2 * workers`` ahead of
+    the consumer, yielded in order (so memory stays bounded); the pool is shut down on any exit."""
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        pending: deque = deque()
+        try:
+            for item in items:
+                pending.append(pool.submit(fn, item))
+                if len(pending) >= 2 * workers:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for f in pending:
+                f.cancel()
+
+
 def _run_sfm(scene_dir: Path, keep_cache: bool) -> dict:
     """Triangulate 3D points with known poses (geocues.sfm); {"run": False, ...} if unavailable."""
     try:
@@ -151,10 +171,16 @@ def make_room(out: str | Path, cfg: RoomConfig = RoomConfig(), overwrite: bool =
         raw_images, per_image, preview = [], {}, []
         pick = set(np.linspace(0, cfg.n_views - 1, 6).round().astype(int).tolist())
         t0 = time.perf_counter()
-        for k, (R, t) in enumerate(tqdm(poses, desc=f"render {cfg.layout} room", unit="view")):
+        # Views are rendered in threads (ray casting and numpy release the GIL), in order; the
+        # random draws (noise, priors) stay in this loop, so the scene does not depend on the threads.
+        def render(pose):
+            return render_view(room, scene, K, pose[0], pose[1], cfg.width, cfg.height,
+                               cfg.supersample, cfg.shadows)
+
+        views = _in_order(render, poses, workers=min(os.cpu_count() or 1, 8))
+        for k, ((R, t), view) in enumerate(tqdm(zip(poses, views), total=len(poses),
+                                                desc=f"render {cfg.layout} room", unit="view")):
             stem = f"{k:05d}"
-            view = render_view(room, scene, K, R, t, cfg.width, cfg.height, cfg.supersample,
-                               cfg.shadows)
             rgb = add_sensor_noise(view.image, noise_rng, cfg.image_noise)
             if not cv2.imwrite(str(tmp / "images" / f"{stem}.png"), rgb[:, :, ::-1]):
                 raise OSError(f"could not write {tmp / 'images' / f'{stem}.png'}")

@@ -1,0 +1,88 @@
+"""How `splat ablate` runs its rows: one after another, in worker processes (``jobs``) with a
+progress bar per row drawn here, or as Ray tasks (``ray``: "auto", "local" or a cluster address)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Callable
+
+
+def execute(todo: list[dict], on_done: Callable[[dict, dict], None], run_row: Callable[[dict], dict], *,
+            jobs: int = 1, num_threads: int = 0, ray: str | None = None) -> None:
+    """``on_done(spec, run_row(spec | {"threads": n}))`` for every spec of ``todo``, as each finishes.
+    ``run_row`` must be a module-level function (it is pickled to the workers)."""
+    if not todo:
+        return
+    if ray is not None:
+        import ray as ray_  # optional extra: pip install .[ray]
+
+        if not ray_.is_initialized():
+            ray_.init(address=None if ray == "local" else ray)
+        threads = num_threads or 1
+        remote = ray_.remote(num_cpus=threads)(run_row)
+        pending = {remote.remote({**spec, "threads": threads}): spec for spec in todo}
+        while pending:
+            ready, _ = ray_.wait(list(pending), num_returns=1)
+            spec = pending.pop(ready[0])
+            on_done(spec, ray_.get(ready[0]))
+        return
+    if jobs == 1:
+        for spec in todo:
+            on_done(spec, run_row({**spec, "threads": num_threads or None}))
+        return
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    from tqdm import tqdm
+
+    threads = num_threads or max(1, (os.cpu_count() or 1) // jobs)
+    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                initializer=_worker_init) as pool:
+        futures = {pool.submit(run_row, {**spec, "threads": threads}): spec for spec in todo}
+        # The workers draw no bars (parallel bars interleave): one bar per row here, read from the
+        # step its run last logged.
+        bars = {fut: tqdm(total=spec["train_config"]["iters"], desc=f"{spec['row']} s{spec['seed']}",
+                          unit="it", position=i, leave=True) for i, (fut, spec) in enumerate(futures.items())}
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = cf.wait(pending, timeout=2.0, return_when=cf.FIRST_COMPLETED)
+                for fut in pending:
+                    bars[fut].update(max(0, logged_step(futures[fut]) - bars[fut].n))
+                for fut in done:
+                    bar = bars[fut]
+                    bar.update(bar.total - bar.n)
+                    bar.set_postfix_str("scored")
+                    on_done(futures[fut], fut.result())
+        finally:
+            for bar in bars.values():
+                bar.close()
+
+
+def logged_step(spec: dict) -> int:
+    """The last step a row's (unfinished or finished) run wrote to its train_log.jsonl, 0 if none."""
+    for name in ("train.partial", "train"):
+        try:
+            with open(Path(spec["out"]) / name / "train_log.jsonl", "rb") as f:
+                f.seek(0, 2)
+                f.seek(max(0, f.tell() - 4096))
+                for line in reversed(f.read().splitlines()):
+                    try:
+                        return int(json.loads(line)["step"]) + 1
+                    except (ValueError, KeyError, TypeError):
+                        continue
+        except OSError:
+            continue
+    return 0
+
+
+def _worker_init() -> None:
+    from functools import partialmethod
+
+    import tqdm
+
+    tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
+    logging.basicConfig(level=logging.WARNING)
