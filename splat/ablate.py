@@ -357,7 +357,8 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     try:
         execute(todo, on_done, run_row, jobs=cfg.jobs, num_threads=cfg.num_threads, ray=cfg.ray)
     except TrainingInterrupted as exc:  # the same command resumes the row from its checkpoint
-        raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {len(results)} row runs are finished in "
+        n = len(results)
+        raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {n} finished row run{'s' * (n != 1)} in "
                                   f"{out_dir}: run the same command again to continue") from None
     write_reports(summary(), out_dir)
     return out_dir

@@ -6,8 +6,11 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 from pathlib import Path
 from typing import Callable
+
+from splat.checkpoint import TrainingInterrupted
 
 
 def execute(todo: list[dict], on_done: Callable[[dict, dict], None], run_row: Callable[[dict], dict], *,
@@ -39,9 +42,11 @@ def execute(todo: list[dict], on_done: Callable[[dict, dict], None], run_row: Ca
     from tqdm import tqdm
 
     threads = num_threads or max(1, (os.cpu_count() or 1) // jobs)
-    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                initializer=_worker_init) as pool:
-        futures = {pool.submit(run_row, {**spec, "threads": threads}): spec for spec in todo}
+    ctx = mp.get_context("spawn")
+    stop = ctx.Event()  # set when the command is stopped: a worker starts no further row
+    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init,
+                                initargs=(stop,)) as pool:
+        futures = {pool.submit(_start_row, run_row, {**spec, "threads": threads}): spec for spec in todo}
         # The workers draw no bars (parallel bars interleave): one bar per row here, read from the
         # step its run last logged.
         bars = {fut: tqdm(total=spec["train_config"]["iters"], desc=f"{spec['row']} s{spec['seed']}",
@@ -57,9 +62,33 @@ def execute(todo: list[dict], on_done: Callable[[dict, dict], None], run_row: Ca
                     bar.update(bar.total - bar.n)
                     bar.set_postfix_str("scored")
                     on_done(futures[fut], fut.result())
+        except BaseException as exc:  # Ctrl-C, SIGTERM, a row that failed: stop the other rows too
+            stop.set()
+            _stop_workers(pool, pending)
+            if isinstance(exc, KeyboardInterrupt):
+                raise TrainingInterrupted(f"stopped by {exc.args[0] if exc.args else 'SIGINT'}; the "
+                                          "running rows wrote their checkpoints") from None
+            raise
         finally:
             for bar in bars.values():
                 bar.close()
+
+
+def _stop_workers(pool, pending: set) -> None:
+    """SIGTERM to every worker (each in a session of its own, so a terminal's Ctrl-C reached only
+    this process): a row in training finishes its step and writes its checkpoint, a row being scored
+    stops. Waits for them, so nothing is left writing when the command returns."""
+    import concurrent.futures as cf
+
+    for fut in pending:
+        fut.cancel()  # rows not handed to a worker yet
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        if proc.is_alive():
+            try:
+                os.kill(proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+    cf.wait(pending)
 
 
 def logged_step(spec: dict) -> int:
@@ -79,10 +108,25 @@ def logged_step(spec: dict) -> int:
     return 0
 
 
-def _worker_init() -> None:
+_STOP = None  # in a worker: the parent's stop event
+
+
+def _start_row(run_row: Callable[[dict], dict], spec: dict) -> dict:
+    """``run_row(spec)`` in a worker, unless the command was stopped before the row started."""
+    if _STOP is not None and _STOP.is_set():
+        raise TrainingInterrupted(f"{spec['row']} seed {spec['seed']} not started: the command was stopped")
+    return run_row(spec)
+
+
+def _worker_init(stop=None) -> None:
     from functools import partialmethod
 
     import tqdm
 
+    global _STOP
+    _STOP = stop
+
+    os.setsid()  # a terminal's Ctrl-C goes to the parent alone, which stops each worker once (_stop_workers)
+
     tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
-    logging.basicConfig(level=logging.WARNING)
+    logging.basicConfig(level=logging.WARNING, format="[%(asctime)s %(name)s] %(message)s", datefmt="%H:%M:%S")

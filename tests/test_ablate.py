@@ -360,6 +360,64 @@ def test_jobs_2_gives_the_rows_of_jobs_1_with_a_bar_per_row(tiny, ablation, caps
         assert f"{name} s0" in err and "30/30" in err, err[-2000:]
 
 
+def test_sigterm_stops_every_parallel_row_with_its_checkpoint(tiny):
+    """`kill PID` of `splat ablate --jobs 2` (the workers never see it): each running row writes its
+    checkpoint, a queued row does not start, the command ends with one line and exit 130, and no
+    worker is left running (regression: the parent waited while the workers trained on)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    base, root, cues = tiny
+    out = base / "killed_jobs2"
+    argv = ["ablate", str(root), "-c", str(cues), "-o", str(out), "--rows", "full", "no-cues", "no-lnc",
+            "--iters", "4000", "--jobs", "2", "--num-threads", "1", "--no-floor", *TRAIN_ARGS]
+    code = f"import sys; from cli.splat_cli import main; sys.exit(main({argv!r}))"
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=repo, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    from splat.ablate_exec import logged_step
+
+    specs = [{"out": str(out / "rows" / f"{r}_s0")} for r in ("full", "no-cues")]
+    deadline = time.monotonic() + 240
+    while min(logged_step(s) for s in specs) < 20 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.stderr.read()
+    workers = [int(p) for p in os.listdir("/proc") if p.isdigit() and _parent(int(p)) == proc.pid
+               and "spawn_main" in Path(f"/proc/{p}/cmdline").read_text()]
+    os.kill(proc.pid, signal.SIGTERM)
+    err = proc.communicate(timeout=240)[1]
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1].startswith("splat ablate: ablation stopped by SIGTERM; 0 finished"), err
+    for row in ("full", "no-cues"):
+        assert (out / "rows" / f"{row}_s0" / "train.partial" / "ckpt" / "last.pt").is_file(), row
+    assert not (out / "rows" / "no-lnc_s0" / "train.partial" / "train_log.jsonl").is_file()  # queued: never started
+    assert len(workers) == 2 and not [w for w in workers if _state(w) not in (None, "Z")]
+
+
+def _stat(pid: int) -> list[str]:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
+def _parent(pid: int) -> int | None:
+    try:
+        return int(_stat(pid)[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _state(pid: int) -> str | None:
+    """R, S, D, ... of a process; Z a zombie (ended, not reaped); None when gone."""
+    try:
+        return _stat(pid)[0]
+    except (OSError, IndexError):
+        return None
+
+
 def test_logged_step_reads_the_tail_of_a_working_run(tmp_path):
     from splat.ablate_exec import logged_step
 
