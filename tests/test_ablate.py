@@ -428,8 +428,7 @@ def test_logged_step_reads_the_tail_of_a_working_run(tmp_path):
     lines = [json.dumps({"step": s, "loss": 0.1, "pad": "x" * 200}) for s in range(0, 1000, 50)]
     (work / "train_log.jsonl").write_text("\n".join(lines) + '\n{"step": 10')  # a line half-written
     assert logged_step(spec) == 951
-    (work / "train_log.jsonl").rename(tmp_path / "row" / "train.partial" / "moved")
-    work.rename(tmp_path / "row" / "train")
+    work.rename(tmp_path / "row" / "train")  # the finished run
     (tmp_path / "row" / "train" / "train_log.jsonl").write_text(json.dumps({"step": 29}) + "\n")
     assert logged_step(spec) == 30
 

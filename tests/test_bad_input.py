@@ -257,7 +257,7 @@ def test_help_into_a_closed_pipe_is_quiet():
             "from cli._dispatch import dispatch\n"
             "time.sleep(1.0)  # the reader has left by now\n"
             "def work(count: int = 1) -> int:\n"
-            "    '''Writes more than the reader takes.'''\n"
+            "    '''Its help goes to a reader that has left.'''\n"
             "    return 0\n"
             "raise SystemExit(dispatch('tool', {'work': work}, argv=['work', '--help']))\n")
     repo = Path(__file__).resolve().parents[1]
