@@ -16,7 +16,8 @@ compositing and projection included; optimizer; density), from ``train_step(stag
 Each configuration runs once per ``--variants`` entry side by side, so old and new are timed under
 the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
 step when issue 15 was filed), "fused-adam" (torch's single-kernel Adam only), "today" (the
-defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py).
+defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py; on a GPU the loss terms and
+render maps compiled by splat/compiled.py, which the other two variants switch off).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
 """
 
@@ -102,12 +103,15 @@ def detail_timers(acc: dict[str, float]):
     finally:
         for owner, attr, value in saved:
             setattr(owner, attr, value)
-# The same training step computed by other code: (TrainConfig.adam, LossConfig.kernels).
-VARIANTS = {"baseline": ("torch", "torch"), "fused-adam": ("fused", "torch"), "today": ("fused", "fused")}
+# The same training step computed by other code: (TrainConfig.adam, LossConfig.kernels, whether
+# splat/compiled.py may compile the GPU's loss terms and render maps; no effect on the CPU).
+VARIANTS = {"baseline": ("torch", "torch", False), "fused-adam": ("fused", "torch", False),
+            "today": ("fused", "fused", True)}
 
 
 def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
-    adam, kernels = VARIANTS[variant]
+    adam, kernels, compile_gpu = VARIANTS[variant]
+    os.environ["INDOORGS_COMPILE"] = "1" if compile_gpu else "0"  # read at each call (splat/compiled.py)
     truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
     views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
     g = torch.Generator().manual_seed(0)
@@ -139,7 +143,8 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
     if cfg.profile:
         _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {variant}")
-    row = {"width": width, "height": height, "n": n, "variant": variant, "adam": adam, "loss_kernels": kernels, "median_s": statistics.median(times),
+    row = {"width": width, "height": height, "n": n, "variant": variant, "adam": adam, "loss_kernels": kernels,
+           "compiled": compile_gpu and cfg.device.startswith("cuda"), "median_s": statistics.median(times),
            "min_s": min(times), "max_s": max(times),
            "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}
     if detail:  # the backward's rest: the loss terms' gradients and the autograd glue

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from evaluation.image_metrics import ssim_map
+from splat import compiled
 from splat.multiview import SourceView, multiview_ncc_loss, to_gray
 from splat.losses_cpu import fused_applies, nc_loss, normal_prior_loss_fused, ssim_mean
 
@@ -50,13 +52,21 @@ def rgb_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, fused_ssim: bo
 
     pred, gt: [H, W, 3] colours in [0, 1]. L1 is the mean over pixels and channels; SSIM is the
     3DGS one (11 × 11 Gaussian window, σ = 1.5, zero padding) of ``evaluation.image_metrics``, on
-    the CPU by the fused C++ kernel of splat/losses_cpu.py unless ``fused_ssim`` is False.
-    Returns a 0-dim tensor.
+    the CPU by the fused C++ kernel of splat/losses_cpu.py, on a GPU by this torch code compiled
+    (splat/compiled.py), unless ``fused_ssim`` is False. Returns a 0-dim tensor.
     """
     _check_shape("pred", pred, (None, None, 3))
     _check_shape("gt", gt, tuple(pred.shape))
+    if fused_ssim and not gt.requires_grad and compiled.applies(pred, gt):
+        return compiled.call(_rgb_loss_torch, pred, gt.to(pred.dtype), float(lambda_dssim))
     l1 = (pred - gt).abs().mean()
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_mean(pred, gt.to(pred.dtype), fused_ssim))
+
+
+def _rgb_loss_torch(pred: Tensor, gt: Tensor, lambda_dssim: float) -> Tensor:
+    """``rgb_loss`` in torch alone (the graph splat/compiled.py compiles on a GPU)."""
+    l1 = (pred - gt).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim_map(pred, gt).mean())
 
 
 def sample_patch_grid(height: int, width: int, patch_size: int, n_patches: int,
@@ -124,7 +134,8 @@ def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int,
     denom = torch.sqrt(torch.where(keep, vx * vy, torch.ones_like(vx)))  # sqrt'(0) never reached
     pcc = cov / denom
     loss = _masked_mean(1.0 - pcc, keep)
-    log.debug("depth PCC: %d of %d patches kept", int(keep.sum()), keep.numel())
+    if log.isEnabledFor(logging.DEBUG):  # int() waits for a GPU: only when it is printed
+        log.debug("depth PCC: %d of %d patches kept", int(keep.sum()), keep.numel())
     return loss
 
 
@@ -134,15 +145,22 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor, fused: bool 
     normal, prior: [H, W, 3] unit camera-frame normals; valid: [H, W] bool. The L1 norm is summed
     over the 3 components and averaged over pixels (range [0, 2√3]); pixels where either normal is
     all zero (undefined) are dropped as well. Empty mask: graph-connected 0. On the CPU the fused
-    kernel of splat/losses_cpu.py computes it (this code is its oracle, ``fused=False``); a prior
-    that needs a gradient takes this code.
+    kernel of splat/losses_cpu.py computes it, on a GPU this code compiled (splat/compiled.py); this
+    code is their oracle (``fused=False``); a prior that needs a gradient takes it.
     """
     _check_shape("normal", normal, (None, None, 3))
     _check_shape("prior", prior, tuple(normal.shape))
     _check_shape("valid", valid, tuple(normal.shape[:2]))
-    if (fused and valid.dtype == torch.bool and not prior.requires_grad and prior.dtype == normal.dtype
-            and fused_applies(normal, prior)):
+    fusable = fused and valid.dtype == torch.bool and not prior.requires_grad and prior.dtype == normal.dtype
+    if fusable and fused_applies(normal, prior):
         return normal_prior_loss_fused(normal, prior, valid)
+    if fusable and compiled.applies(normal, prior, valid):
+        return compiled.call(_normal_prior_torch, normal, prior, valid)
+    return _normal_prior_torch(normal, prior, valid)
+
+
+def _normal_prior_torch(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
+    """``normal_prior_loss`` in torch alone (its oracle, and the graph compiled on a GPU)."""
     # an Inf prior pixel passes the "not all zero" test: non-finite pixels are invalid (fuzz finding)
     mask = valid & (normal.detach().abs().sum(-1) > 0) & (prior.abs().sum(-1) > 0) & torch.isfinite(prior).all(-1)
     return _masked_mean((normal - prior.to(normal.dtype)).abs().sum(-1), mask)
@@ -203,14 +221,22 @@ def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, vali
     where valid and both normals are defined. The paper writes a sum; the mean keeps λ_nc = 0.1
     independent of the image size (as in PGSR / RaDe-GS). By default the gradient flows into both
     the normals and the depth (2DGS / RaDe-GS / PGSR); ``detach_depth_normal`` stops it at N_depth.
-    On the CPU the fused C++ kernel of splat/losses_cpu.py computes it (this function is its
-    oracle, ``fused=False``).
+    On the CPU the fused C++ kernel of splat/losses_cpu.py computes it, on a GPU this code compiled
+    (splat/compiled.py); this code is their oracle (``fused=False``).
     """
     _check_shape("normal", normal, (None, None, 3))
     _check_shape("depth", depth, tuple(normal.shape[:2]))
     _check_shape("valid", valid, tuple(normal.shape[:2]))
-    if fused and valid.dtype == torch.bool and normal.dtype == depth.dtype and fused_applies(normal, depth):
+    fusable = fused and valid.dtype == torch.bool and normal.dtype == depth.dtype
+    if fusable and fused_applies(normal, depth):
         return nc_loss(normal, depth, K, valid, detach_depth_normal)
+    if fusable and compiled.applies(normal, depth, valid):
+        return compiled.call(_nc_torch, normal, depth, K.to(depth), valid, bool(detach_depth_normal))
+    return _nc_torch(normal, depth, K, valid, detach_depth_normal)
+
+
+def _nc_torch(normal: Tensor, depth: Tensor, K: Tensor, valid: Tensor, detach_depth_normal: bool) -> Tensor:
+    """``depth_normal_consistency_loss`` in torch alone (its oracle, and the graph compiled on a GPU)."""
     n_depth = depth_to_normal(depth, K)
     if detach_depth_normal:
         n_depth = n_depth.detach()
@@ -244,9 +270,10 @@ class LossConfig:
     lambda_dssim: float = 0.2
     """Weight of the D-SSIM part of L_rgb (3DGS)."""
     kernels: str = "fused"
-    """SSIM of L_rgb, L_n and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
-    splat/losses_cpu.py) or "torch" (autograd through their torch code); the same loss and gradient
-    up to float rounding (tests/test_losses_cpu.py). CUDA tensors always take torch's."""
+    """L_rgb (with SSIM), L_n and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
+    splat/losses_cpu.py; on a GPU their torch code compiled into fused kernels, splat/compiled.py) or
+    "torch" (autograd through their torch code, eagerly); the same loss and gradient up to float
+    rounding (tests/test_losses_cpu.py, tests/test_compiled.py)."""
     lambda_depth: float = 0.1
     """λ_d, weight of the patch-PCC depth-prior loss L_d."""
     lambda_normal: float = 0.5

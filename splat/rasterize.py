@@ -14,6 +14,7 @@ import logging
 import torch
 from torch import Tensor
 
+from splat import compiled
 from splat.camera import Camera
 from splat.composite import composite, resolve_backend
 from splat.projection import ProjectionConfig, project_gaussians
@@ -36,6 +37,27 @@ def plane_depth(offset: Tensor, slope: Tensor, centres: Tensor) -> Tensor:
     offset [H, W] = blended A = z - p . mean2d, slope [H, W, 2] blended p, centres [H, W, 2].
     """
     return offset + (slope * centres).sum(-1)
+
+
+def pixel_maps(features: Tensor, median: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Depth, median depth and normal maps from the composited channels (see ``render``).
+
+    features [H, W, 9] (rgb, plane A, p, normal sums), median [H, W, 3] (plane at T = 0.5), alpha
+    [H, W]. Returns depth [H, W] (alpha-normalised plane depth, 0 where alpha <= ALPHA_EPS),
+    median_depth [H, W] and normal [H, W, 3] (unit, 0 where the blended normal vanishes).
+    """
+    height, width = alpha.shape
+    centres = pixel_centres(width, height, alpha.device, alpha.dtype)
+    covered = alpha > ALPHA_EPS
+    depth_acc = plane_depth(features[..., 3], features[..., 4:6], centres)
+    depth = torch.where(covered, depth_acc / torch.where(covered, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
+    median_depth = plane_depth(median[..., 0], median[..., 1:3], centres)
+    normal_acc = features[..., 6:9]
+    norm2 = (normal_acc * normal_acc).sum(-1, keepdim=True)
+    normal = torch.where(norm2 > 1e-12, normal_acc * torch.rsqrt(torch.clamp(norm2, min=1e-12)),
+                         torch.zeros_like(normal_acc))
+    return depth, median_depth, normal
 
 
 def render(
@@ -96,24 +118,16 @@ def render(
     out = composite(means2d, proj.conics, proj.opacities, features, proj.depths, proj.radii,
                     camera.width, camera.height, background=bg, median_features=plane,
                     backend=backend, max_per_pixel=max_per_pixel)
-    centres = pixel_centres(camera.width, camera.height, device, dtype)
-    alpha = out.alpha
-    covered = alpha > ALPHA_EPS
-    depth_acc = plane_depth(out.features[..., 3], out.features[..., 4:6], centres)
-    depth = torch.where(covered, depth_acc / torch.where(covered, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
-    median_depth = plane_depth(out.median[..., 0], out.median[..., 1:3], centres)
-    normal_acc = out.features[..., 6:9]
-    norm2 = (normal_acc * normal_acc).sum(-1, keepdim=True)
-    has_normal = norm2 > 1e-12
-    normal = torch.where(has_normal, normal_acc * torch.rsqrt(torch.clamp(norm2, min=1e-12)),
-                         torch.zeros_like(normal_acc))
+    if backend == "cuda" and compiled.applies(out.alpha):  # one fused kernel, not ~25 (splat/compiled.py)
+        depth, median_depth, normal = compiled.call(pixel_maps, out.features, out.median, out.alpha)
+    else:
+        depth, median_depth, normal = pixel_maps(out.features, out.median, out.alpha)
     return {
         "rgb": out.features[..., :3],
         "depth": depth,
         "median_depth": median_depth,
         "normal": normal,
-        "alpha": alpha,
+        "alpha": out.alpha,
         "means2d": means2d,
         "radii": proj.radii,
         "visible": proj.radii > 0,
