@@ -1,7 +1,7 @@
 """A whole `splat train` run on a GPU machine that has no Open3D (no meshing there).
 
     python bench/gpu_train.py SCENE CUES OUT [--iters 30000] [--downscale 1] [--preset full]
-        [--device cuda] [--backend cuda] [--max-gaussians 0] [--split-mb 15]
+        [--device cuda] [--backend cuda] [--max-gaussians 0] [--split-mb 15] [--compile]
 
 Runs ``splat.train.run`` with ``mesh=False`` (the TSDF needs Open3D, which GPU images here lack) and
 writes OUT/gpu_train.json: the run's report (seconds per stage, test PSNR/SSIM against seconds, the
@@ -43,10 +43,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--backend", default="cuda")
     p.add_argument("--max-gaussians", type=int, default=0)
     p.add_argument("--split-mb", type=int, default=0)
+    p.add_argument("--compile", action="store_true", help="TrainConfig.compile (splat/compiled.py)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     cfg = preset_config(a.preset)
     cfg = replace(cfg, iters=a.iters, downscale=a.downscale, device=a.device, backend=a.backend, mesh=False,
+                  compile=a.compile,
                   strategy=replace(cfg.strategy, max_gaussians=a.max_gaussians))
     run(cfg, a.scene, a.cues, a.out, overwrite=True)
     report = json.loads((a.out / "report.json").read_text())

@@ -16,8 +16,8 @@ compositing and projection included; optimizer; density), from ``train_step(stag
 Each configuration runs once per ``--variants`` entry side by side, so old and new are timed under
 the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
 step when issue 15 was filed), "fused-adam" (torch's single-kernel Adam only), "today" (the
-defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py; on a GPU the loss terms and
-render maps compiled by splat/compiled.py, which the other two variants switch off).
+defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py; on a GPU also the loss terms
+and render maps compiled by splat/compiled.py, `splat train --compile`).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
 """
 
@@ -41,6 +41,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 from geocues.atomic import atomic_path  # noqa: E402
+from splat import compiled  # noqa: E402
 from splat.bench import surface_gaussians, target_views  # noqa: E402
 from splat.losses import LossConfig  # noqa: E402
 from splat.strategy import IndoorStrategy, IndoorStrategyConfig  # noqa: E402
@@ -104,14 +105,14 @@ def detail_timers(acc: dict[str, float]):
         for owner, attr, value in saved:
             setattr(owner, attr, value)
 # The same training step computed by other code: (TrainConfig.adam, LossConfig.kernels, whether
-# splat/compiled.py may compile the GPU's loss terms and render maps; no effect on the CPU).
+# splat/compiled.py compiles the GPU's loss terms and render maps, TrainConfig.compile; no effect on the CPU).
 VARIANTS = {"baseline": ("torch", "torch", False), "fused-adam": ("fused", "torch", False),
             "today": ("fused", "fused", True)}
 
 
 def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
     adam, kernels, compile_gpu = VARIANTS[variant]
-    os.environ["INDOORGS_COMPILE"] = "1" if compile_gpu else "0"  # read at each call (splat/compiled.py)
+    compiled.enable(compile_gpu)
     truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
     views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
     g = torch.Generator().manual_seed(0)

@@ -93,7 +93,8 @@ def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, 
 # numerics guard, which only acts on a non-finite or diverging step and then stops or rolls back a
 # run the report marks; the live view): left out of a row's key, so that adding one does not re-run
 # finished rows. The TSDF device enters the key in one spelling ("cpu" and Open3D's "CPU:0" agree).
-OPERATIONAL_FIELDS = ("save_every", "keep_ckpt", "guard", "view", "view_port", "view_every")
+OPERATIONAL_FIELDS = ("save_every", "keep_ckpt", "guard", "view", "view_port", "view_every",
+                      "compile")  # compile: the same loss up to float rounding (tests/test_compiled.py)
 
 
 def config_key(payload: dict) -> str:

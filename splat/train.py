@@ -38,7 +38,7 @@ from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.plane_anchors import load_plane_anchors
 from geocues.scene import Scene
 from geocues.types import CueType
-from splat import checkpoint
+from splat import checkpoint, compiled
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
 from splat.gaussians import cue_type_path, init_from_cues, load_ply, scene_scale
@@ -306,6 +306,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     scale = scene_scale(train_views.camera_centers(), seeds)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
     optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)
+    compiled.enable(cfg.compile and device.type == "cuda")
     strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters))
     loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
                        mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))

@@ -117,22 +117,21 @@ def test_a_compiled_graph_that_disagrees_is_not_used(monkeypatch, caplog):
     assert "differs from the eager code" in caplog.text
 
 
-def test_applies_to_cuda_tensors_only_and_can_be_switched_off(monkeypatch):
+def test_applies_to_cuda_tensors_only_when_switched_on():
     d = _images()
-    assert not compiled.applies(d["pred"])
+    assert not compiled.enabled()  # off unless asked for
+    compiled.enable(True)
+    assert compiled.enabled() and not compiled.applies(d["pred"])
     if CUDA:
         assert compiled.applies(d["pred"].cuda())
-        monkeypatch.setenv("INDOORGS_COMPILE", "0")
+        compiled.enable(False)
         assert not compiled.applies(d["pred"].cuda())
-    monkeypatch.setenv("INDOORGS_COMPILE", "off")
-    assert not compiled.enabled()
-    monkeypatch.setenv("INDOORGS_COMPILE", "1")
-    assert compiled.enabled()
 
 
 def test_cpu_losses_do_not_compile(monkeypatch):
     """On the CPU the fused C++ kernels (or eager torch) run: torch.compile is never asked."""
     monkeypatch.setattr(torch, "compile", lambda *a, **k: pytest.fail("compiled on the CPU"))
+    compiled.enable(True)
     d = _images()
     rgb_loss(d["pred"], d["gt"])
     normal_prior_loss(d["normal"], d["prior"], d["valid"])
@@ -146,6 +145,7 @@ def test_cuda_total_loss_fused_matches_torch_kernels():
     params = {"scales": torch.randn(10, 3, device="cuda")}
     cue = torch.arange(10, device="cuda") % 3
     res = {}
+    compiled.enable(True)
     for kernels in ("torch", "fused"):
         out = {k: v.detach().clone().requires_grad_(k != "alpha") for k, v in out_base.items()}
         cfg = LossConfig(kernels=kernels, nc_from_iter=0)
