@@ -1,0 +1,133 @@
+"""Refining the training cameras during training (an extension; gsplat's ``pose_opt``).
+
+Real captures come with imperfect poses and intrinsics: a colour camera offset from the depth
+camera whose poses a dataset ships, SfM poses a few millimetres off, a focal 5 % wrong. With
+``TrainConfig.pose_opt`` every training view gets a rigid correction in its own camera frame,
+
+    viewmat' = [[Rodrigues(w_k), v_k], [0, 1]] @ viewmat_k        (w_k rad, v_k metres; 0 at the start)
+
+and with ``TrainConfig.focal_opt`` all views share one focal factor, fx' = fx e^s, fy' = fy e^s
+(principal point kept). They are learnt with the Gaussians by their own Adam (rotation lr
+``pose_lr``, translation ``pose_lr`` x the scene scale, focal ``focal_lr``, each decaying to a tenth
+by the end), through the torch projection, which carries gradients to the camera (the C++ and CUDA
+projections do not): a step with refinement costs more on the CPU (docs/training.md). The mesh is
+fused with the refined cameras; held-out test views keep the cameras they came with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from splat.camera import Camera
+
+
+def rodrigues(w: Tensor) -> Tensor:
+    """Rotation matrix [3, 3] of the axis-angle vector w [3] (radians), differentiable at w = 0."""
+    theta2 = (w * w).sum()
+    wx = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
+    wx = wx.index_put((torch.tensor([0, 0, 1, 1, 2, 2]), torch.tensor([1, 2, 0, 2, 0, 1])),
+                      torch.stack([-w[2], w[1], w[2], -w[0], -w[1], w[0]]))
+    small = theta2 < 1e-8
+    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
+    # sin(t)/t and (1 - cos t)/t^2, by their Taylor series near 0 (exact to float there)
+    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / (theta * theta))
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * wx + b * (wx @ wx)
+
+
+class CameraRefiner:
+    """Per-view pose corrections and a shared focal factor for ``n_views`` training views."""
+
+    def __init__(self, n_views: int, scene_scale: float, pose: bool, focal: bool, pose_lr: float,
+                 focal_lr: float, device: torch.device | str = "cpu") -> None:
+        if n_views < 1:
+            raise ValueError(f"n_views must be >= 1, got {n_views}")
+        if not (pose_lr > 0 and focal_lr > 0 and scene_scale > 0):
+            raise ValueError(f"pose_lr, focal_lr and scene_scale must be positive, got {pose_lr}, {focal_lr}, "
+                             f"{scene_scale}")
+        self.pose, self.focal = bool(pose), bool(focal)
+        self.rot = torch.nn.Parameter(torch.zeros(n_views, 3, device=device))
+        self.trans = torch.nn.Parameter(torch.zeros(n_views, 3, device=device))
+        self.log_focal = torch.nn.Parameter(torch.zeros(1, device=device))
+        groups = []
+        if self.pose:
+            groups += [{"params": [self.rot], "lr": pose_lr, "name": "rot"},
+                       {"params": [self.trans], "lr": pose_lr * scene_scale, "name": "trans"}]
+        if self.focal:
+            groups.append({"params": [self.log_focal], "lr": focal_lr, "name": "focal"})
+        if not groups:
+            raise ValueError("a CameraRefiner needs pose or focal refinement on")
+        self.base_lr = [g["lr"] for g in groups]
+        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+
+    def camera(self, k: int, cam: Camera) -> Camera:
+        """View k's camera with its correction (differentiable in the corrections)."""
+        vm, K = cam.viewmat, cam.K
+        if self.pose:
+            delta = torch.eye(4, dtype=vm.dtype, device=vm.device)
+            delta = torch.cat([torch.cat([rodrigues(self.rot[k]).to(vm.dtype), self.trans[k, :, None].to(vm.dtype)], 1),
+                               delta[3:]], 0)
+            vm = delta @ vm
+        if self.focal:
+            f = torch.exp(self.log_focal[0]).to(K.dtype)
+            K = torch.stack([K[0] * torch.stack([f, f.new_ones(()), f.new_ones(())]),
+                             K[1] * torch.stack([f.new_ones(()), f, f.new_ones(())]), K[2]])
+        centre = -(vm[:3, :3].T @ vm[:3, 3])  # differentiable (Camera would detach it)
+        return Camera(K=K, viewmat=vm, width=cam.width, height=cam.height, center=centre)
+
+    def view(self, k: int, view):
+        """A copy of the training view ``view`` (splat.views.View, k-th of its set) with its refined camera."""
+        return dataclasses.replace(view, camera=self.camera(k, view.camera))
+
+    def set_progress(self, fraction: float) -> None:
+        """Learning rates decayed exponentially to a tenth at the end of the run (fraction 0..1)."""
+        mult = 0.1 ** min(max(fraction, 0.0), 1.0)
+        for g, lr in zip(self.optimizer.param_groups, self.base_lr):
+            g["lr"] = lr * mult
+
+    def step(self) -> None:
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def finite(self) -> bool:
+        """Whether the corrections are finite (the numerics guard rolls back otherwise)."""
+        return bool(torch.isfinite(self.rot).all() and torch.isfinite(self.trans).all()
+                    and torch.isfinite(self.log_focal).all())
+
+    def state_dict(self) -> dict:
+        return {"rot": self.rot.detach().clone(), "trans": self.trans.detach().clone(),
+                "log_focal": self.log_focal.detach().clone(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, sd: dict) -> None:
+        with torch.no_grad():
+            self.rot.copy_(sd["rot"])
+            self.trans.copy_(sd["trans"])
+            self.log_focal.copy_(sd["log_focal"])
+        self.optimizer.load_state_dict(sd["optimizer"])
+
+    def refined_scene_camera(self, k: int, cam):
+        """The scene camera ``cam`` (geocues.scene.Camera, numpy) of training view k with its correction."""
+        with torch.no_grad():
+            R = rodrigues(self.rot[k].detach().double().cpu()).numpy() if self.pose else np.eye(3)
+            v = self.trans[k].detach().double().cpu().numpy() if self.pose else np.zeros(3)
+            f = math.exp(float(self.log_focal.detach()[0])) if self.focal else 1.0
+        K = cam.K.copy()
+        K[0, 0] *= f
+        K[1, 1] *= f
+        return dataclasses.replace(cam, K=K, R=R @ cam.R, t=R @ cam.t + v)
+
+    def summary(self) -> dict:
+        """The corrections learnt: per view rotation (degrees) and translation (metres), the focal factor."""
+        rot_deg = np.degrees(self.rot.detach().norm(dim=1).cpu().numpy())
+        trans_m = self.trans.detach().norm(dim=1).cpu().numpy()
+        return {"pose": self.pose, "focal": self.focal, "focal_factor": math.exp(float(self.log_focal.detach()[0])),
+                "rotation_deg": {"median": float(np.median(rot_deg)), "max": float(rot_deg.max())},
+                "translation_m": {"median": float(np.median(trans_m)), "max": float(trans_m.max())}}
