@@ -42,6 +42,7 @@ import torch  # noqa: E402
 
 from geocues.atomic import atomic_path  # noqa: E402
 from splat import compiled  # noqa: E402
+from splat.camera_opt import CameraRefiner  # noqa: E402
 from splat.bench import surface_gaussians, target_views  # noqa: E402
 from splat.losses import LossConfig  # noqa: E402
 from splat.strategy import IndoorStrategy, IndoorStrategyConfig  # noqa: E402
@@ -65,6 +66,9 @@ class StepBench:
     detail: bool = True
     """Also split the stages (CPU): projection and compositing forward and backward, each loss term's
     forward, and the rest of the backward (the loss terms' gradients), by timing those functions."""
+    camera_opt: bool = False
+    """Also refine the views' poses and focal (TrainConfig.pose_opt / focal_opt, splat/camera_opt.py): the
+    projection then runs in torch, which carries the camera's gradient."""
     profile: str = ""
     """Also profile 10 steps of each configuration with torch.profiler and append the operator table
     (sorted by device time on CUDA, by CPU time otherwise) to this file."""
@@ -126,6 +130,8 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
     state["cue_type"] = (torch.arange(n) % 3).to(cfg.device)
     tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree, adam=adam)
     loss_cfg = replace(LossConfig(), nc_from_iter=0, kernels=kernels)  # every term on
+    refiner = (CameraRefiner(len(views), 3.0, True, True, tcfg.pose_lr, tcfg.focal_lr, cfg.device)
+               if cfg.camera_opt else None)
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     times, stages = [], []
     detail = cfg.detail and cfg.device == "cpu"
@@ -134,8 +140,10 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
         sync()
         t0 = time.perf_counter()
         with detail_timers(stage_s) if detail else contextlib.nullcontext():
-            loss, _, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step,
-                                    cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s)
+            k = step % len(views)
+            view = refiner.view(k, views[k]) if refiner is not None else views[k]
+            loss, _, _ = train_step(params, optimizers, strategy, state, view, step,
+                                    cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s, refiner=refiner)
         sync()
         if step > 3:
             times.append(time.perf_counter() - t0)
@@ -144,7 +152,8 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
     if cfg.profile:
         _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {variant}")
-    row = {"width": width, "height": height, "n": n, "variant": variant, "adam": adam, "loss_kernels": kernels,
+    row = {"width": width, "height": height, "n": n, "variant": variant + ("+camera-opt" if cfg.camera_opt else ""),
+           "adam": adam, "loss_kernels": kernels,
            "compiled": compile_gpu and cfg.device.startswith("cuda"), "median_s": statistics.median(times),
            "min_s": min(times), "max_s": max(times),
            "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}

@@ -121,6 +121,8 @@ def row_keys(spec: dict) -> list[str]:
     tc = {k: v for k, v in spec["train_config"].items() if k not in OPERATIONAL_FIELDS and v is not None}
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
+    if not tc.get("pose_opt") and not tc.get("focal_opt"):  # camera refinement off: rows from before it keep their key
+        tc = {k: v for k, v in tc.items() if k not in ("pose_opt", "focal_opt", "pose_lr", "focal_lr")}
     if tc["loss"].get("kernels") == "fused":  # the same: the fused loss kernels are torch's up to rounding
         tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "kernels"}
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling

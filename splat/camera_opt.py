@@ -12,6 +12,11 @@ and with ``TrainConfig.focal_opt`` all views share one focal factor, fx' = fx e^
 by the end), through the torch projection, which carries gradients to the camera (the C++ and CUDA
 projections do not): a step with refinement costs more on the CPU (docs/training.md). The mesh is
 fused with the refined cameras; held-out test views keep the cameras they came with.
+
+Each view's correction is a parameter of its own, so Adam moves only the view that was rendered
+(a parameter without a gradient is skipped) and counts its steps per view. One [V, 6] tensor would
+move every view at every step by its decaying first moment: ~13 x lr per visit for a view seen every
+184 steps, which on ICL made the poses worse than they started (docs/training.md).
 """
 
 from __future__ import annotations
@@ -51,13 +56,13 @@ class CameraRefiner:
             raise ValueError(f"pose_lr, focal_lr and scene_scale must be positive, got {pose_lr}, {focal_lr}, "
                              f"{scene_scale}")
         self.pose, self.focal = bool(pose), bool(focal)
-        self.rot = torch.nn.Parameter(torch.zeros(n_views, 3, device=device))
-        self.trans = torch.nn.Parameter(torch.zeros(n_views, 3, device=device))
+        self.rots = [torch.nn.Parameter(torch.zeros(3, device=device)) for _ in range(n_views)]
+        self.transs = [torch.nn.Parameter(torch.zeros(3, device=device)) for _ in range(n_views)]
         self.log_focal = torch.nn.Parameter(torch.zeros(1, device=device))
         groups = []
         if self.pose:
-            groups += [{"params": [self.rot], "lr": pose_lr, "name": "rot"},
-                       {"params": [self.trans], "lr": pose_lr * scene_scale, "name": "trans"}]
+            groups += [{"params": self.rots, "lr": pose_lr, "name": "rot"},
+                       {"params": self.transs, "lr": pose_lr * scene_scale, "name": "trans"}]
         if self.focal:
             groups.append({"params": [self.log_focal], "lr": focal_lr, "name": "focal"})
         if not groups:
@@ -65,12 +70,22 @@ class CameraRefiner:
         self.base_lr = [g["lr"] for g in groups]
         self.optimizer = torch.optim.Adam(groups, eps=1e-15)
 
+    @property
+    def rot(self) -> Tensor:
+        """[V, 3] rotation corrections (axis-angle, radians), a copy."""
+        return torch.stack([r.detach() for r in self.rots])
+
+    @property
+    def trans(self) -> Tensor:
+        """[V, 3] translation corrections (metres, camera frame), a copy."""
+        return torch.stack([t.detach() for t in self.transs])
+
     def camera(self, k: int, cam: Camera) -> Camera:
         """View k's camera with its correction (differentiable in the corrections)."""
         vm, K = cam.viewmat, cam.K
         if self.pose:
             delta = torch.eye(4, dtype=vm.dtype, device=vm.device)
-            delta = torch.cat([torch.cat([rodrigues(self.rot[k]).to(vm.dtype), self.trans[k, :, None].to(vm.dtype)], 1),
+            delta = torch.cat([torch.cat([rodrigues(self.rots[k]).to(vm.dtype), self.transs[k][:, None].to(vm.dtype)], 1),
                                delta[3:]], 0)
             vm = delta @ vm
         if self.focal:
@@ -97,27 +112,23 @@ class CameraRefiner:
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
 
-    def finite(self) -> bool:
-        """Whether the corrections are finite (the numerics guard rolls back otherwise)."""
-        return bool(torch.isfinite(self.rot).all() and torch.isfinite(self.trans).all()
-                    and torch.isfinite(self.log_focal).all())
-
     def state_dict(self) -> dict:
-        return {"rot": self.rot.detach().clone(), "trans": self.trans.detach().clone(),
+        return {"rot": self.rot.clone(), "trans": self.trans.clone(),
                 "log_focal": self.log_focal.detach().clone(), "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, sd: dict) -> None:
         with torch.no_grad():
-            self.rot.copy_(sd["rot"])
-            self.trans.copy_(sd["trans"])
+            for k in range(len(self.rots)):
+                self.rots[k].copy_(sd["rot"][k])
+                self.transs[k].copy_(sd["trans"][k])
             self.log_focal.copy_(sd["log_focal"])
         self.optimizer.load_state_dict(sd["optimizer"])
 
     def refined_scene_camera(self, k: int, cam):
         """The scene camera ``cam`` (geocues.scene.Camera, numpy) of training view k with its correction."""
         with torch.no_grad():
-            R = rodrigues(self.rot[k].detach().double().cpu()).numpy() if self.pose else np.eye(3)
-            v = self.trans[k].detach().double().cpu().numpy() if self.pose else np.zeros(3)
+            R = rodrigues(self.rots[k].detach().double().cpu()).numpy() if self.pose else np.eye(3)
+            v = self.transs[k].detach().double().cpu().numpy() if self.pose else np.zeros(3)
             f = math.exp(float(self.log_focal.detach()[0])) if self.focal else 1.0
         K = cam.K.copy()
         K[0, 0] *= f
@@ -126,8 +137,8 @@ class CameraRefiner:
 
     def summary(self) -> dict:
         """The corrections learnt: per view rotation (degrees) and translation (metres), the focal factor."""
-        rot_deg = np.degrees(self.rot.detach().norm(dim=1).cpu().numpy())
-        trans_m = self.trans.detach().norm(dim=1).cpu().numpy()
+        rot_deg = np.degrees(self.rot.norm(dim=1).cpu().numpy())
+        trans_m = self.trans.norm(dim=1).cpu().numpy()
         return {"pose": self.pose, "focal": self.focal, "focal_factor": math.exp(float(self.log_focal.detach()[0])),
                 "rotation_deg": {"median": float(np.median(rot_deg)), "max": float(rot_deg.max())},
                 "translation_m": {"median": float(np.median(trans_m)), "max": float(trans_m.max())}}

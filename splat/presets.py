@@ -78,6 +78,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
            {"strategy.plane_rule": "tangent"}, extension=True),
     Preset("plane-anchor", "+ L_a on each view's own plane cues", {"loss.plane_anchor": True},
            needs=("plane_anchors",), extension=True),
+    Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
+           {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}
 
 DEFAULT_ROWS = tuple(PRESETS)

@@ -39,6 +39,7 @@ from geocues.plane_anchors import load_plane_anchors
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat import checkpoint, compiled
+from splat.camera_opt import CameraRefiner
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
 from splat.gaussians import cue_type_path, init_from_cues, load_ply, scene_scale
@@ -100,8 +101,8 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, view: View, step: int,
                sh_degree: int, cfg: TrainConfig, loss_cfg: LossConfig,
                generator: torch.Generator | None = None, guard: NumericsGuard | None = None,
-               stage_s: dict[str, float] | None = None, source: SourceView | None = None
-               ) -> tuple[Tensor, dict, dict]:
+               stage_s: dict[str, float] | None = None, source: SourceView | None = None,
+               refiner: CameraRefiner | None = None) -> tuple[Tensor, dict, dict]:
     """One iteration on one view: render, IndoorGS loss, backward, Adam, per-type density control.
 
     ``loss_cfg`` is the run's loss config with its iteration counts already scaled (see run()).
@@ -110,6 +111,7 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
     the seconds of each stage (render, loss, backward, optimizer, density) are added to it (the
     per-stage breakdown of bench/train_step_bench.py; CUDA work is synchronised at each boundary).
     ``source``: the neighbouring training view of L_mv (splat/multiview.py), if it is on.
+    ``refiner``: the camera corrections (splat/camera_opt.py) that ``view``'s camera carries, stepped with the Gaussians.
     Returns the loss, its terms and what the density control did at this step (empty if nothing).
     """
     clock = _StageClock(stage_s, params["means"].device)
@@ -129,9 +131,13 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
         if event is not None:
             for opt in optimizers.values():
                 opt.zero_grad(set_to_none=True)
+            if refiner is not None:
+                refiner.zero_grad()
             return loss.detach(), terms, {"guard": event}
     for opt in optimizers.values():
         opt.step()
+    if refiner is not None:
+        refiner.step()
     clock("optimizer")
     density = strategy.step_post_backward(params, optimizers, state, step, info)
     for opt in optimizers.values():
@@ -181,10 +187,14 @@ def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out
 
 
 @torch.no_grad()
-def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig):
+def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, refiner: CameraRefiner | None = None):
     """TSDF fusion of the rendered depth (``cfg.tsdf.depth``; alpha > 0.5) and colour of every
-    mesh_every-th training view, cleaned (:func:`fuse_cameras`)."""
-    cams = [views.scene.cameras[views[k].index] for k in range(0, len(views), max(cfg.mesh_every, 1))]
+    mesh_every-th training view (with its refined camera when a ``refiner`` is given), cleaned
+    (:func:`fuse_cameras`)."""
+    ks = range(0, len(views), max(cfg.mesh_every, 1))
+    cams = [views.scene.cameras[views.indices[k]] for k in ks]
+    if refiner is not None:
+        cams = [refiner.refined_scene_camera(k, cam) for k, cam in zip(ks, cams)]
     return fuse_cameras(params, cams, sh_degree, cfg.tsdf, backend=cfg.backend, background=cfg.background,
                         device=views[0].rgb.device if len(views) else "cpu")
 
@@ -307,6 +317,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
     optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)
     compiled.enable(cfg.compile and device.type == "cuda")
+    refiner = (CameraRefiner(len(train_views), scale, cfg.pose_opt, cfg.focal_opt, cfg.pose_lr, cfg.focal_lr, device)
+               if cfg.pose_opt or cfg.focal_opt else None)
     strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters))
     loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
                        mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
@@ -338,7 +350,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         return checkpoint.capture(params, optimizers, state, {
             "step": step, "order": [int(i) for i in order], "numpy_rng": checkpoint.numpy_rng_state(rng),
             "gen": gen.get_state(), "curve": curve, "train_s": train_s, "log_bytes": log_bytes,
-            "lr_mult": guard.lr_mult, "guard_events": guard.events, "guard_level": [guard.loss_mean, guard.n_good]})
+            "lr_mult": guard.lr_mult, "guard_events": guard.events, "guard_level": [guard.loss_mean, guard.n_good],
+            "camera_refiner": refiner.state_dict() if refiner is not None else None})
 
     def restore(snap: dict) -> int:
         nonlocal order, curve, train_s, log_bytes
@@ -348,6 +361,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         gen.set_state(extra["gen"])
         if "guard_level" in extra:  # the loss level the guard compares with (checkpoints of older runs lack it)
             guard.loss_mean, guard.n_good = extra["guard_level"]
+        if refiner is not None and extra.get("camera_refiner") is not None:
+            refiner.load_state_dict(extra["camera_refiner"])
         return extra["step"]
 
     if ckpt is not None:
@@ -378,9 +393,12 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 j = neighbours[k][int(torch.randint(len(neighbours[k]), (1,), generator=gen))]
                 source = source_view(view.camera, train_views.cameras[j], train_views.image(j))
             sh_degree = min(cfg.sh_degree, step // sh_every)
+            if refiner is not None:
+                refiner.set_progress(step / cfg.iters)
+                view = refiner.view(k, view)
             loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
                                               cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,
-                                              source=source)
+                                              source=source, refiner=refiner)
             event = density.get("guard") or guard.check_params(step, params)
             if event is None and density.get("opacity_reset"):
                 guard.on_opacity_reset()
@@ -420,7 +438,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                               "ssim": metrics["ssim"], "n_gaussians": len(state["cue_type"])})
                 if cfg.mesh and cfg.mesh_at_checkpoints:
                     rel = Path("checkpoints") / f"mesh_{step:06d}.ply"
-                    write_mesh(fuse_mesh(params, train_views, sh_degree, cfg), work / rel)
+                    write_mesh(fuse_mesh(params, train_views, sh_degree, cfg, refiner), work / rel)
                     curve[-1]["mesh"] = str(rel)
                 log.info("checkpoint %d: %.1f s training, test PSNR %s", step, train_s, metrics["psnr"])
             if step % cfg.guard.snapshot_every == 0 or signals.caught or \
@@ -450,7 +468,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         if curve and curve[-1]["step"] == cfg.iters and "mesh" in curve[-1]:
             shutil.copyfile(work / curve[-1]["mesh"], work / "mesh.ply")  # the same model, fused already
         else:
-            write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg), work / "mesh.ply")
+            write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg, refiner), work / "mesh.ply")
         timings["mesh_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),
@@ -458,7 +476,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
               "gaussians_init": _type_counts(cue_type), "gaussians_final": _type_counts(state["cue_type"]),
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
               "test_per_view": final.get("per_view", []), "accuracy_vs_time": curve, "timings": timings,
-              "resumed_from_step": step0 if ckpt is not None else None, "guard_events": guard.events}
+              "resumed_from_step": step0 if ckpt is not None else None, "guard_events": guard.events,
+              "camera_refinement": refiner.summary() if refiner is not None else None}
     with atomic_path(work / "report.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2, allow_nan=False))
     if not cfg.keep_ckpt:

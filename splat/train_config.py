@@ -70,6 +70,15 @@ class TrainConfig:
     adam: str = "fused"
     """Adam implementation: "fused" (torch's single-kernel Adam, ~5x faster on the CPU) or "torch"
     (torch's default implementation); the same update up to float rounding (tests/test_train_step.py)."""
+    pose_opt: bool = False
+    """Refine each training view's pose during training (an extension, gsplat's pose_opt; splat/camera_opt.py):
+    a rigid correction per view, learnt with the Gaussians; the mesh is fused with the refined poses."""
+    focal_opt: bool = False
+    """Refine one focal-length factor shared by all views during training (an extension; splat/camera_opt.py)."""
+    pose_lr: float = 2e-3
+    """Learning rate of the pose corrections: radians for the rotation, x the scene scale for the translation."""
+    focal_lr: float = 5e-4
+    """Learning rate of the log focal factor."""
     compile: bool = False
     """On a GPU, compile the loss terms and the render's per-pixel maps with torch.compile (fused
     Triton kernels, splat/compiled.py): the same loss up to float rounding (tests/test_compiled.py).

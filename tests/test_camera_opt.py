@@ -42,8 +42,8 @@ def test_zero_correction_is_the_camera_and_the_numpy_camera_agrees_with_the_torc
     torch.testing.assert_close(c0.K, cam.K)
     torch.testing.assert_close(c0.center, cam.center, atol=1e-5, rtol=0)
     with torch.no_grad():
-        ref.rot[1] = torch.tensor([0.01, -0.02, 0.005])
-        ref.trans[1] = torch.tensor([0.02, 0.0, -0.01])
+        ref.rots[1].copy_(torch.tensor([0.01, -0.02, 0.005]))
+        ref.transs[1].copy_(torch.tensor([0.02, 0.0, -0.01]))
         ref.log_focal[0] = np.log(1.05)
     c1 = ref.camera(1, cam)
     sc = ref.refined_scene_camera(1, _scene_camera(cam))
@@ -110,6 +110,24 @@ def test_the_photometric_loss_recovers_a_focal_5_percent_off(truth):
     ref = CameraRefiner(1, 1.0, pose=False, focal=True, pose_lr=1e-3, focal_lr=2e-3)
     _fit(ref, start, target, truth, 120)
     assert abs(ref.summary()["focal_factor"] * 0.95 - 1.0) < 0.01, ref.summary()
+
+
+def test_only_the_rendered_view_moves(truth):
+    """A step moves the correction of the view that was rendered and no other, also on later steps
+    (one [V, 6] Adam tensor would keep moving every view seen before by its decaying momentum)."""
+    cam = bench_camera(48, 36)
+    with torch.no_grad():
+        target = render(truth, cam, backend="cpu")["rgb"]
+    start = _perturbed(cam, np.radians(0.5) * np.array([1.0, 0, 0]), np.zeros(3), 1.0)
+    ref = CameraRefiner(3, 1.0, pose=True, focal=False, pose_lr=1e-3, focal_lr=1e-3)
+    for k in (0, 1, 1, 1):
+        out = render(truth, ref.camera(k, start), backend="cpu")
+        (out["rgb"] - target).abs().mean().backward()
+        ref.step()
+        if k == 0:
+            after_0 = ref.rot[0].clone()
+    assert after_0.abs().max() > 0 and torch.equal(ref.rot[0], after_0)  # view 0 untouched while 1 trains
+    assert ref.rot[1].abs().max() > 0 and not ref.rot[2].abs().any() and not ref.trans[2].abs().any()
 
 
 def test_refiner_needs_something_to_refine():
