@@ -135,6 +135,15 @@ class CameraRefiner:
         K[1, 1] *= f
         return dataclasses.replace(cam, K=K, R=R @ cam.R, t=R @ cam.t + v)
 
+    def save(self, path, names: list[str]) -> None:
+        """The corrections as an npz: names [V] (the views' image names), rot [V, 3] (axis-angle, rad),
+        trans [V, 3] (m, camera frame; viewmat' = [Rodrigues(rot) | trans] @ viewmat), focal_factor."""
+        if len(names) != len(self.rots):
+            raise ValueError(f"{len(names)} names for {len(self.rots)} views")
+        np.savez(path, names=np.asarray(names), rot=self.rot.cpu().numpy(), trans=self.trans.cpu().numpy(),
+                 focal_factor=np.float64(math.exp(float(self.log_focal.detach()[0]))),
+                 pose=np.bool_(self.pose), focal=np.bool_(self.focal))
+
     def summary(self) -> dict:
         """The corrections learnt: per view rotation (degrees) and translation (metres), the focal factor."""
         rot_deg = np.degrees(self.rot.norm(dim=1).cpu().numpy())

@@ -462,6 +462,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
         if src.is_file():
             _link_or_copy(src, work / src.name)
+    if refiner is not None:  # the refined training cameras: corrections per view (bench/camera_error.py reads them)
+        refiner.save(work / "camera_refinement.npz", [train_views.scene.cameras[i].name for i in train_views.indices])
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()

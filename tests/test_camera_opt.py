@@ -152,6 +152,8 @@ def test_train_with_camera_refinement_reports_it_meshes_and_resumes(tmp_path):
     cr = rep["camera_refinement"]
     assert cr["pose"] and cr["focal"] and cr["translation_m"]["max"] > 0 and cr["focal_factor"] != 1.0
     assert (out / "mesh.ply").is_file()
+    z = np.load(out / "camera_refinement.npz")
+    assert z["rot"].shape == (len(z["names"]), 3) and float(z["focal_factor"]) == pytest.approx(cr["focal_factor"])
 
     import splat.train as train_mod
 
