@@ -35,7 +35,9 @@ def rodrigues(w: Tensor) -> Tensor:
     """Rotation matrix [3, 3] of the axis-angle vector w [3] (radians), differentiable at w = 0."""
     theta2 = (w * w).sum()
     wx = torch.zeros(3, 3, dtype=w.dtype, device=w.device)
-    wx = wx.index_put((torch.tensor([0, 0, 1, 1, 2, 2]), torch.tensor([1, 2, 0, 2, 0, 1])),
+    rows = torch.tensor([0, 0, 1, 1, 2, 2], device=w.device)
+    cols = torch.tensor([1, 2, 0, 2, 0, 1], device=w.device)
+    wx = wx.index_put((rows, cols),
                       torch.stack([-w[2], w[1], w[2], -w[0], -w[1], w[0]]))
     small = theta2 < 1e-8
     theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
