@@ -123,6 +123,8 @@ class TrainConfig:
         if self.iters <= 0:
             raise ValueError(f"--iters must be positive, got {self.iters}")
         finite_pos("downscale", self.downscale)
+        finite_pos("pose-lr", self.pose_lr)
+        finite_pos("focal-lr", self.focal_lr)
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"--sh-degree must be in 0..3, got {self.sh_degree}")
         bad = [t for t in self.cue_types if t not in CueType.__members__]

@@ -179,3 +179,12 @@ def test_train_with_camera_refinement_reports_it_meshes_and_resumes(tmp_path):
     assert rep_b["resumed_from_step"] is not None
     assert rep_b["camera_refinement"]["focal_factor"] == pytest.approx(cr["focal_factor"], rel=1e-5)
     assert rep_b["camera_refinement"]["translation_m"]["max"] == pytest.approx(cr["translation_m"]["max"], rel=1e-4)
+
+
+@pytest.mark.parametrize("field", ["pose_lr", "focal_lr"])
+def test_a_bad_learning_rate_is_refused_before_any_work(field):
+    from splat.train import TrainConfig
+
+    for bad in (0.0, -1e-3, float("nan")):
+        with pytest.raises(ValueError, match=f"--{field.replace('_', '-')} must be a finite number > 0"):
+            TrainConfig(pose_opt=True, **{field: bad}).validate()
