@@ -26,7 +26,9 @@ from camera_error import camera_errors  # noqa: E402
 def row(run: Path, gt_scene: Path) -> dict:
     rep = json.loads((run / "report.json").read_text())
     ev = json.loads((run / "eval.json").read_text())
-    out = {"run": str(run), "scene": rep["scene"], "refine": bool(rep["config"].get("pose_opt") or rep["config"].get("focal_opt")),
+    c = rep["config"]
+    refine = " + ".join(n for n, on in (("pose", c.get("pose_opt")), ("focal", c.get("focal_opt"))) if on) or "none"
+    out = {"run": str(run), "scene": rep["scene"], "refine": refine,
            "train_s": rep["timings"]["train_s"], "test_psnr": rep["test_metrics"]["psnr"],
            **{k: ev[k] for k in ("accuracy", "completeness", "chamfer_l1", "f_score", "normal_consistency")}}
     if (run / "camera_refinement.npz").is_file():
@@ -50,7 +52,7 @@ def main(argv: list[str]) -> int:
             f"{c['start']['rotation_deg']['median']:.2f} → {c['refined']['rotation_deg']['median']:.2f}",
             f"{c['start']['centre_cm']['median']:.2f} → {c['refined']['centre_cm']['median']:.2f}",
             f"{c['focal_factor']:.3f} ({c['true_focal_factor']:.3f})")
-        print(f"| {Path(r['scene']).name} | {'pose + focal' if r['refine'] else 'none'} | {100 * r['chamfer_l1']:.2f} | "
+        print(f"| {Path(r['scene']).name} | {r['refine']} | {100 * r['chamfer_l1']:.2f} | "
               f"{r['f_score']:.3f} | {r['normal_consistency']:.3f} | {cam[0]} | {cam[1]} | {cam[2]} | {r['train_s']:.0f} |")
     return 0
 
