@@ -101,12 +101,14 @@ def config_key(payload: dict) -> str:
     return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-_ADDED_LATER = (  # options added after rows were first keyed: (config section, its fields, "left off")
+_ADDED_LATER = (  # options added after rows were first keyed: (config section, "" = top level, its fields, "left off")
     ("tsdf", lambda k: k.startswith("consisten"), lambda s: s.get("consistent_views") is None),
     ("tsdf", lambda k: k == "max_depth_spread", lambda s: s.get("max_depth_spread") is None),
     ("loss", lambda k: k == "plane_anchor", lambda s: not s.get("plane_anchor")),
     ("loss", lambda k: k == "lambda_mv" or k.startswith("mv_"), lambda s: not s.get("lambda_mv")),
     ("strategy", lambda k: k == "plane_rule", lambda s: s.get("plane_rule", "none") == "none"),
+    ("", lambda k: k in ("pose_opt", "focal_opt", "pose_lr", "focal_lr"),
+     lambda s: not s.get("pose_opt") and not s.get("focal_opt")),
 )
 
 
@@ -121,14 +123,14 @@ def row_keys(spec: dict) -> list[str]:
     tc = {k: v for k, v in spec["train_config"].items() if k not in OPERATIONAL_FIELDS and v is not None}
     if tc.get("adam") == "fused":  # the default since it came; torch's Adam up to rounding (tested), so
         del tc["adam"]              # rows trained before it keep their key; `--adam torch` is a new row
-    if not tc.get("pose_opt") and not tc.get("focal_opt"):  # camera refinement off: rows from before it keep their key
-        tc = {k: v for k, v in tc.items() if k not in ("pose_opt", "focal_opt", "pose_lr", "focal_lr")}
     if tc["loss"].get("kernels") == "fused":  # the same: the fused loss kernels are torch's up to rounding
         tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "kernels"}
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
     for section, is_field, is_off in _ADDED_LATER:  # off: rows run before the option keep their key
-        if is_off(tc[section]):
-            tc[section] = {k: v for k, v in tc[section].items() if not is_field(k)}
+        part = tc[section] if section else tc
+        if is_off(part):
+            part = {k: v for k, v in part.items() if not is_field(k)}
+            tc = {**tc, section: part} if section else part
     keys = []
     if tc["tsdf"].get("depth") == "median":  # rows meshed before --tsdf.depth existed fused the median;
         keys.append(config_key(payload | {"train_config": tc | {"tsdf": {k: v for k, v in tc["tsdf"].items()

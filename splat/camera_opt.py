@@ -86,10 +86,8 @@ class CameraRefiner:
         """View k's camera with its correction (differentiable in the corrections)."""
         vm, K = cam.viewmat, cam.K
         if self.pose:
-            delta = torch.eye(4, dtype=vm.dtype, device=vm.device)
-            delta = torch.cat([torch.cat([rodrigues(self.rots[k]).to(vm.dtype), self.transs[k][:, None].to(vm.dtype)], 1),
-                               delta[3:]], 0)
-            vm = delta @ vm
+            top = torch.cat([rodrigues(self.rots[k]), self.transs[k][:, None]], 1).to(vm.dtype)  # [3, 4]
+            vm = torch.cat([top, vm.new_tensor([[0.0, 0.0, 0.0, 1.0]])]) @ vm
         if self.focal:
             f = torch.exp(self.log_focal[0]).to(K.dtype)
             K = torch.stack([K[0] * torch.stack([f, f.new_ones(()), f.new_ones(())]),
