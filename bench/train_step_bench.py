@@ -15,7 +15,8 @@ projection + compositing forward; loss = every loss term's forward; backward = a
 compositing and projection included; optimizer; density), from ``train_step(stage_s=...)``.
 Each configuration runs once per ``--variants`` entry side by side, so old and new are timed under
 the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
-step when issue 15 was filed), "fused-adam" (torch's single-kernel Adam only), "today" (the
+step when issue 15 was filed; with ``--baseline-kernels REV`` also that commit's compositing kernels,
+built by bench/old_kernels.py), "fused-adam" (torch's single-kernel Adam only), "today" (the
 defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py; on a GPU also the loss terms
 and render maps compiled by splat/compiled.py, `splat train --compile`).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
@@ -69,6 +70,9 @@ class StepBench:
     camera_opt: bool = False
     """Also refine the views' poses and focal (TrainConfig.pose_opt / focal_opt, splat/camera_opt.py): the
     projection then runs in torch, which carries the camera's gradient."""
+    baseline_kernels: str = ""
+    """The "baseline" variant composites with the C++ kernels of this commit (bench/old_kernels.py), e.g.
+    2a93836 (those of the day issue 15 was filed, unchanged until then since 0c0625d); empty: today's."""
     profile: str = ""
     """Also profile 10 steps of each configuration with torch.profiler and append the operator table
     (sorted by device time on CUDA, by CPU time otherwise) to this file."""
@@ -117,6 +121,33 @@ VARIANTS = {"baseline": ("torch", "torch", False), "fused-adam": ("fused", "torc
 def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
     adam, kernels, compile_gpu = VARIANTS[variant]
     compiled.enable(compile_gpu)
+    with _composite_kernels(cfg.baseline_kernels if variant == "baseline" else "") as composite_kernels:
+        row = _time_config(width, height, n, cfg, variant, adam, kernels, compile_gpu)
+    row["composite_kernels"] = composite_kernels
+    return row
+
+
+@contextlib.contextmanager
+def _composite_kernels(rev: str):
+    """Within the block the CPU compositing runs the kernels of commit ``rev`` (today's if empty);
+    yields a label of the kernels in use."""
+    from splat import composite_cpu, cpu_ext
+
+    if not rev:
+        yield f"today ({cpu_ext.COMPOSITE_LANES} float lanes)"
+        return
+    from bench.old_kernels import composite_kernels_at
+
+    saved = composite_cpu._ext
+    composite_cpu._ext = composite_kernels_at(rev)
+    try:
+        yield rev
+    finally:
+        composite_cpu._ext = saved
+
+
+def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, adam: str, kernels: str,
+                 compile_gpu: bool) -> dict:
     truth = surface_gaussians(n, sh_degree=cfg.sh_degree, seed=0)
     views = target_views(truth, width, height, cfg.device, sh_degree=cfg.sh_degree)
     g = torch.Generator().manual_seed(0)
@@ -237,7 +268,11 @@ def format_table(result: dict) -> str:
 def _variant(row: dict) -> str:
     """A row's variant as the table shows it (rows written before variants: their Adam)."""
     adam, kernels = row.get("adam", "torch"), row.get("loss_kernels", "torch")
-    return f"{row['variant']} ({adam} Adam, {kernels} loss kernels)" if "variant" in row else f"Adam {adam}"
+    if "variant" not in row:
+        return f"Adam {adam}"
+    old = row.get("composite_kernels", "today")
+    return f"{row['variant']} ({adam} Adam, {kernels} loss kernels" + ("" if old.startswith("today") else
+                                                                      f", compositing of {old}") + ")"
 
 
 def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md") -> None:

@@ -3,10 +3,10 @@
 // Forward and analytic backward of the per-pixel rule in splat/composite.py (3DGS forward.cu /
 // backward.cu semantics): 16x16 tiles with depth-sorted lists (composite_cpu.h), Gaussian-outer
 // loops per tile over the rows and columns of each Gaussian's box that can pass the alpha
-// threshold, 4 pixels of a row evaluated at once, early termination per pixel; the backward runs
-// back to front recovering T by division. OpenMP over tiles (dynamic schedule). Gradients are
-// written per (tile, Gaussian) slot and summed per Gaussian in a fixed order afterwards, so the
-// results do not depend on the thread count or schedule.
+// threshold, 4 or 8 pixels of a row evaluated and blended at once (composite_cpu.h, Lanes), early
+// termination per pixel; the backward runs back to front recovering T by division. OpenMP over
+// tiles (dynamic schedule). Gradients are written per (tile, Gaussian) slot and summed per Gaussian
+// in a fixed order afterwards, so the results do not depend on the thread count or schedule.
 
 #include "composite_cpu.h"
 #include "kernels.h"
@@ -22,9 +22,10 @@ struct ForwardOut {
   torch::Tensor out, alpha, median, n_contrib, final_T, last, median_idx;
 };
 
-// Forward: alphas are evaluated for 4 pixels of a row at once (the same eval4 as the backward,
-// so both take the same skip decisions); the lanes that blend then update their pixel one by one,
-// with the pixel's channels contiguous (padded to a multiple of 4: vector adds).
+// Forward: L pixels of a row at once, alphas by the same eval_lanes as the backward (so both take
+// the same skip decisions), then the blend of those lanes as vector selects: a lane's pixel gets
+// exactly the operations, in the order, of the per-pixel rule. The tile's buffers are
+// channel-major (acc[ch * 256 + pixel]) so that a channel of L pixels is one vector.
 template <typename scalar_t, int NC>  // NC > 0: channel count known at compile time
 void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, const Bins& bins,
                   ForwardOut& o, int nthreads) {
@@ -32,8 +33,6 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
   typedef typename Lanes<scalar_t>::M Mk;
   typedef typename Lanes<scalar_t>::MaskInt MaskInt;
   const int64_t C = NC > 0 ? NC : in.C, W = in.W, H = in.H, n_tiles = bins.tiles_x * bins.tiles_y;
-  constexpr int64_t kPad = NC > 0 ? (NC + 3) / 4 * 4 : 1;  // channels padded to vector width
-  const int64_t CS = NC > 0 ? kPad : C;                      // stride of a pixel's channels
   const int32_t* offs = bins.tile_offsets.data_ptr<int32_t>();
   const int32_t* slot_rank = bins.slot_rank.data_ptr<int32_t>();
   std::vector<Packed<scalar_t>> pk;
@@ -46,70 +45,77 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
   int32_t* o_n = o.n_contrib.data_ptr<int32_t>();
   int32_t* o_last = o.last.data_ptr<int32_t>();
   int32_t* o_midx = o.median_idx.data_ptr<int32_t>();
-  const V lanes = {0, 1, 2, 3};
+  constexpr int L = Lanes<scalar_t>::L;
+  const V lanes = iota<scalar_t>();
 #pragma omp parallel num_threads(nthreads)
   {
-    // per pixel: transmittance, blended channels, last blended list position, count, stopped
-    // mask (all bits set), median Gaussian
-    std::vector<scalar_t> T(kTilePix), acc(kTilePix * CS);
-    std::vector<int32_t> lastc(kTilePix), ncon(kTilePix), med(kTilePix);
-    std::vector<MaskInt> done(kTilePix);
+    // per pixel: transmittance, blended channels (channel-major), and as lane-wide integers the
+    // last blended list position, the count, the stopped mask (all bits set) and the median Gaussian
+    std::vector<scalar_t> T(kTilePix), acc(kTilePix * C);
+    std::vector<MaskInt> lastc(kTilePix), ncon(kTilePix), med(kTilePix), done(kTilePix);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) {
       const int64_t px0 = (tile % bins.tiles_x) * kTile, py0 = (tile / bins.tiles_x) * kTile;
       const int64_t px1 = std::min(px0 + kTile, W) - 1, py1 = std::min(py0 + kTile, H) - 1;
       std::fill(T.begin(), T.end(), scalar_t(1));
       std::fill(acc.begin(), acc.end(), scalar_t(0));
-      std::fill(lastc.begin(), lastc.end(), 0);
-      std::fill(ncon.begin(), ncon.end(), 0);
-      std::fill(med.begin(), med.end(), -1);
+      std::fill(lastc.begin(), lastc.end(), MaskInt(0));
+      std::fill(ncon.begin(), ncon.end(), MaskInt(0));
+      std::fill(med.begin(), med.end(), MaskInt(-1));
       std::fill(done.begin(), done.end(), MaskInt(0));
       int64_t alive = (px1 - px0 + 1) * (py1 - py0 + 1);
       const int64_t start = offs[tile], end = offs[tile + 1];
       for (int64_t s = start; s < end && alive > 0; ++s) {
         const int64_t r = slot_rank[s];
         const Splat2D<scalar_t> sp(pk[r], &fs[r * C], px0, px1, py0, py1);
-        const int32_t q1 = int32_t(s - start + 1);
-        alignas(16) scalar_t fl[kPad];  // zero-padded local copy: no aliasing, vector adds
-        const scalar_t* f = sp.f;
-        if (NC > 0) { std::fill(std::copy(sp.f, sp.f + C, fl), fl + kPad, scalar_t(0)); f = fl; }
+        const MaskInt q1 = MaskInt(s - start + 1), gid = MaskInt(sp.p.g);
         for (int64_t y = sp.y0; y <= sp.y1; ++y) {
           int64_t rx0, rx1;
           if (!sp.row(y, rx0, rx1)) continue;
           const scalar_t dy = sp.my - (scalar_t(y) + scalar_t(0.5));
           const int64_t c0 = rx0 - px0, c1 = rx1 - px0, row = (y - py0) * kTile;
-          for (int64_t g4 = c0 & ~int64_t(3); g4 <= c1; g4 += 4) {
-            const int64_t i4 = row + g4;  // first pixel of the 4 lanes
+          for (int64_t g4 = c0 & ~int64_t(L - 1); g4 <= c1; g4 += L) {
+            const int64_t i4 = row + g4;  // first pixel of the L lanes
             const V col = lanes + scalar_t(g4);
-            Mk m = (col >= scalar_t(c0)) & (col <= scalar_t(c1)) & ~vload<Mk>(&done[i4]);
+            const Mk stopped = vload<Mk>(&done[i4]);
+            Mk m = (col >= scalar_t(c0)) & (col <= scalar_t(c1)) & ~stopped;
             if (!any(m)) continue;
             const V dx = sp.mx - ((lanes + scalar_t(px0 + g4)) + scalar_t(0.5));
             V G, raw, al;
-            m = sp.eval4(dx, dy, m, G, raw, al);
+            m = sp.eval_lanes(dx, dy, m, G, raw, al);
             if (!any(m)) continue;
-            for (int l = 0; l < 4; ++l) {
-              if (!m[l]) continue;
-              const int64_t i = i4 + l;
-              const scalar_t test_T = T[i] * (scalar_t(1) - al[l]);
-              if (test_T < scalar_t(1e-4)) { done[i] = MaskInt(-1); --alive; continue; }
-              axpy<scalar_t, NC>(&acc[i * CS], f, al[l] * T[i], CS);
-              if (T[i] > scalar_t(0.5) && test_T <= scalar_t(0.5)) med[i] = sp.p.g;
-              T[i] = test_T;
-              lastc[i] = q1;
-              ++ncon[i];
+            const V Tv = vload<V>(&T[i4]);
+            const V test_T = Tv * (scalar_t(1) - al);
+            const Mk stop = m & (test_T < scalar_t(1e-4));
+            if (any(stop)) {  // these pixels are full: they blend nothing more
+              vstore(&done[i4], stopped | stop);
+              alive -= count(stop);
+              m &= ~stop;
+              if (!any(m)) continue;
             }
+            const V w = al * Tv;
+            scalar_t* a = &acc[i4];
+            for (int64_t ch = 0; ch < C; ++ch, a += kTilePix) {
+              const V av = vload<V>(a);
+              vstore(a, m ? av + sp.f[ch] * w : av);
+            }
+            const Mk half = m & (Tv > scalar_t(0.5)) & (test_T <= scalar_t(0.5));
+            if (any(half)) vstore(&med[i4], half ? Mk{} + gid : vload<Mk>(&med[i4]));
+            vstore(&T[i4], m ? test_T : Tv);
+            vstore(&lastc[i4], m ? Mk{} + q1 : vload<Mk>(&lastc[i4]));
+            vstore(&ncon[i4], vload<Mk>(&ncon[i4]) - m);  // true = -1
           }
         }
       }
       for (int64_t y = py0; y <= py1; ++y) {
         for (int64_t x = px0; x <= px1; ++x) {
           const int64_t i = (y - py0) * kTile + (x - px0), p = y * W + x;
-          for (int64_t ch = 0; ch < C; ++ch) o_out[p * C + ch] = acc[i * CS + ch] + T[i] * in.bg[ch];
+          for (int64_t ch = 0; ch < C; ++ch) o_out[p * C + ch] = acc[ch * kTilePix + i] + T[i] * in.bg[ch];
           o_alpha[p] = scalar_t(1) - T[i];
           o_T[p] = T[i];
-          o_n[p] = ncon[i];
-          o_last[p] = lastc[i];
-          o_midx[p] = med[i];
+          o_n[p] = int32_t(ncon[i]);
+          o_last[p] = int32_t(lastc[i]);
+          o_midx[p] = int32_t(med[i]);
           if (med[i] >= 0)
             for (int64_t m = 0; m < M; ++m) o_med[p * M + m] = medf[int64_t(med[i]) * M + m];
         }
@@ -122,6 +128,8 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
 //   out = sum_i f_i a_i T_i + T_N bg,  T_i = prod_{j<i} (1 - a_j),  alpha_out = 1 - T_N
 //   dout/da_i = f_i T_i - (S_i + T_N bg) / (1 - a_i),  S_i = sum_{j>i} f_j a_j T_j
 //   dalpha_out/da_i = T_N / (1 - a_i);  a_i = min(0.99, o_i exp(power_i)).
+// Only d out . S_i enters, so a pixel keeps that one sum, sum_{j>i} (d out . f_j) a_j T_j, not S_i's
+// C channels.
 // Writes per-slot gradients ent [E, 6 + C] (d mean2d, d conic, d opacity, d features) and the
 // per-tile background gradients tile_bg [n_tiles, C].
 template <typename scalar_t, int NC>  // NC > 0: channel count known at compile time
@@ -137,20 +145,21 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
   std::vector<Packed<scalar_t>> pk;
   std::vector<scalar_t> fs;
   pack_gaussians(in, bins, pk, fs, nthreads);
-  const V lanes = {0, 1, 2, 3};
+  constexpr int L = Lanes<scalar_t>::L;
+  const V lanes = iota<scalar_t>();
 #pragma omp parallel num_threads(nthreads)
   {
     // per pixel: T (recovered back to front), T_N (d alpha_out - bg . d out), last blended list
-    // position; channel-major: d out and the suffix sums S
-    std::vector<scalar_t> T(kTilePix), extra(kTilePix), lastc(kTilePix);
-    std::vector<scalar_t> gp(C * kTilePix), S(C * kTilePix);
+    // position, d out . S; channel-major: d out
+    std::vector<scalar_t> T(kTilePix), extra(kTilePix), lastc(kTilePix), gS(kTilePix);
+    std::vector<scalar_t> gp(C * kTilePix);
     std::vector<V> dfeat(C);  // per-channel feature-gradient accumulators of one Gaussian
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) {
       const int64_t px0 = (tile % tiles_x) * kTile, py0 = (tile / tiles_x) * kTile;
       const int64_t px1 = std::min(px0 + kTile, W) - 1, py1 = std::min(py0 + kTile, H) - 1;
       std::fill(lastc.begin(), lastc.end(), scalar_t(0));
-      std::fill(S.begin(), S.end(), scalar_t(0));
+      std::fill(gS.begin(), gS.end(), scalar_t(0));
       scalar_t* tb = tbg + tile * C;
       std::fill(tb, tb + C, scalar_t(0));
       int32_t maxlast = 0;
@@ -182,7 +191,7 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
           if (!sp.row(y, rx0, rx1)) continue;
           const scalar_t dy = sp.my - (scalar_t(y) + scalar_t(0.5));
           const int64_t c0 = rx0 - px0, c1 = rx1 - px0, row = (y - py0) * kTile;
-          for (int64_t g4 = c0 & ~int64_t(3); g4 <= c1; g4 += 4) {
+          for (int64_t g4 = c0 & ~int64_t(L - 1); g4 <= c1; g4 += L) {
             const int64_t i = row + g4;
             const V col = lanes + scalar_t(g4);
             // lanes in the box whose pixel blended this Gaussian (list position < last)
@@ -190,21 +199,21 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
             if (!any(m)) continue;
             const V dx = sp.mx - ((lanes + scalar_t(px0 + g4)) + scalar_t(0.5));
             V G, raw, al;
-            m = sp.eval4(dx, dy, m, G, raw, al);
+            m = sp.eval_lanes(dx, dy, m, G, raw, al);
             if (!any(m)) continue;
             const V inv = scalar_t(1) / (scalar_t(1) - al);
             const V Tn = vload<V>(&T[i]);
             const V Ti = Tn * inv;  // transmittance in front of this Gaussian
             const V w = al * Ti;
-            V gf{}, gs{};  // d out . f and d out . S
+            const V wm = m ? w : V{};
+            V gf{};  // d out . f
             for (int64_t ch = 0; ch < C; ++ch) {
               const V g = vload<V>(&gp[ch * kTilePix + i]);
-              const V S_c = vload<V>(&S[ch * kTilePix + i]);
               gf += g * sp.f[ch];
-              gs += g * S_c;
-              dfeat[ch] += m ? w * g : V{};
-              vstore(&S[ch * kTilePix + i], m ? S_c + sp.f[ch] * w : S_c);
+              dfeat[ch] += wm * g;
             }
+            const V gs = vload<V>(&gS[i]);  // d out . S
+            vstore(&gS[i], m ? gs + gf * w : gs);
             const V dL_da = Ti * gf + inv * (vload<V>(&extra[i]) - gs);
             vstore(&T[i], m ? Ti : Tn);
             const Mk unclamped = m & (raw <= scalar_t(0.99));  // clamped: no grad to op or power

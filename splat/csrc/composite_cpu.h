@@ -211,18 +211,29 @@ void pack_gaussians(const Splats<scalar_t>& in, const Bins& bins, std::vector<Pa
   }
 }
 
-// 4-lane vectors (GCC vector extensions): the tile loops process 4 neighbouring pixels of a row
-// at once. V holds scalar_t lanes, M the matching lane mask (all bits set = true).
+// Vectors of L lanes (GCC vector extensions): the tile loops process L neighbouring pixels of a row
+// at once. V holds scalar_t lanes, M the matching lane mask (all bits set = true). float has 8 lanes
+// where the build targets AVX2 (splat/cpu_ext.py builds the compositing kernels a second time with
+// -mavx2 and picks that build at run time on CPUs that have it), 4 otherwise; double has 4. Each
+// lane evaluates the same operations in the same order, so a pixel's alpha, colour and depth do
+// not depend on L; only the order of the per-Gaussian gradient sums over a row's lanes does.
+#if defined(__AVX2__)
+constexpr int kFloatLanes = 8;
+#else
+constexpr int kFloatLanes = 4;
+#endif
 template <typename T>
 struct Lanes;
 template <>
 struct Lanes<float> {
-  typedef float V __attribute__((vector_size(16)));
-  typedef int32_t M __attribute__((vector_size(16)));
+  static constexpr int L = kFloatLanes;
+  typedef float V __attribute__((vector_size(4 * kFloatLanes)));
+  typedef int32_t M __attribute__((vector_size(4 * kFloatLanes)));
   typedef int32_t MaskInt;
 };
 template <>
 struct Lanes<double> {
+  static constexpr int L = 4;
   typedef double V __attribute__((vector_size(32)));
   typedef int64_t M __attribute__((vector_size(32)));
   typedef int64_t MaskInt;
@@ -238,38 +249,51 @@ template <typename V, typename T>
 inline void vstore(T* p, const V& v) {
   std::memcpy(p, &v, sizeof(V));
 }
+// 0, 1, ..., L-1
+template <typename scalar_t>
+inline typename Lanes<scalar_t>::V iota() {
+  typename Lanes<scalar_t>::V v{};
+  for (int l = 0; l < Lanes<scalar_t>::L; ++l) v[l] = scalar_t(l);
+  return v;
+}
 template <typename M>
 inline bool any(const M& m) {
+#if defined(__AVX__)
+  if constexpr (sizeof(M) == 32) {  // one vmovmskps / vmovmskpd instead of a chain of ORs
+    __m256 v;
+    std::memcpy(&v, &m, sizeof(v));
+    return _mm256_movemask_ps(v) != 0;
+  }
+#endif
 #if defined(__SSE2__)
-  if constexpr (sizeof(M) == 16) {  // float lanes: one movmskps instead of three ORs
+  if constexpr (sizeof(M) == 16) {
     __m128 v;
     std::memcpy(&v, &m, sizeof(v));
     return _mm_movemask_ps(v) != 0;
   }
 #endif
-  return (m[0] | m[1] | m[2] | m[3]) != 0;
+  constexpr int n = sizeof(M) / sizeof(m[0]);
+  auto acc = m[0];
+  for (int l = 1; l < n; ++l) acc |= m[l];
+  return acc != 0;
 }
+// Number of true lanes of a mask (true = -1).
 template <typename M>
 inline int64_t count(const M& m) {
-  return -int64_t(m[0] + m[1] + m[2] + m[3]);
+  constexpr int n = sizeof(M) / sizeof(m[0]);
+  int64_t c = 0;
+  for (int l = 0; l < n; ++l) c -= int64_t(m[l]);
+  return c;
 }
+// Sum of the lanes as a fixed pairwise tree.
 template <typename V>
 inline auto hsum(const V& v) {
-  return (v[0] + v[1]) + (v[2] + v[3]);
+  constexpr int n = sizeof(V) / sizeof(v[0]);
+  if constexpr (n == 8) return ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]));
+  else return (v[0] + v[1]) + (v[2] + v[3]);
 }
 
-// y[k] += x[k] * a for k < n; NC > 0 with float: n is NC padded to a multiple of 4 (vector adds).
-template <typename T, int NC>
-inline void axpy(T* __restrict y, const T* __restrict x, T a, int64_t n) {
-  if constexpr (std::is_same_v<T, float> && NC > 0) {
-    typedef Lanes<float>::V V;
-    for (int64_t k = 0; k < (NC + 3) / 4 * 4; k += 4) vstore(y + k, vload<V>(y + k) + vload<V>(x + k) * a);
-  } else {
-    for (int64_t k = 0; k < n; ++k) y[k] += x[k] * a;
-  }
-}
-
-// exp of 4 floats (Cephes expf: range reduction by ln 2, degree-6 polynomial; ~1 ulp on
+// exp of L floats (Cephes expf: range reduction by ln 2, degree-6 polynomial; ~1 ulp on
 // [-87, 0], exp(0) = 1 exactly); arguments below -87 are clamped (their alpha is skipped anyway).
 inline Lanes<float>::V vexp(Lanes<float>::V x) {
   typedef Lanes<float>::V V;
@@ -335,12 +359,12 @@ struct Splat2D {
     return rx0 <= rx1;
   }
 
-  // The rule at 4 pixels: offsets dx (lanes) and dy = mean - pixel centre; m = lanes to evaluate.
+  // The rule at L pixels: offsets dx (lanes) and dy = mean - pixel centre; m = lanes to evaluate.
   // Returns m without the skipped lanes (power > 0, alpha < 1/255); G = exp(power),
   // raw = op G, al = min(0.99, raw). Forward and backward call this same code.
   typedef typename Lanes<scalar_t>::V V;
   typedef typename Lanes<scalar_t>::M M;
-  inline M eval4(const V& dx, scalar_t dy, M m, V& G, V& raw, V& al) const {
+  inline M eval_lanes(const V& dx, scalar_t dy, M m, V& G, V& raw, V& al) const {
     const V power = scalar_t(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
     m &= (power <= scalar_t(0)) & (power >= skip_below);  // NaN fails both: skipped
     G = vexp(power);

@@ -1,0 +1,45 @@
+"""The C++ compositing kernels of an earlier commit, built beside today's, for side-by-side timings.
+
+    from bench.old_kernels import composite_kernels_at
+    ext = composite_kernels_at("2a93836")   # a module with forward() and backward()
+
+Writes that commit's ``splat/csrc/composite_cpu.{cpp,h}`` and ``kernels.h`` (``git show``) next to
+today's ``bindings_composite.cpp`` in ``$INDOORGS_CACHE/old_kernels/<sha>/`` and builds them with the
+baseline flags of :mod:`splat.cpu_ext` (cached like the project's own builds). The entry points'
+signatures must match today's (true since the commit that added ``kernels.h``). Swapping
+``splat.composite_cpu._ext`` for the result makes render() use the old kernels.
+"""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+from splat import cpu_ext
+from splat.ext_build import build_or_load, cache_dir
+
+REPO = Path(__file__).resolve().parents[1]
+OLD_FILES = ("splat/csrc/composite_cpu.cpp", "splat/csrc/composite_cpu.h", "splat/csrc/kernels.h")
+
+
+def composite_kernels_at(rev: str) -> ModuleType:
+    """Build (or load from the cache) the compositing kernels of commit ``rev``."""
+    sha = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=REPO, check=True,
+                         capture_output=True, text=True).stdout.strip()
+    name = f"indoorgs_cpu_{sha[:10]}"
+    src = cache_dir("old_kernels", (), [sha]).parent / sha
+    src.mkdir(parents=True, exist_ok=True)
+    for rel in OLD_FILES:
+        text = subprocess.run(["git", "show", f"{sha}:{rel}"], cwd=REPO, check=True, capture_output=True,
+                              text=True).stdout
+        (src / Path(rel).name).write_text(text)
+    bindings = src / "bindings_composite.cpp"
+    bindings.write_text((cpu_ext.CSRC / "bindings_composite.cpp").read_text())
+    sources = (src / "composite_cpu.cpp", bindings)
+    out = cache_dir(name, (*sources, src / "composite_cpu.h", src / "kernels.h"),
+                    cpu_ext.CFLAGS + [torch.__version__])
+    return build_or_load(name, sources, out, f"compositing kernels of {sha[:10]}", cflags=cpu_ext.CFLAGS,
+                         ldflags=["-fopenmp"])
