@@ -67,6 +67,7 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
       const int64_t start = offs[tile], end = offs[tile + 1];
       for (int64_t s = start; s < end && alive > 0; ++s) {
         const int64_t r = slot_rank[s];
+        if (s + kAhead < end) prefetch_gaussian(pk, fs, C, slot_rank[s + kAhead]);
         const Splat2D<scalar_t> sp(pk[r], &fs[r * C], px0, px1, py0, py1);
         const MaskInt q1 = MaskInt(s - start + 1), gid = MaskInt(sp.p.g);
         for (int64_t y = sp.y0; y <= sp.y1; ++y) {
@@ -182,6 +183,7 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
       std::fill(ent + (start + maxlast) * D, ent + (start + count) * D, scalar_t(0));
       for (int64_t q = int64_t(maxlast) - 1; q >= 0; --q) {
         const int64_t r = slot_rank[start + q];
+        if (q >= kAhead) prefetch_gaussian(pk, fs, C, slot_rank[start + q - kAhead]);
         const Splat2D<scalar_t> sp(pk[r], &fs[r * C], px0, px1, py0, py1);
         const scalar_t qf = scalar_t(q);
         V dmx{}, dmy{}, da{}, db{}, dc{}, dop{};

@@ -211,6 +211,19 @@ void pack_gaussians(const Splats<scalar_t>& in, const Bins& bins, std::vector<Pa
   }
 }
 
+// A tile reads its Gaussians' packed data in depth order, scattered over the whole array: ask for
+// the one kAhead places further down the list while this one is composited.
+constexpr int64_t kAhead = 8;
+template <typename scalar_t>
+inline void prefetch_gaussian(const std::vector<Packed<scalar_t>>& pk, const std::vector<scalar_t>& fs,
+                              int64_t C, int64_t r) {
+  const char* p = reinterpret_cast<const char*>(&pk[r]);
+  __builtin_prefetch(p);
+  __builtin_prefetch(p + sizeof(Packed<scalar_t>) - 1);
+  __builtin_prefetch(&fs[r * C]);
+  __builtin_prefetch(&fs[r * C + C - 1]);
+}
+
 // Vectors of L lanes (GCC vector extensions): the tile loops process L neighbouring pixels of a row
 // at once. V holds scalar_t lanes, M the matching lane mask (all bits set = true). float has 8 lanes
 // where the build targets AVX2 (splat/cpu_ext.py builds the compositing kernels a second time with
