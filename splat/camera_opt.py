@@ -11,7 +11,9 @@ and with ``TrainConfig.focal_opt`` all views share one focal factor, fx' = fx e^
 ``pose_lr``, translation ``pose_lr`` x the scene scale, focal ``focal_lr``, each decaying to a tenth
 by the end), through the torch projection, which carries gradients to the camera (the C++ and CUDA
 projections do not): a step with refinement costs more on the CPU (docs/training.md). The mesh is
-fused with the refined cameras; held-out test views keep the cameras they came with.
+fused with the refined cameras. Held-out test views keep their poses (nothing in training sees
+them) but take the shared focal factor: they come from the same camera. ``splat render`` applies
+the saved corrections (RUN/camera_refinement.npz, :func:`load_refinement`) the same way.
 
 Each view's correction is a parameter of its own, so Adam moves only the view that was rendered
 (a parameter without a gradient is skipped) and counts its steps per view. One [V, 6] tensor would
@@ -99,6 +101,20 @@ class CameraRefiner:
         """A copy of the training view ``view`` (splat.views.View, k-th of its set) with its refined camera."""
         return dataclasses.replace(view, camera=self.camera(k, view.camera))
 
+    def test_view(self, view):
+        """A copy of a held-out view with the shared focal factor (its pose unchanged); ``view`` itself
+        without focal refinement."""
+        if not self.focal:
+            return view
+        with torch.no_grad():
+            f = math.exp(float(self.log_focal[0]))
+        cam = view.camera
+        K = cam.K.clone()
+        K[0, 0] *= f
+        K[1, 1] *= f
+        return dataclasses.replace(view, camera=Camera(K=K, viewmat=cam.viewmat, width=cam.width,
+                                                       height=cam.height, center=cam.center))
+
     def set_progress(self, fraction: float) -> None:
         """Learning rates decayed exponentially to a tenth at the end of the run (fraction 0..1)."""
         mult = 0.1 ** min(max(fraction, 0.0), 1.0)
@@ -130,10 +146,8 @@ class CameraRefiner:
             R = rodrigues(self.rots[k].detach().double().cpu()).numpy() if self.pose else np.eye(3)
             v = self.transs[k].detach().double().cpu().numpy() if self.pose else np.zeros(3)
             f = math.exp(float(self.log_focal.detach()[0])) if self.focal else 1.0
-        K = cam.K.copy()
-        K[0, 0] *= f
-        K[1, 1] *= f
-        return dataclasses.replace(cam, K=K, R=R @ cam.R, t=R @ cam.t + v)
+        K, R, t = refine_Rt(cam.K, cam.R, cam.t, (R, v) if self.pose else None, f)
+        return dataclasses.replace(cam, K=K, R=R, t=t)
 
     def save(self, path, names: list[str]) -> None:
         """The corrections as an npz: names [V] (the views' image names), rot [V, 3] (axis-angle, rad),
@@ -151,3 +165,29 @@ class CameraRefiner:
         return {"pose": self.pose, "focal": self.focal, "focal_factor": math.exp(float(self.log_focal.detach()[0])),
                 "rotation_deg": {"median": float(np.median(rot_deg)), "max": float(rot_deg.max())},
                 "translation_m": {"median": float(np.median(trans_m)), "max": float(trans_m.max())}}
+
+
+def load_refinement(path) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], float]:
+    """RUN/camera_refinement.npz as ({image name: (R_corr [3, 3], trans [3])}, focal factor)."""
+    from scipy.spatial.transform import Rotation
+
+    with np.load(path) as z:
+        names, rot, trans = [str(n) for n in z["names"]], z["rot"], z["trans"]
+        focal = float(z["focal_factor"]) if bool(z["focal"]) else 1.0
+        pose = bool(z["pose"])
+    if not pose:
+        return {}, focal
+    mats = Rotation.from_rotvec(rot.astype(np.float64)).as_matrix()
+    return {n: (m, v.astype(np.float64)) for n, m, v in zip(names, mats, trans)}, focal
+
+
+def refine_Rt(K: np.ndarray, R: np.ndarray, t: np.ndarray, correction: tuple[np.ndarray, np.ndarray] | None,
+              focal: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, R, t) of a world-to-camera pose with a saved correction (None: pose kept) and focal factor."""
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[0, 0] *= focal
+    K[1, 1] *= focal
+    if correction is None:
+        return K, R, t
+    Rc, v = correction
+    return K, Rc @ R, Rc @ t + v

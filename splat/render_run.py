@@ -156,14 +156,24 @@ def load_run(run_dir: Path, scene_override: str | Path | None = None):
     return scene, params, cfg
 
 
-def _chosen(cfg: RenderConfig, scene) -> list[ViewCam]:
+def _chosen(cfg: RenderConfig, scene, run_dir: Path) -> list[ViewCam]:
+    """The views to render; a scene's views with the run's camera refinement (RUN/camera_refinement.npz:
+    training views their pose correction, every view the shared focal factor) when it has one."""
     if cfg.views.endswith(".json"):
         return cameras_from_json(Path(cfg.views))
     idx = {"test": scene.test_indices, "train": scene.train_indices, "all": list(range(len(scene)))}[cfg.views]
     if not idx:
         raise ValueError(f"the scene {scene.root} has no {cfg.views} views (test views need test_every > 0)")
-    return [ViewCam(Path(c.name).stem, c.K, c.R, c.t, c.width, c.height, i)
-            for i in idx for c in [scene.cameras[i]]]
+    from splat.camera_opt import load_refinement, refine_Rt
+
+    npz = run_dir / "camera_refinement.npz"
+    corrections, focal = load_refinement(npz) if npz.is_file() else ({}, 1.0)
+    views = []
+    for i in idx:
+        c = scene.cameras[i]
+        K, R, t = refine_Rt(c.K, c.R, c.t, corrections.get(c.name), focal)
+        views.append(ViewCam(Path(c.name).stem, K, R, t, c.width, c.height, i))
+    return views
 
 
 def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *,
@@ -182,7 +192,7 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
         raise ValueError(f"{out} already holds renders; pass --overwrite to replace them")
     check_output_dir(out)
     scene, params, tcfg = load_run(run_dir, cfg.scene)
-    views = _chosen(cfg, scene)
+    views = _chosen(cfg, scene, run_dir)
     bg = torch.tensor(tcfg.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32)
     gt_depth_dir = scene.root / "gt" / "depth"
 

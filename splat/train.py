@@ -166,13 +166,15 @@ class _StageClock:
 
 
 @torch.no_grad()
-def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out_dir: Path | None = None) -> dict:
-    """Mean PSNR / SSIM of the renders of ``views``; PNGs to ``out_dir`` when given."""
+def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out_dir: Path | None = None,
+                   refiner: CameraRefiner | None = None) -> dict:
+    """Mean PSNR / SSIM of the renders of held-out ``views`` (with the refined shared focal when a
+    ``refiner`` is given); PNGs to ``out_dir`` when given."""
     from evaluation.image_metrics import psnr, ssim
 
     rows = []
     for k in range(len(views)):
-        view = views[k]
+        view = refiner.test_view(views[k]) if refiner is not None else views[k]
         rgb = render_view(params, view, sh_degree, cfg)["rgb"].clamp(0, 1)
         rows.append({"name": view.name, "psnr": psnr(rgb.cpu(), view.rgb.cpu()), "ssim": ssim(rgb.cpu(), view.rgb.cpu())})
         if out_dir is not None:
@@ -433,7 +435,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 log_file.flush()  # readable while the run works (`splat ablate --jobs` progress, tail -f)
                 bar.set_postfix(loss=f"{float(loss):.4f}", n=len(state["cue_type"]))
             if step in checkpoints:
-                metrics = evaluate_views(params, test_views, sh_degree, cfg)
+                metrics = evaluate_views(params, test_views, sh_degree, cfg, refiner=refiner)
                 curve.append({"step": step, "train_s": round(train_s, 2), "psnr": metrics["psnr"],
                               "ssim": metrics["ssim"], "n_gaussians": len(state["cue_type"])})
                 if cfg.mesh and cfg.mesh_at_checkpoints:
@@ -457,7 +459,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     timings["train_s"] = train_s
 
     t0 = time.perf_counter()
-    final = evaluate_views(params, test_views, cfg.sh_degree, cfg, work / "test_renders")
+    final = evaluate_views(params, test_views, cfg.sh_degree, cfg, work / "test_renders", refiner)
     ply = write_3dgs_run(work, params, state["cue_type"], scene, asdict(cfg), cfg.iters)
     for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
         if src.is_file():

@@ -130,6 +130,26 @@ def test_only_the_rendered_view_moves(truth):
     assert ref.rot[1].abs().max() > 0 and not ref.rot[2].abs().any() and not ref.trans[2].abs().any()
 
 
+def test_held_out_views_take_the_shared_focal_and_keep_their_pose():
+    from dataclasses import dataclass
+
+    @dataclass
+    class View:
+        camera: Camera
+
+    cam = bench_camera(64, 48)
+    ref = CameraRefiner(2, 1.0, pose=True, focal=True, pose_lr=1e-3, focal_lr=1e-3)
+    with torch.no_grad():
+        ref.rots[0].copy_(torch.tensor([0.02, 0.0, 0.01]))
+        ref.log_focal[0] = np.log(0.95)
+    held_out = ref.test_view(View(cam)).camera
+    torch.testing.assert_close(held_out.viewmat, cam.viewmat)
+    torch.testing.assert_close(held_out.K[0, 0], cam.K[0, 0] * 0.95)
+    torch.testing.assert_close(held_out.K[1, 1], cam.K[1, 1] * 0.95)
+    torch.testing.assert_close(held_out.K[:, 2], cam.K[:, 2])
+    assert CameraRefiner(2, 1.0, True, False, 1e-3, 1e-3).test_view(View(cam)).camera is cam
+
+
 def test_refiner_needs_something_to_refine():
     with pytest.raises(ValueError, match="pose or focal"):
         CameraRefiner(3, 1.0, pose=False, focal=False, pose_lr=1e-3, focal_lr=1e-3)
@@ -154,6 +174,24 @@ def test_train_with_camera_refinement_reports_it_meshes_and_resumes(tmp_path):
     assert (out / "mesh.ply").is_file()
     z = np.load(out / "camera_refinement.npz")
     assert z["rot"].shape == (len(z["names"]), 3) and float(z["focal_factor"]) == pytest.approx(cr["focal_factor"])
+    # `splat render` draws the training views with their corrections and every view with the focal
+    from splat.render_run import RenderConfig, _chosen, load_run
+
+    scene, _, _ = load_run(out)
+    names = [str(n) for n in z["names"]]
+    for which in ("train", "test"):
+        cams = _chosen(RenderConfig(views=which), scene, out)
+        assert cams
+        for v in cams:
+            c = scene.cameras[v.index]
+            np.testing.assert_allclose(v.K[0, 0], c.K[0, 0] * cr["focal_factor"], rtol=1e-9)
+            np.testing.assert_allclose(v.K[0, 2], c.K[0, 2])
+            if which == "test":
+                np.testing.assert_array_equal(v.R, c.R)
+                continue
+            Rc = Rotation.from_rotvec(z["rot"][names.index(c.name)]).as_matrix()
+            np.testing.assert_allclose(v.R, Rc @ c.R, atol=1e-9)
+            np.testing.assert_allclose(v.t, Rc @ c.t + z["trans"][names.index(c.name)], atol=1e-9)
 
     import splat.train as train_mod
 
