@@ -4,8 +4,8 @@
     ext = composite_kernels_at("2a93836")   # a module with forward() and backward()
 
 Writes that commit's ``splat/csrc/composite_cpu.{cpp,h}`` and ``kernels.h`` (``git show``) next to
-today's ``bindings_composite.cpp`` in ``$INDOORGS_CACHE/old_kernels/<sha>/`` and builds them with the
-baseline flags of :mod:`splat.cpu_ext` (cached like the project's own builds). The entry points'
+a bindings file for the two compositing entry points in ``$INDOORGS_CACHE/torch_extensions/old_kernels/<sha>/``
+and builds them with the baseline flags of :mod:`splat.cpu_ext` (cached like the project's own builds). The entry points'
 signatures must match today's (true since the commit that added ``kernels.h``). Swapping
 ``splat.composite_cpu._ext`` for the result makes render() use the old kernels.
 """
@@ -23,6 +23,14 @@ from splat.ext_build import build_or_load, cache_dir
 
 REPO = Path(__file__).resolve().parents[1]
 OLD_FILES = ("splat/csrc/composite_cpu.cpp", "splat/csrc/composite_cpu.h", "splat/csrc/kernels.h")
+BINDINGS = """// The compositing entry points of splat/csrc/composite_cpu.cpp (bench/old_kernels.py).
+#include "kernels.h"
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &composite_forward, "composite forward");
+  m.def("backward", &composite_backward, "composite backward");
+}
+"""
 
 
 def composite_kernels_at(rev: str) -> ModuleType:
@@ -37,7 +45,7 @@ def composite_kernels_at(rev: str) -> ModuleType:
                               text=True).stdout
         (src / Path(rel).name).write_text(text)
     bindings = src / "bindings_composite.cpp"
-    bindings.write_text((cpu_ext.CSRC / "bindings_composite.cpp").read_text())
+    bindings.write_text(BINDINGS)
     sources = (src / "composite_cpu.cpp", bindings)
     out = cache_dir(name, (*sources, src / "composite_cpu.h", src / "kernels.h"),
                     cpu_ext.CFLAGS + [torch.__version__])

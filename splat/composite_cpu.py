@@ -16,7 +16,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from splat.contracts import CompositeOut, check_composite_inputs
-from splat.cpu_ext import composite_ext as _ext
+from splat.cpu_ext import ext as _ext
 
 
 class _CompositeCPU(torch.autograd.Function):

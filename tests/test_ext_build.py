@@ -23,7 +23,7 @@ def test_a_finished_build_is_imported_without_the_jit_loader(tmp_path, monkeypat
     src = cpu_ext.build_dir()
     monkeypatch.setenv("INDOORGS_CACHE", str(tmp_path / "cache"))
     dst = cpu_ext.build_dir()
-    assert dst.parent == tmp_path / "cache" / "torch_extensions" / cpu_ext.EXT_NAME and dst.name == src.name
+    assert dst.parent == tmp_path / "cache" / "torch_extensions" / cpu_ext.ext_name() and dst.name == src.name
     shutil.copytree(src, dst)
     # a copied cache: every file newer than its log says, as on another machine (ninja would rebuild)
     future = time.time() + 3600
@@ -38,7 +38,7 @@ def test_a_finished_build_is_imported_without_the_jit_loader(tmp_path, monkeypat
     monkeypatch.setattr("torch.utils.cpp_extension.load", no_jit)
     monkeypatch.setattr(ext_build, "_import_so", lambda name, so: imported.append(so) or real_import(name, so))
     module = cpu_ext._build()
-    assert imported == [dst / f"{cpu_ext.EXT_NAME}.so"]
+    assert imported == [dst / f"{cpu_ext.ext_name()}.so"]
     assert hasattr(module, "forward") and hasattr(module, "project_forward")
 
     (dst / ext_build.MARKER).unlink()  # not marked finished: the JIT loader is asked

@@ -226,8 +226,8 @@ inline void prefetch_gaussian(const std::vector<Packed<scalar_t>>& pk, const std
 
 // Vectors of L lanes (GCC vector extensions): the tile loops process L neighbouring pixels of a row
 // at once. V holds scalar_t lanes, M the matching lane mask (all bits set = true). float has 8 lanes
-// where the build targets AVX2 (splat/cpu_ext.py builds the compositing kernels a second time with
-// -mavx2 and picks that build at run time on CPUs that have it), 4 otherwise; double has 4. Each
+// where the build targets AVX2 (splat/cpu_ext.py builds the extension with -mavx2 on CPUs that have
+// it, the baseline build elsewhere), 4 otherwise; double has 4. Each
 // lane evaluates the same operations in the same order, so a pixel's alpha, colour and depth do
 // not depend on L; only the order of the per-Gaussian gradient sums over a row's lanes does.
 #if defined(__AVX2__)
