@@ -44,7 +44,7 @@ import torch  # noqa: E402
 from geocues.atomic import atomic_path  # noqa: E402
 from splat import compiled  # noqa: E402
 from splat.camera_opt import CameraRefiner  # noqa: E402
-from splat.bench import surface_gaussians, target_views  # noqa: E402
+from splat.bench import _cpu_build, surface_gaussians, target_views  # noqa: E402
 from splat.losses import LossConfig  # noqa: E402
 from splat.strategy import IndoorStrategy, IndoorStrategyConfig  # noqa: E402
 from splat.train import LearningRates, TrainConfig, make_optimizers, train_step  # noqa: E402
@@ -233,7 +233,7 @@ def main(cfg: StepBench) -> dict:
                     print(" " * 37 + ", ".join(f"{k} {v:.4f}" for k, v in row["detail_s"].items()), flush=True)
     result = {"config": asdict(cfg), "torch": torch.__version__, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-              "load_avg": os.getloadavg(), "rows": rows,
+              "load_avg": os.getloadavg(), "rows": rows, "cpu_build": _cpu_build(),
               "device_name": torch.cuda.get_device_name(0) if cfg.device.startswith("cuda") else "cpu"}
     path = REPO / "bench" / "results" / f"train_step_{cfg.name}.json"
     with atomic_path(path) as tmp:

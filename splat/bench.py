@@ -257,6 +257,15 @@ def time_composite(params: dict[str, torch.Tensor], camera, backend: str, n_iter
     return times
 
 
+def _cpu_build() -> str | None:
+    """Which build of the C++ extension the `cpu` backend uses here ("avx2" or "baseline"; None if none)."""
+    try:
+        from splat.cpu_ext import SIMD
+    except ImportError:
+        return None
+    return SIMD
+
+
 def time_config(backend: str, width: int, height: int, n: int, cfg: BenchConfig) -> dict:
     """Time ``cfg.warmup + k`` iterations of render + loss + backward; the measured entry."""
     from splat.composite import available_backends
@@ -366,6 +375,7 @@ def run_bench(cfg: BenchConfig = BenchConfig(), json_out: Path | None = None) ->
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                     "torch": torch.__version__, "threads": cfg.num_threads or torch.get_num_threads(),
                     "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+                    "cpu_build": _cpu_build(),
                     "loadavg_start": os.getloadavg()},
         "memory_note": "peak_rss_mb = ru_maxrss after the timed iterations minus ru_maxrss after "
                        "building the scene, in a fresh process per configuration",
