@@ -2,7 +2,8 @@
 
 One extension (``indoorgs_cpu``) holds the compositing kernel (``csrc/composite_cpu.cpp``, used by
 :mod:`splat.composite_cpu`), the fused projection (``csrc/project_cpu.cpp``, used by
-:mod:`splat.project_cpu`) and the loss's fused SSIM (``csrc/losses_cpu.cpp``, used by :mod:`splat.losses_cpu`). Importing this module compiles it with ``torch.utils.cpp_extension.load``
+:mod:`splat.project_cpu`), render's per-pixel maps (``csrc/maps_cpu.cpp``, :mod:`splat.maps_cpu`) and
+the loss's fused SSIM, L_n and L_nc (``csrc/losses_cpu.cpp``, used by :mod:`splat.losses_cpu`). Importing this module compiles it with ``torch.utils.cpp_extension.load``
 into ``<repo>/.cache/torch_extensions/<name>/<hash>`` (or ``$INDOORGS_CACHE/torch_extensions/...``),
 where the hash covers the sources and headers, the compiler flags, the torch version and the Python
 ABI; later imports load that build directly (splat/ext_build.py). If the build fails, the import
@@ -34,7 +35,8 @@ log = logging.getLogger(__name__)
 EXT_NAME = "indoorgs_cpu"
 AVX2_EXT_NAME = "indoorgs_cpu_avx2"
 CSRC = Path(__file__).resolve().parent / "csrc"
-SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "losses_cpu.cpp", CSRC / "bindings.cpp")
+SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "losses_cpu.cpp", CSRC / "maps_cpu.cpp",
+           CSRC / "bindings.cpp")
 HEADERS = (CSRC / "composite_cpu.h", CSRC / "kernels.h")
 # -ffp-contract=off: forward and backward must evaluate alpha bit-identically (same skip decisions).
 # SSE4.2 (every x86-64 CPU since ~2009) gives inline floor/ceil; not -march=native, so that a cached

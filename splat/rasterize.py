@@ -120,6 +120,10 @@ def render(
                     backend=backend, max_per_pixel=max_per_pixel)
     if backend == "cuda" and compiled.applies(out.alpha):  # one fused kernel, not ~25 (splat/compiled.py)
         depth, median_depth, normal = compiled.call(pixel_maps, out.features, out.median, out.alpha)
+    elif backend == "cpu" and out.features.shape[-1] >= 9:  # fused C++ pass (splat/maps_cpu.py)
+        from splat.maps_cpu import pixel_maps_cpu
+
+        depth, median_depth, normal = pixel_maps_cpu(out.features, out.median, out.alpha, ALPHA_EPS)
     else:
         depth, median_depth, normal = pixel_maps(out.features, out.median, out.alpha)
     return {

@@ -14,5 +14,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("normal_prior_forward", &normal_prior_forward, "fused normal-prior loss forward (see splat/losses_cpu.py)");
   m.def("normal_prior_backward", &normal_prior_backward, "fused normal-prior loss backward (see splat/losses_cpu.py)");
   m.def("nc_forward", &nc_forward, "fused depth-normal consistency forward (see splat/losses_cpu.py)");
+  m.def("pixel_maps_forward", &pixel_maps_forward, "render's depth/median/normal maps forward (see splat/maps_cpu.py)");
+  m.def("pixel_maps_backward", &pixel_maps_backward, "render's depth/median/normal maps backward (see splat/maps_cpu.py)");
   m.def("nc_backward", &nc_backward, "fused depth-normal consistency backward (see splat/losses_cpu.py)");
 }

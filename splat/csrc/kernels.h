@@ -1,5 +1,5 @@
-// Entry points of the CPU rasterizer extension (defined in composite_cpu.cpp, project_cpu.cpp and
-// losses_cpu.cpp,
+// Entry points of the CPU rasterizer extension (defined in composite_cpu.cpp, project_cpu.cpp,
+// maps_cpu.cpp and losses_cpu.cpp,
 // bound to Python in bindings.cpp; the Python wrappers are splat/composite_cpu.py and
 // splat/project_cpu.py).
 
@@ -46,3 +46,8 @@ std::vector<torch::Tensor> nc_backward(torch::Tensor grad, torch::Tensor normal,
 std::vector<torch::Tensor> normal_prior_forward(torch::Tensor normal, torch::Tensor prior, torch::Tensor valid);
 torch::Tensor normal_prior_backward(torch::Tensor grad, torch::Tensor normal, torch::Tensor prior,
                                     torch::Tensor valid, int64_t count);
+std::vector<torch::Tensor> pixel_maps_forward(torch::Tensor features, torch::Tensor median,
+                                              torch::Tensor alpha, double alpha_eps);
+std::vector<torch::Tensor> pixel_maps_backward(torch::Tensor g_depth, torch::Tensor g_median,
+                                               torch::Tensor g_normal, torch::Tensor features,
+                                               torch::Tensor median, torch::Tensor alpha, double alpha_eps);
