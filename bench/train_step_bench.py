@@ -16,7 +16,7 @@ compositing and projection included; optimizer; density), from ``train_step(stag
 Each configuration runs once per ``--variants`` entry side by side, so old and new are timed under
 the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
 step when issue 15 was filed; with ``--baseline-kernels REV`` also that commit's compositing kernels,
-built by bench/old_kernels.py), "fused-adam" (torch's single-kernel Adam only), "today" (the
+built by bench/old_kernels.py, and its torch pixel maps), "fused-adam" (torch's single-kernel Adam only), "today" (the
 defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py; on a GPU also the loss terms
 and render maps compiled by splat/compiled.py, `splat train --compile`).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
@@ -72,7 +72,8 @@ class StepBench:
     projection then runs in torch, which carries the camera's gradient."""
     baseline_kernels: str = ""
     """The "baseline" variant composites with the C++ kernels of this commit (bench/old_kernels.py), e.g.
-    2a93836 (those of the day issue 15 was filed, unchanged until then since 0c0625d); empty: today's."""
+    2a93836 (those of the day issue 15 was filed, unchanged until then since 0c0625d), and render's pixel
+    maps in torch where that commit had no C++ kernel for them; empty: today's."""
     profile: str = ""
     """Also profile 10 steps of each configuration with torch.profiler and append the operator table
     (sorted by device time on CUDA, by CPU time otherwise) to this file."""
@@ -129,21 +130,28 @@ def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -
 
 @contextlib.contextmanager
 def _composite_kernels(rev: str):
-    """Within the block the CPU compositing runs the kernels of commit ``rev`` (today's if empty);
-    yields a label of the kernels in use."""
-    from splat import composite_cpu, cpu_ext
+    """Within the block the CPU compositing runs the kernels of commit ``rev`` (today's if empty), and
+    render's pixel maps the torch code where ``rev`` predates their C++ kernel; yields a label."""
+    import subprocess
+
+    from splat import composite_cpu, cpu_ext, maps_cpu
+    from splat.rasterize import pixel_maps
 
     if not rev:
         yield f"today ({cpu_ext.COMPOSITE_LANES} float lanes)"
         return
     from bench.old_kernels import composite_kernels_at
 
-    saved = composite_cpu._ext
+    saved = composite_cpu._ext, maps_cpu.pixel_maps_cpu
     composite_cpu._ext = composite_kernels_at(rev)
+    had_maps = subprocess.run(["git", "cat-file", "-e", f"{rev}:splat/maps_cpu.py"], cwd=REPO,
+                              capture_output=True).returncode == 0
+    if not had_maps:
+        maps_cpu.pixel_maps_cpu = lambda f, m, a, eps: pixel_maps(f, m, a)
     try:
-        yield rev
+        yield rev + ("" if had_maps else ", torch pixel maps")
     finally:
-        composite_cpu._ext = saved
+        composite_cpu._ext, maps_cpu.pixel_maps_cpu = saved
 
 
 def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, adam: str, kernels: str,
@@ -252,6 +260,13 @@ def format_table(result: dict) -> str:
         st = r.get("stages_s", {})
         lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {_variant(r)} | {r['median_s']:.3f} | "
                      + " | ".join(f"{st.get(k, float('nan')):.3f}" for k in STAGES) + " |")
+    by_config: dict[tuple, dict[str, float]] = {}
+    for r in result["rows"]:
+        by_config.setdefault((r["width"], r["height"], r["n"]), {})[r.get("variant", "")] = r["median_s"]
+    ratios = [f"{w}×{h}/{n // 1000}k {v['baseline'] / v['today']:.2f}×" for (w, h, n), v in by_config.items()
+              if "baseline" in v and "today" in v]
+    if ratios:
+        lines += ["", "`today` against `baseline` (seconds per iteration, baseline / today): " + ", ".join(ratios) + "."]
     detailed = [r for r in result["rows"] if r.get("detail_s")]
     if detailed:
         keys = sorted({k for r in detailed for k in r["detail_s"]})
