@@ -20,6 +20,7 @@ in any case (tests compare the two).
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import platform
@@ -92,6 +93,7 @@ def _build_selected() -> tuple[ModuleType, str]:
     return _build("baseline"), "baseline"
 
 
+@functools.cache
 def baseline_ext() -> ModuleType:
     """The baseline (SSE4.2, 4 float lanes) build: :data:`ext` itself, or built on first call."""
     return ext if SIMD == "baseline" else _build("baseline")
