@@ -28,6 +28,8 @@ def row(run: Path, gt_scene: Path) -> dict:
     ev = json.loads((run / "eval.json").read_text())
     c = rep["config"]
     refine = " + ".join(n for n, on in (("pose", c.get("pose_opt")), ("focal", c.get("focal_opt"))) if on) or "none"
+    if c.get("pose_opt") and c.get("pose_lr", 2e-3) != 2e-3:
+        refine += f" (pose lr {c['pose_lr']:g})"
     out = {"run": str(run), "scene": rep["scene"], "refine": refine,
            "train_s": rep["timings"]["train_s"], "test_psnr": rep["test_metrics"]["psnr"],
            **{k: ev[k] for k in ("accuracy", "completeness", "chamfer_l1", "f_score", "normal_consistency")}}
