@@ -84,10 +84,11 @@ class CameraRefiner:
         """[V, 3] translation corrections (metres, camera frame), a copy."""
         return torch.stack([t.detach() for t in self.transs])
 
-    def camera(self, k: int, cam: Camera) -> Camera:
-        """View k's camera with its correction (differentiable in the corrections)."""
+    def camera(self, k: int | None, cam: Camera) -> Camera:
+        """View k's camera with its correction (differentiable in the corrections); k None: a held-out
+        view, the shared focal only."""
         vm, K = cam.viewmat, cam.K
-        if self.pose:
+        if self.pose and k is not None:
             top = torch.cat([rodrigues(self.rots[k]), self.transs[k][:, None]], 1).to(vm.dtype)  # [3, 4]
             vm = torch.cat([top, vm.new_tensor([[0.0, 0.0, 0.0, 1.0]])]) @ vm
         if self.focal:
@@ -107,13 +108,7 @@ class CameraRefiner:
         if not self.focal:
             return view
         with torch.no_grad():
-            f = math.exp(float(self.log_focal[0]))
-        cam = view.camera
-        K = cam.K.clone()
-        K[0, 0] *= f
-        K[1, 1] *= f
-        return dataclasses.replace(view, camera=Camera(K=K, viewmat=cam.viewmat, width=cam.width,
-                                                       height=cam.height, center=cam.center))
+            return dataclasses.replace(view, camera=self.camera(None, view.camera))
 
     def set_progress(self, fraction: float) -> None:
         """Learning rates decayed exponentially to a tenth at the end of the run (fraction 0..1)."""

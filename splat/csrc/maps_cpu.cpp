@@ -21,6 +21,12 @@ inline int threads_for(int64_t n) { return n >= 16384 ? at::get_num_threads() : 
 
 constexpr double kNorm2Eps = 1e-12;
 
+// Depth of a blended plane (A, p) at the pixel centre (cx, cy): A + p . c (splat.rasterize.plane_depth).
+template <typename T>
+inline T plane_depth(const T* plane, T cx, T cy) {
+  return plane[0] + (plane[1] * cx + plane[2] * cy);
+}
+
 template <typename T>
 void forward_impl(const T* f, const T* md, const T* a, int64_t H, int64_t W, int64_t C, T eps,
                   T* depth, T* median, T* normal) {
@@ -31,9 +37,8 @@ void forward_impl(const T* f, const T* md, const T* a, int64_t H, int64_t W, int
       const int64_t p = y * W + x;
       const T cx = T(x) + T(0.5);
       const T* fp = f + p * C;
-      const T acc = fp[3] + (fp[4] * cx + fp[5] * cy);
-      depth[p] = a[p] > eps ? acc / a[p] : T(0);
-      median[p] = md[3 * p] + (md[3 * p + 1] * cx + md[3 * p + 2] * cy);
+      depth[p] = a[p] > eps ? plane_depth(fp + 3, cx, cy) / a[p] : T(0);
+      median[p] = plane_depth(md + 3 * p, cx, cy);
       const T n2 = fp[6] * fp[6] + fp[7] * fp[7] + fp[8] * fp[8];
       const T r = n2 > T(kNorm2Eps) ? T(1) / std::sqrt(n2) : T(0);
       for (int k = 0; k < 3; ++k) normal[3 * p + k] = n2 > T(kNorm2Eps) ? fp[6 + k] * r : T(0);
@@ -56,11 +61,10 @@ void backward_impl(const T* f, const T* a, const T* gd, const T* gm, const T* gn
       da[p] = T(0);
       if (a[p] > eps) {
         const T inv = T(1) / a[p], g = gd[p] * inv;
-        const T acc = fp[3] + (fp[4] * cx + fp[5] * cy);
         dfp[3] = g;
         dfp[4] = g * cx;
         dfp[5] = g * cy;
-        da[p] = -g * acc * inv;
+        da[p] = -g * plane_depth(fp + 3, cx, cy) * inv;
       }
       dm[3 * p] = gm[p];
       dm[3 * p + 1] = gm[p] * cx;
