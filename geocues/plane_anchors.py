@@ -127,3 +127,35 @@ def anchor_depth(xyz: np.ndarray, normal: np.ndarray | None, K: np.ndarray, R: n
     hit = np.isfinite(zbuf)
     out.reshape(-1)[hit] = zbuf[hit]
     return out
+
+
+def anchor_normals(xyz: np.ndarray, normal: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                   height: int, width: int) -> np.ndarray:
+    """[H, W, 3] float32 unit normals in the camera frame ``x_cam = R X + t``, turned to face the
+    camera: in each pixel, the plane normal of the nearest point of ``xyz`` [m, 3] (world) that falls
+    in it (the pixel rule of :func:`anchor_depth`); zeros (a normal prior's "invalid") where none
+    falls or the point's normal is zero or not finite."""
+    out = np.zeros((height, width, 3), np.float32)
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    normal = np.asarray(normal, np.float64).reshape(-1, 3)
+    if len(normal) != len(xyz):
+        raise ValueError(f"anchor_normals: {len(xyz)} points but {len(normal)} normals")
+    R, K = np.asarray(R, np.float64), np.asarray(K, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite rows are dropped below
+        Xc = xyz @ R.T + np.asarray(t, np.float64)
+        n = normal @ R.T
+        norm = np.linalg.norm(n, axis=1)
+        z = Xc[:, 2]
+        uv = Xc @ K.T
+        col, row = np.floor(uv[:, 0] / z), np.floor(uv[:, 1] / z)
+    keep = (np.isfinite(Xc).all(1) & np.isfinite(n).all(1) & (z > 1e-6) & (norm > 1e-6)
+            & (col >= 0) & (col < width) & (row >= 0) & (row < height))
+    if not keep.any():
+        return out
+    flat = row[keep].astype(np.int64) * width + col[keep].astype(np.int64)
+    n, z, Xc = n[keep] / norm[keep, None], z[keep], Xc[keep]
+    n = np.where(np.sum(n * Xc, 1, keepdims=True) > 0, -n, n)  # face the camera
+    order = np.lexsort((z, flat))  # by pixel, nearest first
+    first = order[np.unique(flat[order], return_index=True)[1]]
+    out.reshape(-1, 3)[flat[first]] = n[first]
+    return out

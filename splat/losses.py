@@ -316,6 +316,10 @@ class LossConfig:
     aligned prior has no depth (CUES/plane_anchors.npz; every such pixel when the view has no prior,
     so prior-free scenes get L_a on their weak-texture planes, with τ = anchor_tol_min there). An
     extension; needs lambda_anchor > 0."""
+    plane_normals: bool = False
+    """Views without a normal prior take their own plane cues' normals as one (CUES/plane_anchors.npz,
+    the pixels where the view's plane points lie; L_n then holds prior-free weak-texture planes
+    flat). An extension; needs use_normal and lambda_normal > 0 to act."""
     lambda_mv: float = 0.0
     """λ_mv, weight of the multi-view photometric consistency L_mv (PGSR's; not in the paper; 0 = off):
     the rendered plane of a pixel warps its patch into a neighbouring training photo (splat/multiview.py)."""

@@ -78,6 +78,10 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
            {"strategy.plane_rule": "tangent"}, extension=True),
     Preset("plane-anchor", "+ L_a on each view's own plane cues", {"loss.plane_anchor": True},
            needs=("plane_anchors",), extension=True),
+    Preset("plane-normals", "+ L_n on each view's own plane normals (views without a normal prior)",
+           {"loss.plane_normals": True}, needs=("plane_anchors",), extension=True),
+    Preset("mv-plane-normals", "+ L_mv and L_n on each view's own plane normals",
+           {"loss.lambda_mv": 0.15, "loss.plane_normals": True}, needs=("plane_anchors",), extension=True),
     Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
            {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}

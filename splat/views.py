@@ -11,7 +11,8 @@ and SfM cues it sees) and that fit's 90th-percentile residual: the anchor of the
 anchored-depth term (splat/losses.py ``anchored_depth_loss``). With the extract's plane anchors
 (``--loss.plane-anchor``, geocues.plane_anchors), the pixels where a view's own plane cues lie and
 its aligned prior has no depth -- every such pixel, for a view without a prior -- take the plane's
-depth as their anchor.
+depth as their anchor. With ``plane_normals`` (``--loss.plane-normals``), a view without a normal
+prior takes the normals of its own plane points as one (zeros, "invalid", elsewhere).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from geocues.depth_align import DepthAlignment
-from geocues.plane_anchors import PlaneAnchors, anchor_depth
+from geocues.plane_anchors import PlaneAnchors, anchor_depth, anchor_normals
 from geocues.scene import Scene
 from splat.camera import Camera
 
@@ -63,7 +64,7 @@ class ViewSet:
     def __init__(self, scene: Scene, indices: list[int], device: torch.device | str = "cpu",
                  load_priors: bool = True, desc: str = "views",
                  alignments: dict[str, DepthAlignment] | None = None, prior_kind: str = "depth",
-                 plane_anchors: PlaneAnchors | None = None):
+                 plane_anchors: PlaneAnchors | None = None, plane_normals: PlaneAnchors | None = None):
         self.scene, self.indices, self.device = scene, list(indices), torch.device(device)
         self._rgb: list[Tensor] = []
         self._depth: list[Tensor | None] = []
@@ -85,6 +86,8 @@ class ViewSet:
                 # aligned one where the cues aligned it, else 1/p (exact up to scale for shift-free
                 # disparity, the form Depth-Anything and MiDaS write)
                 d = aligned if aligned is not None else np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
+            if n is None and plane_normals is not None and len((pts := plane_normals.of(cam.name))[0]):
+                n = anchor_normals(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
             self._depth.append(None if d is None else _compact(d))
             self._normal.append(None if n is None else torch.from_numpy(n).half())  # unit: fits
             if plane_anchors is not None and len((pts := plane_anchors.of(cam.name))[0]):

@@ -5,7 +5,9 @@ What must hold: points fall in the COLMAP pixel containing their projection, nea
 round-trips and names its fix when missing; `geocues extract` writes anchors that lie on the
 surface in the image that made them (a prior-free scene, where L_a had nothing before); the views
 of a prior-free scene get anchors from them; and L_a through them pulls a textureless wall rebuilt
-in front of itself back, which the RGB loss alone does not.
+in front of itself back, which the RGB loss alone does not. The same points' normals
+(`--loss.plane-normals`) become the normal prior of views that have none, facing the camera, and L_n
+through them turns tilted textureless Gaussians back flat, which the RGB loss alone does not.
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ import pytest
 import torch
 
 import geocues.extract as ex
-from geocues.plane_anchors import PlaneAnchors, anchor_depth, load_plane_anchors, write_plane_anchors
+from geocues.plane_anchors import (PlaneAnchors, anchor_depth, anchor_normals, load_plane_anchors,
+                                   write_plane_anchors)
 from geocues.scene import Scene
 
 from cues_synth import fake_line_cues, make_room_scene, render as render_room
@@ -200,3 +203,124 @@ def test_anchor_depth_hard_cases_stay_finite():
     assert np.isfinite(d).all()
     assert d[3, 4] == pytest.approx(1.0)  # the zero- and NaN-normal points keep their own depth
     assert np.count_nonzero(d) == 1
+
+
+def test_anchor_normals_face_the_camera_nearest_first_and_skip_bad_points():
+    K = np.array([[10.0, 0, 4.0], [0, 10.0, 3.0], [0, 0, 1]])
+    pts = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 1.5], [-0.0005, 0.0, 1.0], [0.0, 0.0, -1.0],
+                    [np.nan, 0.0, 1.0], [0.1, 0.1, 1.0], [0.2, 0.2, 1.0]])
+    nrm = np.array([[1.0, 0, 0], [0, 0, 2.0], [0, 0, -1.0], [0, 0, 1.0], [0, 0, 1.0], [0, 0, 0], [np.inf, 0, 0]])
+    n = anchor_normals(pts, nrm, K, np.eye(3), np.zeros(3), 6, 8)
+    assert n.shape == (6, 8, 3) and n.dtype == np.float32 and np.isfinite(n).all()
+    np.testing.assert_allclose(n[3, 4], [0, 0, -1])  # the nearer point's normal, unit, turned to the camera
+    np.testing.assert_allclose(n[3, 3], [0, 0, -1])  # already facing it: kept
+    assert np.count_nonzero(np.abs(n).sum(-1)) == 2  # behind, NaN point, zero and infinite normals: nothing
+    # a rotated camera: the normal is expressed in its frame
+    R = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # world +x is the camera's viewing direction
+    n = anchor_normals(np.array([[2.0, 0, 0]]), np.array([[1.0, 0, 0]]), K, R, np.zeros(3), 6, 8)
+    np.testing.assert_allclose(n[3, 4], [0, 0, -1], atol=1e-12)
+    with pytest.raises(ValueError, match="normals"):
+        anchor_normals(pts, nrm[:2], K, np.eye(3), np.zeros(3), 6, 8)
+
+
+def _depth_normals(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame normals of a z-depth map by central differences (zeros on edges / invalid)."""
+    h, w = depth.shape
+    j, i = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    P = np.stack([(j - K[0, 2]) / K[0, 0], (i - K[1, 2]) / K[1, 1], np.ones_like(j)], -1) * depth[..., None]
+    n = np.zeros_like(P)
+    n[1:-1, 1:-1] = np.cross(P[1:-1, 2:] - P[1:-1, :-2], P[2:, 1:-1] - P[:-2, 1:-1])
+    n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
+    return np.where(np.sum(n * P, -1, keepdims=True) > 0, -n, n)
+
+
+def test_views_without_a_normal_prior_get_their_plane_normals(prior_free_cues):
+    from splat.views import ViewSet
+
+    scene_dir, cues = prior_free_cues
+    scene = Scene.load(scene_dir, downscale=2.0)
+    pa = load_plane_anchors(cues)
+    without = ViewSet(scene, scene.train_indices)
+    assert all(without[k].normal_prior is None for k in range(len(without)))
+    views = ViewSet(scene, scene.train_indices, plane_normals=pa)
+    got = [views[k] for k in range(len(views)) if views[k].normal_prior is not None]
+    assert {v.name for v in got} == {views[k].name for k in range(len(views)) if len(pa.of(views[k].name)[0])} != set()
+    assert all(v.depth_anchor is None for v in got)  # normals only: L_a's anchors are a separate option
+    cos = []
+    for v in got:
+        cam = scene.cameras[v.index]
+        n = v.normal_prior.numpy()
+        assert n.shape == (cam.height, cam.width, 3)
+        _, gt, _ = render_room(cam.K, cam.R, cam.t, cam.width, cam.height)
+        ref = _depth_normals(gt, cam.K)
+        hit = (np.abs(n).sum(-1) > 0) & (np.abs(ref).sum(-1) > 0)
+        np.testing.assert_allclose(np.linalg.norm(n[hit], axis=-1), 1.0, atol=1e-3)
+        cos.append(np.sum(n[hit] * ref[hit], -1))
+    cos = np.concatenate(cos)
+    assert np.median(cos) > np.cos(np.radians(3)) and np.mean(cos > np.cos(np.radians(15))) > 0.9
+
+
+@pytest.mark.parametrize("plane_normals", [False, True])
+def test_tilted_textureless_gaussians_turn_flat_only_with_plane_normals(plane_normals):
+    """Flat grey Gaussians on the room's surfaces, each turned 40 degrees about a random axis in its
+    plane: without texture the images barely change, so the RGB loss leaves the tilt; the plane
+    normals on every other pixel (what ViewSet makes of a plane cue) turn them back through L_n."""
+    from splat.bench import surface_gaussians, target_views
+    from splat.losses import LossConfig
+    from splat.rasterize import render
+    from splat.strategy import IndoorStrategy, IndoorStrategyConfig
+    from splat.train import LearningRates, TrainConfig, make_optimizers, train_step
+
+    truth = surface_gaussians(3000, sh_degree=0, seed=2)
+    truth["sh0"] = torch.full_like(truth["sh0"], 0.3)  # textureless
+    truth["opacities"] = torch.full_like(truth["opacities"], 4.0)
+    views = target_views(truth, 48, 36, sh_degree=0)
+    for v in views:
+        n = render(truth, v.camera, sh_degree=0)["normal"].detach()
+        v.depth_prior = v.depth_anchor = None  # prior-free
+        v.normal_prior = None
+        if plane_normals:
+            v.normal_prior = torch.zeros_like(n)
+            v.normal_prior[::2, ::2] = n[::2, ::2]
+    g = torch.Generator().manual_seed(1)
+    axis = torch.randn(len(truth["quats"]), 3, generator=g)
+    axis = axis / axis.norm(dim=1, keepdim=True)
+    half = math.radians(40) / 2
+    turn = torch.cat([torch.full((len(axis), 1), math.cos(half)), math.sin(half) * axis], 1)  # wxyz
+    q = truth["quats"] / truth["quats"].norm(dim=1, keepdim=True)
+    w1, v1 = turn[:, :1], turn[:, 1:]
+    w2, v2 = q[:, :1], q[:, 1:]
+    start = {k: t.clone() for k, t in truth.items()}
+    start["quats"] = torch.cat([w1 * w2 - (v1 * v2).sum(1, keepdim=True),
+                                w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=1)], 1)
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(t) for k, t in start.items()})
+    iters = 80
+    optimizers = make_optimizers(params, LearningRates(), 3.0)
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0))  # no density control
+    state = strategy.initialize_state(3.0)
+    state["cue_type"] = torch.full((len(params["means"]),), 2)
+    cfg = TrainConfig(iters=iters, sh_degree=0)
+    loss_cfg = replace(LossConfig(), use_nc=False, lambda_anchor=0.0)
+
+    def normal_error() -> float:
+        with torch.no_grad():
+            errs = []
+            for v in views:
+                out, ref = render(params, v.camera, sh_degree=0), render(truth, v.camera, sh_degree=0)
+                ok = ref["alpha"] > 0.5
+                cos = (out["normal"] * ref["normal"]).sum(-1).clamp(-1, 1)[ok]
+                errs.append(torch.rad2deg(torch.acos(cos)))
+            return float(torch.cat(errs).median())
+
+    before = normal_error()
+    for step in range(iters):
+        loss, terms, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step, 0, cfg,
+                                    loss_cfg, g)
+        assert math.isfinite(float(loss))
+        assert ("normal" in terms) == plane_normals
+    after = normal_error()
+    assert before > 15
+    if plane_normals:
+        assert after < 0.5 * before, (before, after)
+    else:
+        assert after > 0.8 * before, (before, after)  # RGB alone leaves the tilt
