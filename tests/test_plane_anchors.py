@@ -135,23 +135,49 @@ def test_views_of_a_prior_free_scene_get_plane_anchors(prior_free_cues):
         assert np.median(np.abs(a[a > 0] - gt[a > 0])) < 0.02
 
 
-@pytest.mark.parametrize("plane_anchor", [False, True])
-def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchors(plane_anchor):
-    """Flat grey Gaussians on the room's surfaces, all moved 8 cm towards the cameras: the images
-    look the same (no texture), so the RGB loss cannot see the error; anchors at the true depth on
-    every other pixel (a plane cue's sampling) pull the surface back to within L_a's tolerance."""
-    from splat.bench import TRAIN_EYES, surface_gaussians, target_views
-    from splat.losses import LossConfig
-    from splat.rasterize import render
-    from splat.strategy import IndoorStrategy, IndoorStrategyConfig
-    from splat.train import LearningRates, TrainConfig, make_optimizers, train_step
+def _textureless_room():
+    """Flat, opaque, grey Gaussians on the synthetic room's surfaces and prior-free views of them."""
+    from splat.bench import surface_gaussians, target_views
 
     truth = surface_gaussians(3000, sh_degree=0, seed=2)
     truth["sh0"] = torch.full_like(truth["sh0"], 0.3)  # textureless
     truth["opacities"] = torch.full_like(truth["opacities"], 4.0)
     views = target_views(truth, 48, 36, sh_degree=0)
     for v in views:
-        v.depth_prior = v.normal_prior = None  # prior-free
+        v.depth_prior = v.normal_prior = v.depth_anchor = None  # prior-free
+    return truth, views
+
+
+def _train(start: dict, views: list, loss_cfg, iters: int = 80) -> tuple[torch.nn.ParameterDict, list[dict]]:
+    """``iters`` training steps from the Gaussians ``start`` (no density control); returns them and
+    each step's loss terms (every loss finite)."""
+    from splat.strategy import IndoorStrategy, IndoorStrategyConfig
+    from splat.train import LearningRates, TrainConfig, make_optimizers, train_step
+
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(t) for k, t in start.items()})
+    optimizers = make_optimizers(params, LearningRates(), 3.0)
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0))
+    state = strategy.initialize_state(3.0)
+    state["cue_type"] = torch.full((len(params["means"]),), 2)
+    cfg, g, terms = TrainConfig(iters=iters, sh_degree=0), torch.Generator().manual_seed(0), []
+    for step in range(iters):
+        loss, t, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step, 0, cfg, loss_cfg, g)
+        assert math.isfinite(float(loss))
+        terms.append(t)
+    return params, terms
+
+
+@pytest.mark.parametrize("plane_anchor", [False, True])
+def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchors(plane_anchor):
+    """Flat grey Gaussians on the room's surfaces, all moved 8 cm towards the cameras: the images
+    look the same (no texture), so the RGB loss cannot see the error; anchors at the true depth on
+    every other pixel (a plane cue's sampling) pull the surface back to within L_a's tolerance."""
+    from splat.bench import TRAIN_EYES
+    from splat.losses import LossConfig
+    from splat.rasterize import render
+
+    truth, views = _textureless_room()
+    for v in views:
         if plane_anchor:  # what ViewSet makes of a plane cue sampled on every other pixel
             d = render(truth, v.camera, sh_degree=0)["median_depth"].detach()
             v.depth_anchor = torch.zeros_like(d)
@@ -160,17 +186,8 @@ def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchor
     start = {k: t.clone() for k, t in truth.items()}
     to_eye = eye - start["means"]
     start["means"] += 0.08 * to_eye / to_eye.norm(dim=1, keepdim=True)
-    params = torch.nn.ParameterDict({k: torch.nn.Parameter(t) for k, t in start.items()})
-    iters = 80
-    optimizers = make_optimizers(params, LearningRates(), 3.0)
-    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0))  # no density control
-    state = strategy.initialize_state(3.0)
-    state["cue_type"] = torch.full((len(params["means"]),), 2)
-    cfg = TrainConfig(iters=iters, sh_degree=0)
-    loss_cfg = replace(LossConfig(), use_nc=False, plane_anchor=plane_anchor)
-    g = torch.Generator().manual_seed(0)
 
-    def depth_error() -> float:
+    def depth_error(params) -> float:
         with torch.no_grad():
             errs = []
             for v in views:
@@ -179,12 +196,9 @@ def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchor
                 errs.append((d - t["median_depth"]).abs()[ok])
             return float(torch.cat(errs).median())
 
-    before = depth_error()
-    for step in range(iters):
-        loss, terms, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step, 0, cfg,
-                                    loss_cfg, g)
-        assert math.isfinite(float(loss))
-    after = depth_error()
+    before = depth_error(start)
+    params, _ = _train(start, views, replace(LossConfig(), use_nc=False, plane_anchor=plane_anchor))
+    after = depth_error(params)
     assert before > 0.05
     if plane_anchor:
         assert after < 0.045, (before, after)  # back to within L_a's 3 cm tolerance (+ margin)
@@ -262,65 +276,44 @@ def test_views_without_a_normal_prior_get_their_plane_normals(prior_free_cues):
 
 @pytest.mark.parametrize("plane_normals", [False, True])
 def test_tilted_textureless_gaussians_turn_flat_only_with_plane_normals(plane_normals):
-    """Flat grey Gaussians on the room's surfaces, each turned 40 degrees about a random axis in its
-    plane: without texture the images barely change, so the RGB loss leaves the tilt; the plane
-    normals on every other pixel (what ViewSet makes of a plane cue) turn them back through L_n."""
-    from splat.bench import surface_gaussians, target_views
+    """Flat grey Gaussians on the room's surfaces, each turned 40 degrees about a random axis: without
+    texture the images barely change, so the RGB loss leaves the tilt; the plane normals on every
+    other pixel (what ViewSet makes of a plane cue) turn them back through L_n."""
     from splat.losses import LossConfig
     from splat.rasterize import render
-    from splat.strategy import IndoorStrategy, IndoorStrategyConfig
-    from splat.train import LearningRates, TrainConfig, make_optimizers, train_step
 
-    truth = surface_gaussians(3000, sh_degree=0, seed=2)
-    truth["sh0"] = torch.full_like(truth["sh0"], 0.3)  # textureless
-    truth["opacities"] = torch.full_like(truth["opacities"], 4.0)
-    views = target_views(truth, 48, 36, sh_degree=0)
+    truth, views = _textureless_room()
     for v in views:
-        n = render(truth, v.camera, sh_degree=0)["normal"].detach()
-        v.depth_prior = v.depth_anchor = None  # prior-free
-        v.normal_prior = None
         if plane_normals:
+            n = render(truth, v.camera, sh_degree=0)["normal"].detach()
             v.normal_prior = torch.zeros_like(n)
             v.normal_prior[::2, ::2] = n[::2, ::2]
     g = torch.Generator().manual_seed(1)
     axis = torch.randn(len(truth["quats"]), 3, generator=g)
     axis = axis / axis.norm(dim=1, keepdim=True)
     half = math.radians(40) / 2
-    turn = torch.cat([torch.full((len(axis), 1), math.cos(half)), math.sin(half) * axis], 1)  # wxyz
+    w1, v1 = torch.full((len(axis), 1), math.cos(half)), math.sin(half) * axis  # the turn, wxyz
     q = truth["quats"] / truth["quats"].norm(dim=1, keepdim=True)
-    w1, v1 = turn[:, :1], turn[:, 1:]
     w2, v2 = q[:, :1], q[:, 1:]
     start = {k: t.clone() for k, t in truth.items()}
     start["quats"] = torch.cat([w1 * w2 - (v1 * v2).sum(1, keepdim=True),
                                 w1 * v2 + w2 * v1 + torch.cross(v1, v2, dim=1)], 1)
-    params = torch.nn.ParameterDict({k: torch.nn.Parameter(t) for k, t in start.items()})
-    iters = 80
-    optimizers = make_optimizers(params, LearningRates(), 3.0)
-    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0))  # no density control
-    state = strategy.initialize_state(3.0)
-    state["cue_type"] = torch.full((len(params["means"]),), 2)
-    cfg = TrainConfig(iters=iters, sh_degree=0)
-    loss_cfg = replace(LossConfig(), use_nc=False, lambda_anchor=0.0)
 
-    def normal_error() -> float:
+    def normal_error(params) -> float:
         with torch.no_grad():
             errs = []
             for v in views:
                 out, ref = render(params, v.camera, sh_degree=0), render(truth, v.camera, sh_degree=0)
-                ok = ref["alpha"] > 0.5
-                cos = (out["normal"] * ref["normal"]).sum(-1).clamp(-1, 1)[ok]
+                cos = (out["normal"] * ref["normal"]).sum(-1).clamp(-1, 1)[ref["alpha"] > 0.5]
                 errs.append(torch.rad2deg(torch.acos(cos)))
             return float(torch.cat(errs).median())
 
-    before = normal_error()
-    for step in range(iters):
-        loss, terms, _ = train_step(params, optimizers, strategy, state, views[step % len(views)], step, 0, cfg,
-                                    loss_cfg, g)
-        assert math.isfinite(float(loss))
-        assert ("normal" in terms) == plane_normals
-    after = normal_error()
+    before = normal_error(start)
+    params, terms = _train(start, views, replace(LossConfig(), use_nc=False, lambda_anchor=0.0))
+    assert all(("normal" in t) == plane_normals for t in terms)
+    after = normal_error(params)
     assert before > 15
     if plane_normals:
-        assert after < 0.5 * before, (before, after)
+        assert after < 0.5 * before, (before, after)  # measured: 17.8 -> 3.0 degrees
     else:
-        assert after > 0.8 * before, (before, after)  # RGB alone leaves the tilt
+        assert after > 0.8 * before, (before, after)  # RGB alone leaves the tilt (17.8 -> 16.5)
