@@ -290,9 +290,10 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
         raise ValueError(f"--seeds, --jobs and --iters must be >= 1 (got {cfg.seeds}, {cfg.jobs}, {cfg.iters})")
     scene = Scene.load(scene_dir, check_priors=False)
     has_anchors = plane_anchors_path(cues).is_file()
+    all_normals = all(scene.normal_prior_path(i) is not None for i in range(len(scene.cameras)))
     specs, na = [], {}
     for row in dict.fromkeys(cfg.rows):
-        why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors, has_anchors)
+        why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors, has_anchors, all_normals)
         if why is not None:
             na[row] = why
             continue

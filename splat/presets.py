@@ -45,7 +45,8 @@ class Preset:
     """TrainConfig fields (dotted paths) and their values."""
     needs: tuple[str, ...] = ()
     """"depth_priors" / "normal_priors": the row equals ``full`` on a scene without them;
-    "plane_anchors": the cue folder must hold them (cue folders written before they existed do not)."""
+    "plane_anchors": the cue folder must hold them (cue folders written before they existed do not);
+    "views_without_normal_priors": the row equals ``full`` (or its base row) when every view has one."""
     iters_factor: float = 1.0
     """Multiplies the run's iterations (no-cues-long: 3x)."""
     extension: bool = False
@@ -79,9 +80,10 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
     Preset("plane-anchor", "+ L_a on each view's own plane cues", {"loss.plane_anchor": True},
            needs=("plane_anchors",), extension=True),
     Preset("plane-normals", "+ L_n on each view's own plane normals (views without a normal prior)",
-           {"loss.plane_normals": True}, needs=("plane_anchors",), extension=True),
+           {"loss.plane_normals": True}, needs=("plane_anchors", "views_without_normal_priors"), extension=True),
     Preset("mv-plane-normals", "+ L_mv and L_n on each view's own plane normals",
-           {"loss.lambda_mv": 0.15, "loss.plane_normals": True}, needs=("plane_anchors",), extension=True),
+           {"loss.lambda_mv": 0.15, "loss.plane_normals": True}, needs=("plane_anchors", "views_without_normal_priors"),
+           extension=True),
     Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
            {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}
@@ -186,10 +188,13 @@ def write_config_file(path: str | Path, cfg: Any, extra: dict | None = None) -> 
 
 
 def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: bool,
-                  has_plane_anchors: bool = True) -> str | None:
-    """Why ``preset`` cannot run as itself on this scene and cue folder ("no depth priors"), or None."""
+                  has_plane_anchors: bool = True, all_normal_priors: bool = False) -> str | None:
+    """Why ``preset`` cannot run as itself on this scene and cue folder ("no depth priors"), or None.
+    ``all_normal_priors``: every view of the scene has a normal prior."""
     if "plane_anchors" in preset.needs and not has_plane_anchors:
         return "cue folder without plane anchors (written by `geocues extract` since they exist)"
+    if "views_without_normal_priors" in preset.needs and all_normal_priors:
+        return "every view has a normal prior"
     have = {"depth_priors": has_depth_priors, "normal_priors": has_normal_priors}
     lacking = [n.replace("_", " ") for n in preset.needs if n in have and not have[n]]
     return f"no {' / '.join(x.removesuffix(' priors') for x in lacking)} priors" if lacking else None

@@ -317,3 +317,15 @@ def test_tilted_textureless_gaussians_turn_flat_only_with_plane_normals(plane_no
         assert after < 0.5 * before, (before, after)  # measured: 17.8 -> 3.0 degrees
     else:
         assert after > 0.8 * before, (before, after)  # RGB alone leaves the tilt (17.8 -> 16.5)
+
+
+def test_plane_normal_rows_are_na_where_every_view_has_a_normal_prior():
+    """`splat ablate` does not train `plane-normals` where it would be `full` again under another name."""
+    from splat.presets import get_preset, missing_needs
+
+    for row in ("plane-normals", "mv-plane-normals"):
+        p = get_preset(row)
+        assert missing_needs(p, True, True, True, all_normal_priors=False) is None  # some views lack one
+        assert missing_needs(p, False, False, True) is None  # prior-free: what it is for
+        assert "every view has a normal prior" in missing_needs(p, True, True, True, all_normal_priors=True)
+        assert "plane anchors" in missing_needs(p, False, False, False)
