@@ -22,13 +22,17 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from camera_error import camera_errors  # noqa: E402
 
+from splat.train_config import TrainConfig  # noqa: E402
+
+DEFAULT_POSE_LR = TrainConfig().pose_lr
+
 
 def row(run: Path, gt_scene: Path) -> dict:
     rep = json.loads((run / "report.json").read_text())
     ev = json.loads((run / "eval.json").read_text())
     c = rep["config"]
     refine = " + ".join(n for n, on in (("pose", c.get("pose_opt")), ("focal", c.get("focal_opt"))) if on) or "none"
-    if c.get("pose_opt") and c.get("pose_lr", 2e-3) != 2e-3:
+    if c.get("pose_opt") and c.get("pose_lr", DEFAULT_POSE_LR) != DEFAULT_POSE_LR:
         refine += f" (pose lr {c['pose_lr']:g})"
     out = {"run": str(run), "scene": rep["scene"], "refine": refine,
            "train_s": rep["timings"]["train_s"], "test_psnr": rep["test_metrics"]["psnr"],

@@ -88,34 +88,41 @@ def load_plane_anchors(cues: str | Path) -> PlaneAnchors:
         return PlaneAnchors([str(n) for n in z["names"]], z["xyz"], z["normal"], z["view"])
 
 
+def _pixels(xyz: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int, width: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel rule of the anchors: a point falls in the COLMAP pixel that contains its projection
+    (pixel (i, j) covers [j, j+1) x [i, i+1)). Returns, for the finite points of ``xyz`` [m, 3]
+    (world, float64) in front of the camera ``x_cam = R X + t`` that fall inside the image: their
+    indices into ``xyz``, camera-frame coordinates [k, 3], columns [k] and rows [k] (floats)."""
+    idx = np.flatnonzero(np.isfinite(xyz).all(1))
+    with np.errstate(over="ignore", invalid="ignore"):  # huge coordinates: dropped by the tests below
+        Xc = xyz[idx] @ R.T + np.asarray(t, np.float64)
+        z = Xc[:, 2]
+        front = z > 1e-6
+        idx, Xc, z = idx[front], Xc[front], z[front]
+        uv = Xc @ K.T
+        col = np.floor(uv[:, 0] / z)
+        row = np.floor(uv[:, 1] / z)
+    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height) & np.isfinite(z)
+    return idx[inside], Xc[inside], col[inside], row[inside]
+
+
 def anchor_depth(xyz: np.ndarray, normal: np.ndarray | None, K: np.ndarray, R: np.ndarray, t: np.ndarray,
                  height: int, width: int, min_cos: float = 0.1) -> np.ndarray:
     """[H, W] float32 z-depth, in each pixel of the camera ``x_cam = R X + t`` with intrinsics ``K``,
-    of the nearest point of ``xyz`` [m, 3] (world) that falls in it; 0 where none falls. A point
-    falls in the COLMAP pixel that contains its projection (pixel (i, j) covers [j, j+1) x
-    [i, i+1)). With ``normal`` [m, 3] (the point's plane), the depth is the plane's on the ray
+    of the nearest point of ``xyz`` [m, 3] (world) that falls in it (:func:`_pixels`); 0 where none
+    falls. With ``normal`` [m, 3] (the point's plane), the depth is the plane's on the ray
     through the pixel's centre, not the point's own: at a coarse training resolution a slanted floor's
     depth changes by centimetres within a pixel (rays within ``min_cos`` of grazing keep the point's)."""
     out = np.zeros((height, width), np.float32)
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
-    finite = np.isfinite(xyz).all(1)
-    xyz = xyz[finite]
-    if normal is not None:
-        normal = np.nan_to_num(np.asarray(normal, np.float64).reshape(-1, 3)[finite])  # NaN: no plane
-    if len(xyz) == 0:
-        return out
     R, K = np.asarray(R, np.float64), np.asarray(K, np.float64)
-    Xc = xyz @ R.T + np.asarray(t, np.float64)
+    idx, Xc, col, row = _pixels(xyz, K, R, t, height, width)
+    if len(idx) == 0:
+        return out
     z = Xc[:, 2]
-    front = z > 1e-6
-    Xc, z = Xc[front], z[front]
-    uv = Xc @ K.T
-    col = np.floor(uv[:, 0] / z)
-    row = np.floor(uv[:, 1] / z)
-    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height) & np.isfinite(z)
-    Xc, z, col, row = Xc[inside], z[inside], col[inside], row[inside]
     if normal is not None:
-        n = normal[front][inside] @ R.T  # camera frame
+        n = np.nan_to_num(np.asarray(normal, np.float64).reshape(-1, 3)[idx]) @ R.T  # camera frame; NaN: no plane
         ray = np.stack([col + 0.5, row + 0.5, np.ones_like(z)], 1) @ np.linalg.inv(K).T  # z = 1
         num, den = np.sum(n * Xc, 1), np.sum(n * ray, 1)
         grazing = np.abs(den) <= min_cos * np.linalg.norm(ray, axis=1) * np.linalg.norm(n, axis=1)
@@ -133,27 +140,23 @@ def anchor_normals(xyz: np.ndarray, normal: np.ndarray, K: np.ndarray, R: np.nda
                    height: int, width: int) -> np.ndarray:
     """[H, W, 3] float32 unit normals in the camera frame ``x_cam = R X + t``, turned to face the
     camera: in each pixel, the plane normal of the nearest point of ``xyz`` [m, 3] (world) that falls
-    in it (the pixel rule of :func:`anchor_depth`); zeros (a normal prior's "invalid") where none
-    falls or the point's normal is zero or not finite."""
+    in it (:func:`_pixels`); zeros (a normal prior's "invalid") where none falls or the point's
+    normal is zero or not finite."""
     out = np.zeros((height, width, 3), np.float32)
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     normal = np.asarray(normal, np.float64).reshape(-1, 3)
     if len(normal) != len(xyz):
         raise ValueError(f"anchor_normals: {len(xyz)} points but {len(normal)} normals")
-    R, K = np.asarray(R, np.float64), np.asarray(K, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite rows are dropped below
-        Xc = xyz @ R.T + np.asarray(t, np.float64)
-        n = normal @ R.T
+    R = np.asarray(R, np.float64)
+    idx, Xc, col, row = _pixels(xyz, np.asarray(K, np.float64), R, t, height, width)
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite normals are dropped below
+        n = normal[idx] @ R.T
         norm = np.linalg.norm(n, axis=1)
-        z = Xc[:, 2]
-        uv = Xc @ K.T
-        col, row = np.floor(uv[:, 0] / z), np.floor(uv[:, 1] / z)
-    keep = (np.isfinite(Xc).all(1) & np.isfinite(n).all(1) & (z > 1e-6) & (norm > 1e-6)
-            & (col >= 0) & (col < width) & (row >= 0) & (row < height))
+    keep = np.isfinite(n).all(1) & (norm > 1e-6)
     if not keep.any():
         return out
     flat = row[keep].astype(np.int64) * width + col[keep].astype(np.int64)
-    n, z, Xc = n[keep] / norm[keep, None], z[keep], Xc[keep]
+    n, z, Xc = n[keep] / norm[keep, None], Xc[keep, 2], Xc[keep]
     n = np.where(np.sum(n * Xc, 1, keepdims=True) > 0, -n, n)  # face the camera
     order = np.lexsort((z, flat))  # by pixel, nearest first
     first = order[np.unique(flat[order], return_index=True)[1]]

@@ -308,11 +308,12 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
 
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
-    use_planes = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0, cfg.loss.plane_normals and cfg.loss.use_normal
-    planes = load_plane_anchors(cues_ply) if any(use_planes) else None
+    plane_depths = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0
+    plane_normals = cfg.loss.plane_normals and cfg.loss.use_normal
+    planes = load_plane_anchors(cues_ply) if plane_depths or plane_normals else None
     train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
-                          prior_kind=prior_kind, plane_anchors=planes if use_planes[0] else None,
-                          plane_normals=planes if use_planes[1] else None)
+                          prior_kind=prior_kind, plane_anchors=planes if plane_depths else None,
+                          plane_normals=planes if plane_normals else None)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
