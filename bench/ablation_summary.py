@@ -47,24 +47,27 @@ def scene_table(data: dict) -> str:
              else f"{counts[0]}–{counts[-1]} seeds per row (mean; the count beside a row with more than one)")
     lines = [f"**{data['scene_label']}** — {cfg['iters']} iterations, {seeds}, train options "
              f"`{' '.join(data['train_args']) or '(defaults)'}`", "",
-             "| row | C-L1 (cm) | F@5cm | NC | C-L1 / floor | ΔF vs no-cues | ΔNC vs no-cues | test PSNR | train s |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| row | C-L1 (cm) | F@5cm | NC | C-L1 / floor | ΔF vs no-cues | ΔNC vs no-cues | test PSNR | "
+             "PSNR at 1st checkpoint | train s |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     if floor:
         lines.append(f"| floor (exact GT depth) | {_f(floor['chamfer_l1'], 100, 2)} | {_f(floor['f_score'])} | "
-                     f"{_f(floor['normal_consistency'])} | 1.00 |  |  | – | – |")
+                     f"{_f(floor['normal_consistency'])} | 1.00 |  |  | – | – | – |")
     for name, r in rows.items():
         if r["status"] != "done":
             why = f"n/a ({r['reason']})" if r["status"] == "n/a" else "not run yet"
-            lines.append(f"| `{name}` | {why} |  |  |  |  |  |  |  |")
+            lines.append(f"| `{name}` | {why} |  |  |  |  |  |  |  |  |")
             continue
         m = r["mean"]
         ratio = f"{m['chamfer_l1'] / floor['chamfer_l1']:.2f}" if floor else "–"
         df = f"{m['f_score'] - base['f_score']:+.3f}" if base and name != "no-cues" else ""
         dn = f"{m['normal_consistency'] - base['normal_consistency']:+.3f}" if base and name != "no-cues" else ""
+        early = [run["curve"][0] for run in r.get("runs", []) if run.get("curve")]  # the first checkpoint
+        early_s = (f"{sum(c['psnr'] for c in early) / len(early):.1f} (step {early[0]['step']})" if early else "–")
         label = f"`{name}`" + (f" ({r['n_seeds']} seeds)" if len(counts) > 1 and r["n_seeds"] > 1 else "")
         lines.append(f"| {label} | {_f(m['chamfer_l1'], 100, 2)} | {_f(m['f_score'])} | "
                      f"{_f(m['normal_consistency'])} | {ratio} | {df} | {dn} | {_f(m.get('psnr'), 1, 2)} | "
-                     f"{_f(m.get('train_s'), 1, 0)} |")
+                     f"{early_s} | {_f(m.get('train_s'), 1, 0)} |")
     return "\n".join(lines)
 
 

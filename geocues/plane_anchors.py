@@ -54,6 +54,11 @@ class PlaneAnchors:
         sl = slice(self._start[i], self._start[i + 1])
         return self.xyz[sl], self.normal[sl]
 
+    def of_views(self, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        """The points and normals of every image in ``names`` (those it has), in one array each."""
+        keep = np.isin(np.asarray(self.names, dtype=object)[self.view], np.asarray(list(names), dtype=object))
+        return self.xyz[keep], self.normal[keep]
+
     def counts(self) -> dict[str, int]:
         return {n: int(self._start[i + 1] - self._start[i]) for i, n in enumerate(self.names)}
 

@@ -54,6 +54,15 @@ class InitConfig:
     """Upper bound of the tangent scale as a multiple of the median one (isolated cues)."""
     min_scale: float = 1e-4
     """Lower bound of every scale in metres (duplicate cue points have zero neighbour distance)."""
+    fill_holes: bool = False
+    """Also seed SFM-typed Gaussians where the cue Gaussians leave a training view open, at the
+    view's L_a anchor depth (splat/hole_seeds.py; an extension: views without an anchor add none)."""
+    hole_alpha: float = 0.5
+    """A pixel is open where the initial Gaussians' alpha is below this."""
+    hole_stride: int = 4
+    """Open pixels are sampled every this many pixels (training resolution) in each direction."""
+    hole_voxel: float = 0.1
+    """Seed points of all views are averaged per voxel of this edge (m)."""
 
 
 def scene_scale(camera_centers: np.ndarray, points: np.ndarray | None = None) -> float:

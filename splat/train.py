@@ -119,7 +119,8 @@ def train_step(params, optimizers: dict, strategy: IndoorStrategy, state: dict, 
     clock("render")
     loss, terms = total_loss(out, view.rgb, view.camera.K, params, state["cue_type"], loss_cfg, step,
                              depth_prior=view.depth_prior, normal_prior=view.normal_prior, generator=generator,
-                             depth_anchor=view.depth_anchor, anchor_p90=view.anchor_p90, source=source)
+                             depth_anchor=view.depth_anchor, anchor_p90=view.anchor_p90, source=source,
+                             anchor_tight=view.anchor_tight)
     info = {**out, "width": view.camera.width, "height": view.camera.height,
             "camera_center": view.camera.center, "viewmat": view.camera.viewmat}
     strategy.step_pre_backward(params, optimizers, state, step, info)
@@ -237,6 +238,19 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
     return params, cue_type, params["means"].numpy().astype(np.float64)
 
 
+def with_hole_seeds(cfg: TrainConfig, params: dict[str, Tensor], cue_type: Tensor, views: ViewSet,
+                    cues_ply: Path, scene: Scene) -> tuple[dict[str, Tensor], Tensor]:
+    """``--init.fill-holes``: the initial Gaussians again, from the cues and the hole seeds of the
+    training views (splat/hole_seeds.py); unchanged when no view has an anchor."""
+    from splat.hole_seeds import hole_seeds
+
+    extra = hole_seeds(params, views, cfg.init.hole_stride, cfg.init.hole_alpha, cfg.init.hole_voxel)
+    if len(extra) == 0:
+        log.info("--init.fill-holes: no training view has an L_a anchor, so no hole seeds")
+        return params, cue_type
+    return init_from_cues(CueCloud.concat([load_init_cloud(cfg, scene, cues_ply), extra]), cfg.sh_degree, cfg.init)
+
+
 def _live_view(cfg: TrainConfig, scene: Scene):
     """The `--view` server (splat/viewer.py), or None."""
     if not cfg.view:
@@ -313,11 +327,14 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     planes = load_plane_anchors(cues_ply) if plane_depths or plane_normals else None
     train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
                           prior_kind=prior_kind, plane_anchors=planes if plane_depths else None,
-                          plane_normals=planes if plane_normals else None)
+                          plane_normals=planes if plane_normals else None, plane_first=cfg.loss.plane_first,
+                          plane_views=cfg.loss.plane_views)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
     init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply)
+    if cfg.init.fill_holes and cfg.init_ply is None:
+        init_params, cue_type = with_hole_seeds(cfg, init_params, cue_type, train_views, cues_ply, scene)
     scale = scene_scale(train_views.camera_centers(), seeds)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
     optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)

@@ -56,6 +56,7 @@ class View:
     normal_prior: Tensor | None  # [H, W, 3] float32 unit camera frame, 0 = invalid
     depth_anchor: Tensor | None = None  # [H, W] float32 metres: the prior aligned to the cues, 0 = invalid
     anchor_p90: float = float("nan")  # 90th-percentile |residual| (m) of that alignment at the cues
+    anchor_tight: Tensor | None = None  # [H, W] bool: anchor pixels from plane cues (held at the least tolerance)
 
 
 class ViewSet:
@@ -64,13 +65,26 @@ class ViewSet:
     def __init__(self, scene: Scene, indices: list[int], device: torch.device | str = "cpu",
                  load_priors: bool = True, desc: str = "views",
                  alignments: dict[str, DepthAlignment] | None = None, prior_kind: str = "depth",
-                 plane_anchors: PlaneAnchors | None = None, plane_normals: PlaneAnchors | None = None):
+                 plane_anchors: PlaneAnchors | None = None, plane_normals: PlaneAnchors | None = None,
+                 plane_first: bool = False, plane_views: str = "own"):
+        """``plane_anchors`` / ``plane_normals``: the plane cues that fill (or, ``plane_first``, replace)
+        a view's L_a anchor and give a view without a normal prior its normals; ``plane_views``:
+        "own" (each view's own plane points) or "all" (those of every view of this set)."""
+        if plane_views not in ("own", "all"):
+            raise ValueError(f"plane_views must be 'own' or 'all', got {plane_views!r}")
         self.scene, self.indices, self.device = scene, list(indices), torch.device(device)
+        names = [scene.cameras[i].name for i in self.indices]
+        shared = {id(p): p.of_views(names) for p in (plane_anchors, plane_normals) if p is not None and plane_views == "all"}
+
+        def points(planes: PlaneAnchors, name: str) -> tuple[np.ndarray, np.ndarray]:
+            return shared[id(planes)] if plane_views == "all" else planes.of(name)
+
         self._rgb: list[Tensor] = []
         self._depth: list[Tensor | None] = []
         self._normal: list[Tensor | None] = []
         self._anchor: list[Tensor | None] = []
         self._anchor_p90: list[float] = []
+        self._tight: list[Tensor | None] = []
         self.cameras: list[Camera] = []
         for i in tqdm(self.indices, desc=f"loading {desc}", leave=False):
             cam = scene.cameras[i]
@@ -86,14 +100,17 @@ class ViewSet:
                 # aligned one where the cues aligned it, else 1/p (exact up to scale for shift-free
                 # disparity, the form Depth-Anything and MiDaS write)
                 d = aligned if aligned is not None else np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
-            if n is None and plane_normals is not None and len((pts := plane_normals.of(cam.name))[0]):
+            if n is None and plane_normals is not None and len((pts := points(plane_normals, cam.name))[0]):
                 n = anchor_normals(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
             self._depth.append(None if d is None else _compact(d))
             self._normal.append(None if n is None else torch.from_numpy(n).half())  # unit: fits
-            if plane_anchors is not None and len((pts := plane_anchors.of(cam.name))[0]):
+            tight = None
+            if plane_anchors is not None and len((pts := points(plane_anchors, cam.name))[0]):
                 on_plane = anchor_depth(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
-                aligned = on_plane if aligned is None else np.where(aligned > 0, aligned, on_plane)
+                tight = (on_plane > 0) if aligned is None or plane_first else (aligned <= 0) & (on_plane > 0)
+                aligned = np.where(tight, on_plane, 0.0 if aligned is None else aligned)
             self._anchor.append(None if aligned is None else _compact(aligned))
+            self._tight.append(None if tight is None or not tight.any() else torch.from_numpy(tight))
             self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)
@@ -127,4 +144,5 @@ class ViewSet:
                     rgb=self._rgb[k].to(dev).float() / 255.0,
                     depth_prior=None if d is None else d.to(dev).float(),
                     normal_prior=None if n is None else n.to(dev).float(),
-                    depth_anchor=None if a is None else a.to(dev).float(), anchor_p90=self._anchor_p90[k])
+                    depth_anchor=None if a is None else a.to(dev).float(), anchor_p90=self._anchor_p90[k],
+                    anchor_tight=None if self._tight[k] is None else self._tight[k].to(dev))
