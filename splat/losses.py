@@ -320,7 +320,7 @@ class LossConfig:
     plane_anchor: bool = False
     """L_a also holds, in each training view, the pixels where that view's own plane cues lie and its
     aligned prior has no depth (CUES/plane_anchors.npz; every such pixel when the view has no prior,
-    so prior-free scenes get L_a on their weak-texture planes), with τ = anchor_tol_min there. An
+    so prior-free scenes get L_a on their weak-texture planes, with τ = anchor_tol_min there). An
     extension; needs lambda_anchor > 0."""
     plane_first: bool = False
     """With plane_anchor: where plane cues lie, their depth replaces the aligned prior's as L_a's

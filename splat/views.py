@@ -107,8 +107,11 @@ class ViewSet:
             tight = None
             if plane_anchors is not None and len((pts := points(plane_anchors, cam.name))[0]):
                 on_plane = anchor_depth(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
-                tight = (on_plane > 0) if aligned is None or plane_first else (aligned <= 0) & (on_plane > 0)
-                aligned = np.where(tight, on_plane, 0.0 if aligned is None else aligned)
+                # plane_first: the plane pixels replace the prior's and are held at the least tolerance;
+                # else they fill where it has none (at the view's tolerance: the rows measured so)
+                use = (on_plane > 0) if aligned is None or plane_first else (aligned <= 0) & (on_plane > 0)
+                aligned = np.where(use, on_plane, 0.0 if aligned is None else aligned)
+                tight = use if plane_first else None
             self._anchor.append(None if aligned is None else _compact(aligned))
             self._tight.append(None if tight is None or not tight.any() else torch.from_numpy(tight))
             self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
