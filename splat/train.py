@@ -325,10 +325,15 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     plane_depths = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0
     plane_normals = cfg.loss.plane_normals and cfg.loss.use_normal
     planes = load_plane_anchors(cues_ply) if plane_depths or plane_normals else None
+    fused = None
+    if cfg.loss.fused_anchor and cfg.loss.lambda_anchor > 0 and alignments:
+        from splat.fused_prior import fused_anchors
+
+        fused = fused_anchors(scene, scene.train_indices, alignments, cfg.loss.fused_voxel, cfg.loss.fused_trunc)
     train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
                           prior_kind=prior_kind, plane_anchors=planes if plane_depths else None,
                           plane_normals=planes if plane_normals else None, plane_first=cfg.loss.plane_first,
-                          plane_views=cfg.loss.plane_views)
+                          plane_views=cfg.loss.plane_views, anchor_override=fused)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")

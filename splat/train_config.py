@@ -138,6 +138,12 @@ class TrainConfig:
             finite_pos(f"init.{name.replace('_', '-')}", getattr(self.init, name))
         if self.init.knn < 1:
             raise ValueError(f"--init.knn must be >= 1, got {self.init.knn}")
+        finite_pos("init.hole-voxel", self.init.hole_voxel)
+        if self.init.hole_stride < 1 or not 0 < self.init.hole_alpha <= 1:
+            raise ValueError(f"--init.hole-stride must be >= 1 and --init.hole-alpha in (0, 1], got "
+                             f"{self.init.hole_stride}, {self.init.hole_alpha}")
+        finite_pos("loss.fused-voxel", self.loss.fused_voxel)
+        finite_pos("loss.fused-trunc", self.loss.fused_trunc)
         for name, value in asdict(self.loss).items():
             if isinstance(value, float):
                 finite_pos(f"loss.{name.replace('_', '-')}", value, zero_ok=True)

@@ -66,10 +66,13 @@ class ViewSet:
                  load_priors: bool = True, desc: str = "views",
                  alignments: dict[str, DepthAlignment] | None = None, prior_kind: str = "depth",
                  plane_anchors: PlaneAnchors | None = None, plane_normals: PlaneAnchors | None = None,
-                 plane_first: bool = False, plane_views: str = "own"):
+                 plane_first: bool = False, plane_views: str = "own",
+                 anchor_override: dict[str, np.ndarray] | None = None):
         """``plane_anchors`` / ``plane_normals``: the plane cues that fill (or, ``plane_first``, replace)
         a view's L_a anchor and give a view without a normal prior its normals; ``plane_views``:
-        "own" (each view's own plane points) or "all" (those of every view of this set)."""
+        "own" (each view's own plane points) or "all" (those of every view of this set);
+        ``anchor_override``: {image name: [H, W] depth} that replaces the aligned prior as the L_a
+        anchor (the fused prior, splat/fused_prior.py), before the plane cues."""
         if plane_views not in ("own", "all"):
             raise ValueError(f"plane_views must be 'own' or 'all', got {plane_views!r}")
         self.scene, self.indices, self.device = scene, list(indices), torch.device(device)
@@ -104,6 +107,8 @@ class ViewSet:
                 n = anchor_normals(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
             self._depth.append(None if d is None else _compact(d))
             self._normal.append(None if n is None else torch.from_numpy(n).half())  # unit: fits
+            if anchor_override is not None and cam.name in anchor_override:
+                aligned = anchor_override[cam.name]
             tight = None
             if plane_anchors is not None and len((pts := points(plane_anchors, cam.name))[0]):
                 on_plane = anchor_depth(*pts, cam.K, cam.R, cam.t, cam.height, cam.width)
