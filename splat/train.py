@@ -33,7 +33,6 @@ from torch import Tensor
 from tqdm import tqdm
 
 from geocues.atomic import atomic_path, check_output_dir
-from geocues.cue_io import CueCloud, read_cues_ply
 from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.plane_anchors import load_plane_anchors
 from geocues.scene import Scene
@@ -42,7 +41,7 @@ from splat import checkpoint, compiled
 from splat.camera_opt import CameraRefiner
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
-from splat.gaussians import cue_type_path, init_from_cues, load_ply, scene_scale
+from splat.gaussians import cue_type_path, scene_scale
 from splat.guard import NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
 from splat.mesh import write_mesh
@@ -50,6 +49,7 @@ from splat.mesh_run import fuse_cameras
 from splat.multiview import SourceView, source_view, training_neighbours
 from splat.rasterize import render
 from splat.strategy import PAPER_ITERS, IndoorStrategy
+from splat.init_gaussians import initial_gaussians, load_init_cloud, with_hole_seeds  # noqa: F401  (re-exported)
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.views import View, ViewSet
 
@@ -204,51 +204,6 @@ def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, refiner:
 
 def _type_counts(cue_type: Tensor) -> dict[str, int]:
     return {t.name: int((cue_type == t.value).sum()) for t in CueType}
-
-
-def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
-    """The points that seed the Gaussians: the cue cloud's ``cfg.cue_types``, or with
-    ``init_from="sfm"`` the scene's SfM points as they are (3DGS init)."""
-    if cfg.init_from == "sfm":
-        if len(scene.points) == 0:
-            raise ValueError(f"--init-from sfm: the scene {scene.root} has no SfM points "
-                             "(run `geocues sfm SCENE` first)")
-        return CueCloud.make(scene.points.xyz, scene.points.rgb, CueType.SFM)
-    if cfg.init_from != "cues":
-        raise ValueError(f"init_from must be 'cues' or 'sfm', got {cfg.init_from!r}")
-    cloud = read_cues_ply(cues_ply)
-    return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
-
-
-def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict[str, Tensor], Tensor, np.ndarray]:
-    """(params, cue_type [N], seed points [N, 3]) to start from: the Gaussians of ``cfg.init_ply``, or
-    Gaussians initialised from :func:`load_init_cloud` (paper §4.2)."""
-    if cfg.init_ply is None:
-        cloud = load_init_cloud(cfg, scene, cues_ply)
-        params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
-        return params, cue_type, cloud.xyz
-    params, cue_type = load_ply(cfg.init_ply, sh_degree=cfg.sh_degree)
-    n = len(params["means"])
-    if n == 0:
-        raise ValueError(f"--init-ply {cfg.init_ply} holds no Gaussians")
-    if cue_type is None:
-        log.info("--init-ply %s has no cue types (no cue_type.npy beside it): all %d Gaussians are SFM", cfg.init_ply, n)
-        cue_type = torch.full((n,), CueType.SFM.value, dtype=torch.int64)
-    log.info("starting from the %d Gaussians of %s", n, cfg.init_ply)
-    return params, cue_type, params["means"].numpy().astype(np.float64)
-
-
-def with_hole_seeds(cfg: TrainConfig, params: dict[str, Tensor], cue_type: Tensor, views: ViewSet,
-                    cues_ply: Path, scene: Scene) -> tuple[dict[str, Tensor], Tensor]:
-    """``--init.fill-holes``: the initial Gaussians again, from the cues and the hole seeds of the
-    training views (splat/hole_seeds.py); unchanged when no view has an anchor."""
-    from splat.hole_seeds import hole_seeds
-
-    extra = hole_seeds(params, views, cfg.init.hole_stride, cfg.init.hole_alpha, cfg.init.hole_voxel)
-    if len(extra) == 0:
-        log.info("--init.fill-holes: no training view has an L_a anchor, so no hole seeds")
-        return params, cue_type
-    return init_from_cues(CueCloud.concat([load_init_cloud(cfg, scene, cues_ply), extra]), cfg.sh_degree, cfg.init)
 
 
 def _live_view(cfg: TrainConfig, scene: Scene):

@@ -1,0 +1,65 @@
+"""The Gaussians a `splat train` run starts from: the cue cloud (paper §4.2), the scene's SfM points
+(the 3DGS baseline), another run's PLY, and the hole seeds of ``--init.fill-holes``
+(splat/hole_seeds.py)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from geocues.cue_io import CueCloud, read_cues_ply
+from geocues.scene import Scene
+from geocues.types import CueType
+from splat.gaussians import init_from_cues, load_ply
+from splat.train_config import TrainConfig
+
+log = logging.getLogger(__name__)
+
+
+def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
+    """The points that seed the Gaussians: the cue cloud's ``cfg.cue_types``, or with
+    ``init_from="sfm"`` the scene's SfM points as they are (3DGS init)."""
+    if cfg.init_from == "sfm":
+        if len(scene.points) == 0:
+            raise ValueError(f"--init-from sfm: the scene {scene.root} has no SfM points "
+                             "(run `geocues sfm SCENE` first)")
+        return CueCloud.make(scene.points.xyz, scene.points.rgb, CueType.SFM)
+    if cfg.init_from != "cues":
+        raise ValueError(f"init_from must be 'cues' or 'sfm', got {cfg.init_from!r}")
+    cloud = read_cues_ply(cues_ply)
+    return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
+
+
+def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict[str, Tensor], Tensor, np.ndarray]:
+    """(params, cue_type [N], seed points [N, 3]) to start from: the Gaussians of ``cfg.init_ply``, or
+    Gaussians initialised from :func:`load_init_cloud` (paper §4.2)."""
+    if cfg.init_ply is None:
+        cloud = load_init_cloud(cfg, scene, cues_ply)
+        params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
+        return params, cue_type, cloud.xyz
+    params, cue_type = load_ply(cfg.init_ply, sh_degree=cfg.sh_degree)
+    n = len(params["means"])
+    if n == 0:
+        raise ValueError(f"--init-ply {cfg.init_ply} holds no Gaussians")
+    if cue_type is None:
+        log.info("--init-ply %s has no cue types (no cue_type.npy beside it): all %d Gaussians are SFM", cfg.init_ply, n)
+        cue_type = torch.full((n,), CueType.SFM.value, dtype=torch.int64)
+    log.info("starting from the %d Gaussians of %s", n, cfg.init_ply)
+    return params, cue_type, params["means"].numpy().astype(np.float64)
+
+
+def with_hole_seeds(cfg: TrainConfig, params: dict[str, Tensor], cue_type: Tensor, views,
+                    cues_ply: Path, scene: Scene) -> tuple[dict[str, Tensor], Tensor]:
+    """``--init.fill-holes``: the initial Gaussians again, from the cues and the hole seeds of the
+    training views (splat/hole_seeds.py); unchanged when no view has an anchor."""
+    from splat.hole_seeds import hole_seeds
+
+    extra = hole_seeds(params, views, cfg.init.hole_stride, cfg.init.hole_alpha, cfg.init.hole_voxel)
+    if len(extra) == 0:
+        log.info("--init.fill-holes: no training view has an L_a anchor, so no hole seeds")
+        return params, cue_type
+    return init_from_cues(CueCloud.concat([load_init_cloud(cfg, scene, cues_ply), extra]), cfg.sh_degree, cfg.init)
