@@ -15,7 +15,7 @@ import pytest
 from geocues.scene import Scene
 from splat.fused_prior import fuse_depths, fused_anchors, raycast_depth
 
-from cues_synth import make_room_scene, render as render_room
+from cues_synth import ExactAlignment, make_room_scene, render as render_room
 
 
 class _WarpedAlignment:
@@ -34,13 +34,6 @@ class _WarpedAlignment:
         field = c[0] * (x - 0.5) + c[1] * (y - 0.5) + c[2] * np.cos(np.pi * x) * np.cos(np.pi * y) + 0.5 * c[3]
         field /= max(np.abs(field).max(), 1e-9)
         return np.where(d > 0, d * (1.0 + self.a * field), 0.0)
-
-
-class _Exact:
-    residual_p90_m = 0.01
-
-    def apply(self, d: np.ndarray) -> np.ndarray:
-        return d
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +80,7 @@ def test_differently_warped_priors_fuse_closer_to_the_truth(room):
     e_own, e_fused = _errors(room, own), _errors(room, fused)
     # measured: 4.4 -> 2.2 cm median (the rooms: 8.7 -> 2.8 and 15.8 -> 4.5 cm); without fusion the ratio is 1
     assert np.median(e_fused) < 0.6 * np.median(e_own), (np.median(e_own), np.median(e_fused))
-    exact = fused_anchors(room, idx, {room.cameras[i].name: _Exact() for i in idx}, voxel=0.04, trunc=0.3)
+    exact = fused_anchors(room, idx, {room.cameras[i].name: ExactAlignment() for i in idx}, voxel=0.04, trunc=0.3)
     assert np.median(_errors(room, exact)) < 0.02
 
 
@@ -95,7 +88,7 @@ def test_uncovered_pixels_keep_their_own_prior_and_one_view_fuses_nothing(room, 
     import splat.fused_prior as fp
 
     idx = room.train_indices
-    assert fused_anchors(room, idx, {room.cameras[idx[0]].name: _Exact()}) == {}
+    assert fused_anchors(room, idx, {room.cameras[idx[0]].name: ExactAlignment()}) == {}
     real = fp.raycast_depth
 
     def left_half_uncovered(mesh, K, R, t, h, w):
@@ -119,7 +112,7 @@ def test_views_take_the_fused_anchor_for_l_a_and_their_own_prior_for_l_d(room):
     idx = room.train_indices
     name = room.cameras[idx[0]].name
     override = {name: np.full((room.cameras[idx[0]].height, room.cameras[idx[0]].width), 7.0, np.float32)}
-    views = ViewSet(room, idx, alignments={room.cameras[i].name: _Exact() for i in idx}, anchor_override=override)
+    views = ViewSet(room, idx, alignments={room.cameras[i].name: ExactAlignment() for i in idx}, anchor_override=override)
     assert float(views[0].depth_anchor.max()) == pytest.approx(7.0)
     assert float(views[0].depth_prior.max()) < 6.0  # L_d: the view's own prior
     assert float(views[1].depth_anchor.max()) < 6.0  # views without an override keep their aligned prior

@@ -19,7 +19,7 @@ from geocues.types import CueType
 from splat.gaussians import init_from_cues
 from splat.hole_seeds import hole_seeds, view_hole_points, voxel_average
 
-from cues_synth import distance_to_surface, make_room_scene
+from cues_synth import ExactAlignment, distance_to_surface, make_room_scene
 
 
 def _rot_z(deg: float) -> np.ndarray:
@@ -74,15 +74,6 @@ def test_voxel_average_means_positions_colours_and_normals():
         voxel_average(xyz, rgb, nrm, 0.0)
 
 
-class _ExactAlignment:
-    """A cue alignment stand-in that returns the (exact) prior as it is."""
-
-    residual_p90_m = 0.01
-
-    def apply(self, d: np.ndarray) -> np.ndarray:
-        return d
-
-
 @pytest.fixture(scope="module")
 def sparse_room(tmp_path_factory):
     """The synthetic room with exact depth priors, and Gaussians from its SfM points only (floor and
@@ -108,7 +99,7 @@ def test_seeds_close_the_open_views_on_the_surface(sparse_room):
     from splat.views import ViewSet
 
     scene, params, cloud = sparse_room
-    names = {scene.cameras[i].name: _ExactAlignment() for i in scene.train_indices}
+    names = {scene.cameras[i].name: ExactAlignment() for i in scene.train_indices}
     views = ViewSet(scene, scene.train_indices, alignments=names)
     seeds = hole_seeds(params, views, stride=4, max_alpha=0.5, voxel=0.1)
     assert len(seeds) > 100 and (seeds.cue_type == CueType.SFM.value).all()

@@ -167,12 +167,35 @@ def _train(start: dict, views: list, loss_cfg, iters: int = 80) -> tuple[torch.n
     return params, terms
 
 
+def _moved_towards_the_cameras(truth: dict, dist: float) -> dict:
+    """A copy of the Gaussians ``truth`` with every mean moved ``dist`` m towards the training eyes."""
+    from splat.bench import TRAIN_EYES
+
+    eye = torch.tensor(TRAIN_EYES, dtype=torch.float32).mean(0)
+    start = {k: t.clone() for k, t in truth.items()}
+    to_eye = eye - start["means"]
+    start["means"] += dist * to_eye / to_eye.norm(dim=1, keepdim=True)
+    return start
+
+
+def _median_depth_error(params: dict, truth: dict, views: list) -> float:
+    """Median |median depth of ``params`` - that of ``truth``| over the views' covered pixels (m)."""
+    from splat.rasterize import render
+
+    with torch.no_grad():
+        errs = []
+        for v in views:
+            d, t = render(params, v.camera, sh_degree=0)["median_depth"], render(truth, v.camera, sh_degree=0)
+            ok = t["alpha"] > 0.5
+            errs.append((d - t["median_depth"]).abs()[ok])
+        return float(torch.cat(errs).median())
+
+
 @pytest.mark.parametrize("plane_anchor", [False, True])
 def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchors(plane_anchor):
     """Flat grey Gaussians on the room's surfaces, all moved 8 cm towards the cameras: the images
     look the same (no texture), so the RGB loss cannot see the error; anchors at the true depth on
     every other pixel (a plane cue's sampling) pull the surface back to within L_a's tolerance."""
-    from splat.bench import TRAIN_EYES
     from splat.losses import LossConfig
     from splat.rasterize import render
 
@@ -182,19 +205,10 @@ def test_a_textureless_wall_in_front_of_itself_comes_back_only_with_plane_anchor
             d = render(truth, v.camera, sh_degree=0)["median_depth"].detach()
             v.depth_anchor = torch.zeros_like(d)
             v.depth_anchor[::2, ::2] = d[::2, ::2]
-    eye = torch.tensor(TRAIN_EYES, dtype=torch.float32).mean(0)
-    start = {k: t.clone() for k, t in truth.items()}
-    to_eye = eye - start["means"]
-    start["means"] += 0.08 * to_eye / to_eye.norm(dim=1, keepdim=True)
+    start = _moved_towards_the_cameras(truth, 0.08)
 
     def depth_error(params) -> float:
-        with torch.no_grad():
-            errs = []
-            for v in views:
-                d, t = render(params, v.camera, sh_degree=0)["median_depth"], render(truth, v.camera, sh_degree=0)
-                ok = t["alpha"] > 0.5
-                errs.append((d - t["median_depth"]).abs()[ok])
-            return float(torch.cat(errs).median())
+        return _median_depth_error(params, truth, views)
 
     before = depth_error(start)
     params, _ = _train(start, views, replace(LossConfig(), use_nc=False, plane_anchor=plane_anchor))

@@ -23,7 +23,7 @@ from geocues.scene import Scene
 from splat.losses import LossConfig, anchored_depth_loss, total_loss
 
 from cues_synth import make_room_scene, render as render_room
-from test_plane_anchors import _textureless_room, _train
+from test_plane_anchors import _median_depth_error, _moved_towards_the_cameras, _textureless_room, _train
 
 
 def test_anchored_depth_loss_takes_a_tolerance_map():
@@ -140,14 +140,10 @@ def test_a_wall_whose_prior_agrees_with_the_wrong_place_comes_back_only_with_pla
     """Flat grey Gaussians moved 8 cm towards the cameras, and an aligned prior that says the wall is
     there (a mono prior's error; its residual gives τ = 10 cm, so L_a holds the wrong place). Plane
     cues at the true depth on every other pixel, first, pull it back to within their 3 cm."""
-    from splat.bench import TRAIN_EYES
     from splat.rasterize import render
 
     truth, views = _textureless_room()
-    eye = torch.tensor(TRAIN_EYES, dtype=torch.float32).mean(0)
-    start = {k: t.clone() for k, t in truth.items()}
-    to_eye = eye - start["means"]
-    start["means"] += 0.08 * to_eye / to_eye.norm(dim=1, keepdim=True)
+    start = _moved_towards_the_cameras(truth, 0.08)
     for v in views:
         true_d = render(truth, v.camera, sh_degree=0)["median_depth"].detach()
         v.depth_anchor = render(start, v.camera, sh_degree=0)["median_depth"].detach()  # the wrong place
@@ -159,13 +155,7 @@ def test_a_wall_whose_prior_agrees_with_the_wrong_place_comes_back_only_with_pla
             v.anchor_tight = tight
 
     def depth_error(params) -> float:
-        with torch.no_grad():
-            errs = []
-            for v in views:
-                d, t = render(params, v.camera, sh_degree=0)["median_depth"], render(truth, v.camera, sh_degree=0)
-                ok = t["alpha"] > 0.5
-                errs.append((d - t["median_depth"]).abs()[ok])
-            return float(torch.cat(errs).median())
+        return _median_depth_error(params, truth, views)
 
     before = depth_error(start)
     params, terms = _train(start, views, replace(LossConfig(), use_nc=False))
