@@ -56,14 +56,16 @@ def fused_anchors(scene, indices: list[int], alignments: dict, voxel: float = 0.
                   ) -> dict[str, np.ndarray]:
     """{image name: [H, W] anchor} for the views of ``scene`` with ``indices`` whose prior
     ``alignments`` aligned: the fused prior where its mesh covers the pixel, the view's own aligned
-    prior elsewhere. Empty when fewer than two views are aligned or the fusion is empty."""
+    prior elsewhere (0 where neither has a finite positive depth). Empty when fewer than two views
+    are aligned or the fusion is empty."""
     aligned = {}
     for i in indices:
         cam = scene.cameras[i]
         al = alignments.get(cam.name)
         d = scene.depth_prior(i) if al is not None else None
         if d is not None:
-            aligned[i] = al.apply(d).astype(np.float32)
+            a = al.apply(d).astype(np.float32)
+            aligned[i] = np.where(np.isfinite(a) & (a > 0), a, 0.0).astype(np.float32)  # 0: no depth
     if len(aligned) < 2:
         return {}
     mesh = fuse_depths([(d, scene.cameras[i].K, scene.cameras[i].world_to_camera) for i, d in aligned.items()],

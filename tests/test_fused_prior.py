@@ -4,7 +4,8 @@ What must hold: ray casting gives the z-depth of the first surface on the pixel-
 TSDF of exact priors renders back to the true depth; priors each warped differently (a monocular
 prior's error after a per-image scale and shift) fuse to an anchor far closer to the truth than any
 view's own; pixels the fusion does not cover keep the view's own prior; L_d keeps the view's own
-prior while L_a takes the fused one; a single aligned view fuses nothing.
+prior while L_a takes the fused one; a single aligned view fuses nothing; NaN, infinite or
+negative prior pixels give finite anchors.
 """
 
 from __future__ import annotations
@@ -116,3 +117,26 @@ def test_views_take_the_fused_anchor_for_l_a_and_their_own_prior_for_l_d(room):
     assert float(views[0].depth_anchor.max()) == pytest.approx(7.0)
     assert float(views[0].depth_prior.max()) < 6.0  # L_d: the view's own prior
     assert float(views[1].depth_anchor.max()) < 6.0  # views without an override keep their aligned prior
+
+
+class _Broken:
+    """An alignment whose aligned prior has NaN, Inf, negative and zero pixels (a bad prior file)."""
+
+    residual_p90_m = 0.01
+
+    def apply(self, d: np.ndarray) -> np.ndarray:
+        out = d.astype(np.float64).copy()
+        out[0, :] = np.nan
+        out[1, :] = np.inf
+        out[2, :] = -1.0
+        out[:, :5] = 0.0
+        return out
+
+
+def test_bad_prior_pixels_give_finite_anchors(room):
+    idx = room.train_indices
+    got = fused_anchors(room, idx, {room.cameras[i].name: _Broken() for i in idx}, voxel=0.04, trunc=0.3)
+    assert set(got) == {room.cameras[i].name for i in idx}
+    for a in got.values():
+        assert np.isfinite(a).all() and (a >= 0).all()
+        assert (a[3:, 5:] > 0).mean() > 0.9  # the good pixels still have a depth
