@@ -285,6 +285,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         from splat.fused_prior import fused_anchors
 
         fused = fused_anchors(scene, scene.train_indices, alignments, cfg.loss.fused_voxel, cfg.loss.fused_trunc)
+    elif cfg.loss.fused_anchor:
+        log.warning("--loss.fused-anchor: no aligned depth priors (or --loss.lambda-anchor 0): L_a has no fused prior")
     train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
                           prior_kind=prior_kind, plane_anchors=planes if plane_depths else None,
                           plane_normals=planes if plane_normals else None, plane_first=cfg.loss.plane_first,
