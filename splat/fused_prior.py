@@ -10,12 +10,17 @@ wide truncation averages the disagreement away along each ray: rendered back int
 priors of the training views are fused (:class:`splat.mesh.TSDFFuser`, ``voxel`` and ``trunc``),
 the mesh is cleaned like every TSDF mesh of the project, and each view's anchor is the z-depth of
 the first surface on its pixel-centre rays (Open3D ray casting); pixels the mesh does not cover keep
-the view's own aligned prior.
+the view's own aligned prior. The TSDF leans towards the farther priors (a view that sees the wall
+behind where another puts it marks the other's surface free space): on the bare rooms 17-28 % of
+the fused pixels lie more than 5 cm behind GT and 8-11 % in front. ``method="median"`` instead takes,
+in each pixel, the median of the view's own prior and its nearest views' priors warped into it
+(:func:`median_anchors`), which leans neither way.
 """
 
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -52,8 +57,58 @@ def raycast_depth(mesh, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int
     return np.where(np.isfinite(hit), hit, 0.0).astype(np.float32).reshape(height, width)
 
 
-def fused_anchors(scene, indices: list[int], alignments: dict, voxel: float = 0.04, trunc: float = 0.3
-                  ) -> dict[str, np.ndarray]:
+def _backproject(depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World points [m, 3] of the pixels of ``depth`` [H, W] with a finite depth > 0 (pixel centres)."""
+    h, w = depth.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    ok = np.isfinite(depth) & (depth > 0)
+    rays = np.stack([(cols[ok] + 0.5 - K[0, 2]) / K[0, 0], (rows[ok] + 0.5 - K[1, 2]) / K[1, 1], np.ones(ok.sum())], 1)
+    return (rays * depth[ok, None] - t) @ R
+
+
+def _forward_warp(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int, width: int
+                  ) -> np.ndarray:
+    """[H, W] z-depth of the nearest of ``points`` [m, 3] (world) in each pixel of the camera; 0: none."""
+    Xc = points @ R.T + t
+    z = Xc[:, 2]
+    front = z > 1e-6
+    uv = Xc[front] @ K.T
+    col, row, z = np.floor(uv[:, 0] / uv[:, 2]), np.floor(uv[:, 1] / uv[:, 2]), z[front]
+    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    out = np.full(height * width, np.inf)
+    np.minimum.at(out, row[inside].astype(np.int64) * width + col[inside].astype(np.int64), z[inside])
+    return np.where(np.isfinite(out), out, 0.0).reshape(height, width)
+
+
+def median_anchors(scene, aligned: dict[int, np.ndarray], neighbours: int = 32, min_votes: int = 3
+                   ) -> dict[str, np.ndarray]:
+    """{name: [H, W]}: in each pixel of each view, the median of its own aligned prior and those of its
+    ``neighbours`` nearest views (camera distance, minus the cosine of the viewing directions, in
+    metres) warped into it (nearest point per pixel); the view's own prior where fewer than
+    ``min_votes`` depths fall. Unlike the TSDF, whose free-space updates let a farther prior carve a
+    nearer one, the median leans neither way (bare room, seed 0: 22 % of the pixels more than 5 cm
+    behind GT and 24 % in front, against 28 % and 11 % for the TSDF)."""
+    idx = list(aligned)
+    cams = [scene.cameras[i] for i in idx]
+    centres = np.array([c.center for c in cams])
+    axes = np.array([np.asarray(c.R)[2] for c in cams])
+    points = [_backproject(aligned[i], c.K, c.R, c.t) for i, c in zip(idx, cams)]
+    out = {}
+    for k, cam in enumerate(cams):
+        score = np.linalg.norm(centres - centres[k], axis=1) - axes @ axes[k]
+        order = [j for j in np.argsort(score, kind="stable") if j != k][:neighbours]
+        stack = np.stack([aligned[idx[k]]] + [_forward_warp(points[j], cam.K, cam.R, cam.t, cam.height, cam.width)
+                                               for j in order])
+        votes = (stack > 0).sum(0)
+        with warnings.catch_warnings():  # pixels without any depth: an all-NaN slice, replaced below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(np.where(stack > 0, stack, np.nan), axis=0)
+        out[cam.name] = np.where(votes >= min_votes, med, aligned[idx[k]]).astype(np.float32)
+    return out
+
+
+def fused_anchors(scene, indices: list[int], alignments: dict, voxel: float = 0.04, trunc: float = 0.3,
+                  method: str = "tsdf", neighbours: int = 32) -> dict[str, np.ndarray]:
     """{image name: [H, W] anchor} for the views of ``scene`` with ``indices`` whose prior
     ``alignments`` aligned: the fused prior where its mesh covers the pixel, the view's own aligned
     prior elsewhere (0 where neither has a finite positive depth). Empty when fewer than two views
@@ -68,6 +123,12 @@ def fused_anchors(scene, indices: list[int], alignments: dict, voxel: float = 0.
             aligned[i] = np.where(np.isfinite(a) & (a > 0), a, 0.0).astype(np.float32)  # 0: no depth
     if len(aligned) < 2:
         return {}
+    if method == "median":
+        out = median_anchors(scene, aligned, neighbours)
+        log.info("fused prior: the median of %d aligned views' priors (up to %d neighbours each)", len(aligned), neighbours)
+        return out
+    if method != "tsdf":
+        raise ValueError(f"method must be 'tsdf' or 'median', got {method!r}")
     mesh = fuse_depths([(d, scene.cameras[i].K, scene.cameras[i].world_to_camera) for i, d in aligned.items()],
                        voxel, trunc)
     if mesh is None:

@@ -332,6 +332,12 @@ class LossConfig:
     view (splat/fused_prior.py), where it has a surface; the view's own aligned prior elsewhere. An
     extension (the views' warps disagree and average out: 2.8 / 4.5 cm median error on the textured /
     bare room against 8.7 / 15.8 cm for the view's own aligned prior)."""
+    fused_method: Literal["tsdf", "median"] = "tsdf"
+    """How the aligned priors are fused: "tsdf" (a wide-truncation TSDF, ray cast) or "median" (in each
+    pixel, the median of the view's prior and its nearest views' priors warped into it: no lean
+    towards the farther prior, which the TSDF's free-space updates have)."""
+    fused_neighbours: int = 32
+    """Views warped into each view for fused_method "median"."""
     fused_voxel: float = 0.04
     """Voxel edge (m) of the fused prior's TSDF."""
     fused_trunc: float = 0.3

@@ -284,7 +284,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     if cfg.loss.fused_anchor and cfg.loss.lambda_anchor > 0 and alignments:
         from splat.fused_prior import fused_anchors
 
-        fused = fused_anchors(scene, scene.train_indices, alignments, cfg.loss.fused_voxel, cfg.loss.fused_trunc)
+        fused = fused_anchors(scene, scene.train_indices, alignments, cfg.loss.fused_voxel, cfg.loss.fused_trunc,
+                              cfg.loss.fused_method, cfg.loss.fused_neighbours)
     elif cfg.loss.fused_anchor:
         log.warning("--loss.fused-anchor: no aligned depth priors (or --loss.lambda-anchor 0): L_a has no fused prior")
     train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,

@@ -143,6 +143,9 @@ class TrainConfig:
             raise ValueError(f"--init.hole-stride must be >= 1 and --init.hole-alpha in (0, 1], got "
                              f"{self.init.hole_stride}, {self.init.hole_alpha}")
         finite_pos("loss.fused-voxel", self.loss.fused_voxel)
+        if self.loss.fused_neighbours < 1 or self.loss.fused_method not in ("tsdf", "median"):
+            raise ValueError(f"--loss.fused-neighbours must be >= 1 and --loss.fused-method 'tsdf' or 'median', "
+                             f"got {self.loss.fused_neighbours}, {self.loss.fused_method!r}")
         finite_pos("loss.fused-trunc", self.loss.fused_trunc)
         for name, value in asdict(self.loss).items():
             if isinstance(value, float):

@@ -1,6 +1,6 @@
 """The fused prior (splat/fused_prior.py, `splat train --loss.fused-anchor`, preset `fused-anchor`).
 
-What must hold: ray casting gives the z-depth of the first surface on the pixel-centre rays; the
+What must hold (both fusions, the TSDF and the per-pixel median): ray casting gives the z-depth of the first surface on the pixel-centre rays; the
 TSDF of exact priors renders back to the true depth; priors each warped differently (a monocular
 prior's error after a per-image scale and shift) fuse to an anchor far closer to the truth than any
 view's own; pixels the fusion does not cover keep the view's own prior; L_d keeps the view's own
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from geocues.scene import Scene
-from splat.fused_prior import fuse_depths, fused_anchors, raycast_depth
+from splat.fused_prior import _forward_warp, fuse_depths, fused_anchors, median_anchors, raycast_depth
 
 from cues_synth import ExactAlignment, make_room_scene, render as render_room
 
@@ -70,19 +70,10 @@ def test_raycast_depth_is_the_z_depth_of_the_first_surface(room):
         fuse_depths(views, voxel=0.0, trunc=0.1)
 
 
-def test_differently_warped_priors_fuse_closer_to_the_truth(room):
+def test_exact_priors_fuse_to_the_truth(room):
     idx = room.train_indices
-    warped = {room.cameras[i].name: _WarpedAlignment(k, 0.08) for k, i in enumerate(idx)}
-    own = {}
-    for i in idx:  # each view's own aligned prior (the same draws as fused_anchors makes: fresh stand-ins)
-        own[room.cameras[i].name] = _WarpedAlignment(list(idx).index(i), 0.08).apply(room.depth_prior(i))
-    fused = fused_anchors(room, idx, warped, voxel=0.04, trunc=0.3)
-    assert set(fused) == set(own)
-    e_own, e_fused = _errors(room, own), _errors(room, fused)
-    # measured: 4.4 -> 2.2 cm median (the rooms: 8.7 -> 2.8 and 15.8 -> 4.5 cm); without fusion the ratio is 1
-    assert np.median(e_fused) < 0.6 * np.median(e_own), (np.median(e_own), np.median(e_fused))
     exact = fused_anchors(room, idx, {room.cameras[i].name: ExactAlignment() for i in idx}, voxel=0.04, trunc=0.3)
-    assert np.median(_errors(room, exact)) < 0.02
+    assert set(exact) == {room.cameras[i].name for i in idx} and np.median(_errors(room, exact)) < 0.02
 
 
 def test_uncovered_pixels_keep_their_own_prior_and_one_view_fuses_nothing(room, monkeypatch):
@@ -140,3 +131,31 @@ def test_bad_prior_pixels_give_finite_anchors(room):
     for a in got.values():
         assert np.isfinite(a).all() and (a >= 0).all()
         assert (a[3:, 5:] > 0).mean() > 0.9  # the good pixels still have a depth
+
+
+def test_forward_warp_keeps_the_nearest_point_per_pixel():
+    K = np.array([[10.0, 0, 4.0], [0, 10.0, 3.0], [0, 0, 1]])
+    pts = np.array([[0.0, 0, 2.0], [0.0, 0, 1.5], [0.0, 0, -1.0], [5.0, 0, 1.0]])  # behind, outside: dropped
+    z = _forward_warp(pts, K, np.eye(3), np.zeros(3), 6, 8)
+    assert z[3, 4] == pytest.approx(1.5) and np.count_nonzero(z) == 1
+
+
+@pytest.mark.parametrize("method", ["tsdf", "median"])
+def test_both_fusions_beat_the_views_own_warped_priors(room, method):
+    idx = room.train_indices
+    warped = {room.cameras[i].name: _WarpedAlignment(k, 0.08) for k, i in enumerate(idx)}
+    own = {room.cameras[i].name: _WarpedAlignment(k, 0.08).apply(room.depth_prior(i)) for k, i in enumerate(idx)}
+    fused = fused_anchors(room, idx, warped, voxel=0.04, trunc=0.3, method=method, neighbours=16)
+    e_own, e_fused = _errors(room, own), _errors(room, fused)
+    # measured: 4.4 -> 2.2 cm median (tsdf); without fusion the ratio is 1
+    assert np.median(e_fused) < 0.6 * np.median(e_own), (method, np.median(e_own), np.median(e_fused))
+
+
+def test_median_anchors_fall_back_to_the_own_prior_without_votes(room):
+    i, j = room.train_indices[:2]
+    far = {i: room.depth_prior(i).astype(np.float32), j: np.zeros_like(room.depth_prior(j), np.float32)}
+    got = median_anchors(room, far, neighbours=4, min_votes=3)  # one real vote per pixel at most
+    np.testing.assert_array_equal(got[room.cameras[i].name], far[i])
+    with pytest.raises(ValueError, match="method"):
+        fused_anchors(room, room.train_indices, {room.cameras[k].name: ExactAlignment() for k in room.train_indices},
+                      method="mean")
