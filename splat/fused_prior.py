@@ -25,6 +25,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from evaluation.culling import raycasting_scene
+from geocues.plane_anchors import anchor_depth
+from splat.mesh import backproject
+
 log = logging.getLogger(__name__)
 
 
@@ -41,13 +45,12 @@ def fuse_depths(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], voxel: f
     return mesh if len(mesh.triangles) else None
 
 
-def raycast_depth(mesh, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int, width: int) -> np.ndarray:
-    """[H, W] float32 z-depth of the first surface of ``mesh`` on the pixel-centre rays of the camera
+def raycast_depth(scene, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int, width: int) -> np.ndarray:
+    """[H, W] float32 z-depth of the first surface of the Open3D ``RaycastingScene`` ``scene``
+    (:func:`evaluation.culling.raycasting_scene`) on the pixel-centre rays of the camera
     ``x_cam = R X + t`` (COLMAP pixel convention); 0 where a ray hits nothing."""
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     K, R = np.asarray(K, np.float64), np.asarray(R, np.float64)
     j, i = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     rays_cam = np.stack([(j - K[0, 2]) / K[0, 0], (i - K[1, 2]) / K[1, 1], np.ones_like(j)], -1).reshape(-1, 3)
@@ -55,29 +58,6 @@ def raycast_depth(mesh, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int
     origin = np.broadcast_to(-R.T @ np.asarray(t, np.float64), dirs.shape)
     hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, dirs], 1).astype(np.float32)))["t_hit"].numpy()
     return np.where(np.isfinite(hit), hit, 0.0).astype(np.float32).reshape(height, width)
-
-
-def _backproject(depth: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """World points [m, 3] of the pixels of ``depth`` [H, W] with a finite depth > 0 (pixel centres)."""
-    h, w = depth.shape
-    rows, cols = np.mgrid[0:h, 0:w]
-    ok = np.isfinite(depth) & (depth > 0)
-    rays = np.stack([(cols[ok] + 0.5 - K[0, 2]) / K[0, 0], (rows[ok] + 0.5 - K[1, 2]) / K[1, 1], np.ones(ok.sum())], 1)
-    return (rays * depth[ok, None] - t) @ R
-
-
-def _forward_warp(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, height: int, width: int
-                  ) -> np.ndarray:
-    """[H, W] z-depth of the nearest of ``points`` [m, 3] (world) in each pixel of the camera; 0: none."""
-    Xc = points @ R.T + t
-    z = Xc[:, 2]
-    front = z > 1e-6
-    uv = Xc[front] @ K.T
-    col, row, z = np.floor(uv[:, 0] / uv[:, 2]), np.floor(uv[:, 1] / uv[:, 2]), z[front]
-    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    out = np.full(height * width, np.inf)
-    np.minimum.at(out, row[inside].astype(np.int64) * width + col[inside].astype(np.int64), z[inside])
-    return np.where(np.isfinite(out), out, 0.0).reshape(height, width)
 
 
 def median_anchors(scene, aligned: dict[int, np.ndarray], neighbours: int = 32, min_votes: int = 3
@@ -92,13 +72,13 @@ def median_anchors(scene, aligned: dict[int, np.ndarray], neighbours: int = 32, 
     cams = [scene.cameras[i] for i in idx]
     centres = np.array([c.center for c in cams])
     axes = np.array([np.asarray(c.R)[2] for c in cams])
-    points = [_backproject(aligned[i], c.K, c.R, c.t) for i, c in zip(idx, cams)]
+    points = [backproject(aligned[i], c.K, c.world_to_camera) for i, c in zip(idx, cams)]
     out = {}
     for k, cam in enumerate(cams):
         score = np.linalg.norm(centres - centres[k], axis=1) - axes @ axes[k]
         order = [j for j in np.argsort(score, kind="stable") if j != k][:neighbours]
-        stack = np.stack([aligned[idx[k]]] + [_forward_warp(points[j], cam.K, cam.R, cam.t, cam.height, cam.width)
-                                               for j in order])
+        stack = np.stack([aligned[idx[k]]] + [anchor_depth(points[j], None, cam.K, cam.R, cam.t, cam.height, cam.width)
+                                               for j in order])  # nearest point per pixel
         votes = (stack > 0).sum(0)
         with warnings.catch_warnings():  # pixels without any depth: an all-NaN slice, replaced below
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -134,10 +114,11 @@ def fused_anchors(scene, indices: list[int], alignments: dict, voxel: float = 0.
     if mesh is None:
         log.warning("fused prior: the TSDF of %d aligned priors is empty; L_a keeps each view's own", len(aligned))
         return {}
+    rays = raycasting_scene(np.asarray(mesh.vertices), np.asarray(mesh.triangles))  # built once
     out, covered = {}, []
     for i, own in aligned.items():
         cam = scene.cameras[i]
-        z = raycast_depth(mesh, cam.K, cam.R, cam.t, cam.height, cam.width)
+        z = raycast_depth(rays, cam.K, cam.R, cam.t, cam.height, cam.width)
         covered.append(float(np.mean(z > 0)))
         out[cam.name] = np.where(z > 0, z, own)
     log.info("fused prior: %d aligned views, mesh of %d triangles covers %.0f %% of their pixels",

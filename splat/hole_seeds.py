@@ -22,6 +22,7 @@ import torch
 
 from geocues.cue_io import CueCloud
 from geocues.types import CueType
+from splat.mesh import backproject
 
 log = logging.getLogger(__name__)
 
@@ -38,13 +39,14 @@ def view_hole_points(alpha: np.ndarray, anchor: np.ndarray, rgb: np.ndarray, nor
         raise ValueError(f"alpha {alpha.shape}, anchor {anchor.shape} and rgb {rgb.shape[:2]} must agree")
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
-    rows, cols = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
-    z = anchor[rows, cols].astype(np.float64)
-    keep = (alpha[rows, cols] < max_alpha) & np.isfinite(z) & (z > 0)
-    rows, cols, z = rows[keep], cols[keep], z[keep]
-    K, R = np.asarray(K, np.float64), np.asarray(R, np.float64)
-    rays = np.stack([cols + 0.5, rows + 0.5, np.ones_like(z)], 1) @ np.linalg.inv(K).T
-    xyz = (rays * z[:, None] - np.asarray(t, np.float64)) @ R  # camera -> world: R^T (x - t)
+    grid = np.zeros((h, w), bool)
+    grid[stride // 2::stride, stride // 2::stride] = True
+    z = np.where(grid & (alpha < max_alpha) & np.isfinite(anchor) & (anchor > 0), anchor, 0.0).astype(np.float64)
+    R = np.asarray(R, np.float64)
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = R, np.asarray(t, np.float64)
+    xyz = backproject(z, np.asarray(K, np.float64), w2c)
+    rows, cols = np.nonzero(z > 0)  # backproject's order
     col = rgb[rows, cols].astype(np.float64)
     if normal is None:
         nrm = np.zeros_like(xyz)

@@ -34,12 +34,17 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
 
 
-def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict[str, Tensor], Tensor, np.ndarray]:
+def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path, views=None
+                      ) -> tuple[dict[str, Tensor], Tensor, np.ndarray]:
     """(params, cue_type [N], seed points [N, 3]) to start from: the Gaussians of ``cfg.init_ply``, or
-    Gaussians initialised from :func:`load_init_cloud` (paper §4.2)."""
+    Gaussians initialised from :func:`load_init_cloud` (paper §4.2), with ``--init.fill-holes`` also
+    from the hole seeds of the training ``views`` (a :class:`splat.views.ViewSet`; splat/hole_seeds.py).
+    The seed points are the cloud's (without the hole seeds: they set the scene scale)."""
     if cfg.init_ply is None:
         cloud = load_init_cloud(cfg, scene, cues_ply)
         params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
+        if cfg.init.fill_holes and views is not None:
+            params, cue_type = _with_hole_seeds(cfg, cloud, params, cue_type, views)
         return params, cue_type, cloud.xyz
     params, cue_type = load_ply(cfg.init_ply, sh_degree=cfg.sh_degree)
     n = len(params["means"])
@@ -52,14 +57,14 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
     return params, cue_type, params["means"].numpy().astype(np.float64)
 
 
-def with_hole_seeds(cfg: TrainConfig, params: dict[str, Tensor], cue_type: Tensor, views,
-                    cues_ply: Path, scene: Scene) -> tuple[dict[str, Tensor], Tensor]:
-    """``--init.fill-holes``: the initial Gaussians again, from the cues and the hole seeds of the
-    training views (splat/hole_seeds.py); unchanged when no view has an anchor."""
+def _with_hole_seeds(cfg: TrainConfig, cloud: CueCloud, params: dict[str, Tensor], cue_type: Tensor, views
+                     ) -> tuple[dict[str, Tensor], Tensor]:
+    """The Gaussians of ``cloud`` and of the hole seeds ``params`` leaves in the ``views``; unchanged
+    when no view has an anchor."""
     from splat.hole_seeds import hole_seeds
 
     extra = hole_seeds(params, views, cfg.init.hole_stride, cfg.init.hole_alpha, cfg.init.hole_voxel)
     if len(extra) == 0:
         log.info("--init.fill-holes: no training view has an L_a anchor, so no hole seeds")
         return params, cue_type
-    return init_from_cues(CueCloud.concat([load_init_cloud(cfg, scene, cues_ply), extra]), cfg.sh_degree, cfg.init)
+    return init_from_cues(CueCloud.concat([cloud, extra]), cfg.sh_degree, cfg.init)

@@ -49,7 +49,7 @@ from splat.mesh_run import fuse_cameras
 from splat.multiview import SourceView, source_view, training_neighbours
 from splat.rasterize import render
 from splat.strategy import PAPER_ITERS, IndoorStrategy
-from splat.init_gaussians import initial_gaussians, load_init_cloud, with_hole_seeds  # noqa: F401  (re-exported)
+from splat.init_gaussians import initial_gaussians, load_init_cloud  # noqa: F401  (re-exported)
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.views import View, ViewSet
 
@@ -295,9 +295,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
-    init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply)
-    if cfg.init.fill_holes and cfg.init_ply is None:
-        init_params, cue_type = with_hole_seeds(cfg, init_params, cue_type, train_views, cues_ply, scene)
+    init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)
     scale = scene_scale(train_views.camera_centers(), seeds)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
     optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from geocues.scene import Scene
-from splat.fused_prior import _forward_warp, fuse_depths, fused_anchors, median_anchors, raycast_depth
+from evaluation.culling import raycasting_scene
+from splat.fused_prior import fuse_depths, fused_anchors, median_anchors, raycast_depth
 
 from cues_synth import ExactAlignment, make_room_scene, render as render_room
 
@@ -60,11 +61,12 @@ def test_raycast_depth_is_the_z_depth_of_the_first_surface(room):
     _, gt, _ = render_room(cam.K, cam.R, cam.t, cam.width, cam.height)
     views = [(render_room(c.K, c.R, c.t, c.width, c.height)[1], c.K, c.world_to_camera) for c in room.cameras]
     mesh = fuse_depths(views, voxel=0.03, trunc=0.09)
-    z = raycast_depth(mesh, cam.K, cam.R, cam.t, cam.height, cam.width)
+    rays = raycasting_scene(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    z = raycast_depth(rays, cam.K, cam.R, cam.t, cam.height, cam.width)
     assert z.shape == (cam.height, cam.width) and z.dtype == np.float32
     ok = (gt > 0) & (z > 0)
     assert ok.mean() > 0.9 and np.median(np.abs(z - gt)[ok]) < 0.01
-    away = raycast_depth(mesh, cam.K, cam.R, cam.t - np.array([0.0, 0.0, 100.0]), cam.height, cam.width)
+    away = raycast_depth(rays, cam.K, cam.R, cam.t - np.array([0.0, 0.0, 100.0]), cam.height, cam.width)
     assert not away.any()  # the room is behind this camera: no hit, 0
     with pytest.raises(ValueError, match="voxel"):
         fuse_depths(views, voxel=0.0, trunc=0.1)
@@ -83,8 +85,8 @@ def test_uncovered_pixels_keep_their_own_prior_and_one_view_fuses_nothing(room, 
     assert fused_anchors(room, idx, {room.cameras[idx[0]].name: ExactAlignment()}) == {}
     real = fp.raycast_depth
 
-    def left_half_uncovered(mesh, K, R, t, h, w):
-        z = real(mesh, K, R, t, h, w)
+    def left_half_uncovered(rays, K, R, t, h, w):
+        z = real(rays, K, R, t, h, w)
         z[:, : w // 2] = 0.0
         return z
 
@@ -131,13 +133,6 @@ def test_bad_prior_pixels_give_finite_anchors(room):
     for a in got.values():
         assert np.isfinite(a).all() and (a >= 0).all()
         assert (a[3:, 5:] > 0).mean() > 0.9  # the good pixels still have a depth
-
-
-def test_forward_warp_keeps_the_nearest_point_per_pixel():
-    K = np.array([[10.0, 0, 4.0], [0, 10.0, 3.0], [0, 0, 1]])
-    pts = np.array([[0.0, 0, 2.0], [0.0, 0, 1.5], [0.0, 0, -1.0], [5.0, 0, 1.0]])  # behind, outside: dropped
-    z = _forward_warp(pts, K, np.eye(3), np.zeros(3), 6, 8)
-    assert z[3, 4] == pytest.approx(1.5) and np.count_nonzero(z) == 1
 
 
 @pytest.mark.parametrize("method", ["tsdf", "median"])
