@@ -5,9 +5,10 @@ TSDF weight threshold can be compared on the Gaussians every row already trained
 row (OUT/rows/<row>_s<seed>/train) and each variant this runs what `splat mesh` runs, scores the mesh
 with the ablation's own metrics, and fuses the exact-depth floor with the same weight threshold (the
 floor is exact depth: the rendered-depth choice does not apply to it). Variants are named
-``<depth>_w<threshold>[_c<views>][_s<spread>]`` (``_c2``: fuse only rendered depths that 2 neighbouring
+``<depth>_w<threshold>[_c<views>][_s<spread>][_t<steps>]`` (``_c2``: fuse only rendered depths that 2 neighbouring
 renders agree with, ``--tsdf.consistent-views 2``; ``_s0.02``: only pixels whose expected and median
-depths agree within 2 %, ``--tsdf.max-depth-spread 0.02``); ``median_w3`` is what `splat train` fused before
+depths agree within 2 %, ``--tsdf.max-depth-spread 0.02``; ``_t30``: 30 Taubin smoothing steps on the
+trained meshes and the floor alike, ``--tsdf.smooth-iters 30``); ``median_w3`` is what `splat train` fused before
 ``expected`` became the default (checked: it reproduces each row's score.json).
 
     python bench/remesh_ablation.py outputs/ablation_textured_s0 --name textured_s0 \
@@ -51,13 +52,15 @@ class Remesh:
     """rows to re-mesh (default: every finished row)."""
 
 
-def parse_variant(name: str) -> tuple[str, float, int | None, float | None]:
-    """``<depth>_w<threshold>[_c<views>][_s<spread>]`` -> (depth, weight threshold, consistent_views
-    or None, max_depth_spread or None)."""
-    depth, rest = name.split("_w")
-    rest, _, spread = rest.partition("_s")
-    w, _, c = rest.partition("_c")
-    return depth, float(w), int(c) if c else None, float(spread) if spread else None
+def parse_variant(name: str) -> tuple[str, float, int | None, float | None, int]:
+    """``<depth>_w<threshold>[_c<views>][_s<spread>][_t<steps>]`` -> (depth, weight threshold,
+    consistent_views or None, max_depth_spread or None, Taubin smoothing steps)."""
+    depth, *parts = name.split("_")
+    opts = {p[0]: p[1:] for p in parts if p}
+    if not parts or set(opts) - set("wcst") or "w" not in opts:
+        raise ValueError(f"variant {name!r} is not <depth>_w<threshold>[_c<views>][_s<spread>][_t<steps>]")
+    return (depth, float(opts["w"]), int(opts["c"]) if "c" in opts else None,
+            float(opts["s"]) if "s" in opts else None, int(opts.get("t", 0)))
 
 
 def main(cfg: Remesh) -> dict:
@@ -75,14 +78,15 @@ def main(cfg: Remesh) -> dict:
     path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"
     done = json.loads(path.read_text())["variants"] if path.is_file() else {}  # a re-run scores only what is new
     for variant in cfg.variants:
-        depth, w, consistent, spread = parse_variant(variant)
+        depth, w, consistent, spread, smooth = parse_variant(variant)
         rows = dict(done.get(variant, {}))  # rows of an earlier run of this name stay
         base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
         tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w,
-                       consistent_views=consistent, max_depth_spread=spread)
+                       consistent_views=consistent, max_depth_spread=spread, smooth_iters=smooth)
         folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
-        if folder is not None and not ("floor" in rows and (work / f"floor_w{w:g}.ply").is_file()):
-            floor_mesh = fuse_floor(scene, work / f"floor_w{w:g}.ply", gt_depth=folder,
+        floor_name = f"floor_w{w:g}" + (f"_t{smooth}" if smooth else "") + ".ply"
+        if folder is not None and not ("floor" in rows and (work / floor_name).is_file()):
+            floor_mesh = fuse_floor(scene, work / floor_name, gt_depth=folder,
                                     downscale=base_cfg.get("downscale", 1.0), test_every=base_cfg.get("test_every", 8),
                                     mesh_every=base_cfg.get("mesh_every", 1), tsdf=tsdf)
             rows["floor"] = score_mesh(floor_mesh, gt, scene, metrics)

@@ -179,7 +179,7 @@ def mesh(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
 
     Args:
         run: a finished `splat train` folder.
-        out: the mesh to write (default RUN/mesh_<depth>_w<weight-threshold>.ply).
+        out: the mesh to write (default RUN/mesh_<depth>_w<weight-threshold>[_t<smooth-iters>].ply).
         overwrite: replace OUT if it exists.
         cfg: which views and how to fuse them.
     """

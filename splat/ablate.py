@@ -104,6 +104,7 @@ def config_key(payload: dict) -> str:
 _ADDED_LATER = (  # options added after rows were first keyed: (config section, "" = top level, its fields, "left off")
     ("tsdf", lambda k: k.startswith("consisten"), lambda s: s.get("consistent_views") is None),
     ("tsdf", lambda k: k == "max_depth_spread", lambda s: s.get("max_depth_spread") is None),
+    ("tsdf", lambda k: k == "smooth_iters", lambda s: not s.get("smooth_iters")),
     ("loss", lambda k: k == "plane_anchor", lambda s: not s.get("plane_anchor")),
     ("loss", lambda k: k == "plane_normals", lambda s: not s.get("plane_normals")),
     ("init", lambda k: k in ("fill_holes", "hole_alpha", "hole_stride", "hole_voxel"),

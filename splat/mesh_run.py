@@ -1,7 +1,7 @@
 """`splat mesh`: fuse a finished run's Gaussians into a mesh again, with other TSDF settings.
 
 One stage, one entry: ``run(cfg, run_dir, out=None, *, overwrite=False) -> Path`` (default OUT:
-``RUN/mesh_<depth>_w<weight threshold>.ply``). Meshing happens after training, so trying another
+``RUN/mesh_<depth>_w<weight threshold>[_t<smoothing steps>].ply``). Meshing happens after training, so trying another
 voxel size, weight threshold or rendered depth (``--tsdf.depth median|expected``) needs no new
 training: the run's Gaussians (``RUN/point_cloud.ply``) are rendered from the run's training views
 (or all views) at the run's resolution and fused as `splat train` does at its end.
@@ -40,7 +40,8 @@ class MeshRunConfig:
 
 
 def default_out(run_dir: Path, tsdf: TSDFConfig) -> Path:
-    return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}.ply"
+    smooth = f"_t{tsdf.smooth_iters}" if tsdf.smooth_iters else ""
+    return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}{smooth}.ply"
 
 
 def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = "auto",

@@ -209,6 +209,36 @@ class TestClean:
     def test_empty_mesh(self):
         out = clean_mesh(o3d.geometry.TriangleMesh(), TSDFConfig())
         assert len(out.vertices) == 0 and len(out.triangles) == 0
+        assert len(clean_mesh(o3d.geometry.TriangleMesh(), TSDFConfig(smooth_iters=10)).vertices) == 0
+
+    def test_taubin_steps_flatten_a_bumpy_plane_without_shrinking(self):
+        """smooth_iters: a 2 m plane with 4 mm vertex noise on a 2 cm grid gets its face normals back
+        towards the plane's; a sphere keeps its radius (Taubin, unlike Laplacian, does not shrink)."""
+        rng = np.random.default_rng(0)
+        n = 100
+        x, y = np.meshgrid(np.linspace(0.0, 2.0, n), np.linspace(0.0, 2.0, n))
+        V = np.stack([x.ravel(), y.ravel(), 0.004 * rng.standard_normal(n * n)], axis=1)
+        idx = np.arange(n * n).reshape(n, n)
+        a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+        F = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+        plane = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F))
+        plane.compute_vertex_normals()
+
+        def flatness(mesh):
+            mesh.compute_triangle_normals()
+            return np.abs(np.asarray(mesh.triangle_normals)[:, 2]).mean()
+
+        raw = clean_mesh(plane, TSDFConfig(min_component_diag=0.0))
+        smooth = clean_mesh(plane, TSDFConfig(min_component_diag=0.0, smooth_iters=10))
+        assert flatness(raw) < 0.95 < 0.99 < flatness(smooth), (flatness(raw), flatness(smooth))
+        assert len(smooth.triangles) == len(raw.triangles) and smooth.has_vertex_normals()
+        np.testing.assert_allclose(np.asarray(smooth.vertices)[:, :2], V[:, :2], atol=0.03)  # smoothed in place
+        sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=40)
+        sphere.compute_vertex_normals()
+        r = np.linalg.norm(np.asarray(clean_mesh(sphere, TSDFConfig(min_component_diag=0.0, smooth_iters=20)).vertices), axis=1)
+        assert abs(np.median(r) - 1.0) < 0.01, np.median(r)
+        shrunk = sphere.filter_smooth_laplacian(number_of_iterations=20, lambda_filter=0.5)
+        assert np.median(np.linalg.norm(np.asarray(shrunk.vertices), axis=1)) < 0.99  # what Taubin avoids
 
 
 class TestHardCases:
@@ -287,6 +317,8 @@ class TestInputs:
         with pytest.raises(ValueError, match="voxel_size"):
             TSDFConfig(voxel_size=0.0).validate()
         assert TSDFConfig(voxel_size=0.03).trunc == pytest.approx(0.12)
+        with pytest.raises(ValueError, match="smooth_iters must be >= 0"):
+            TSDFConfig(smooth_iters=-1).validate()
 
     def test_one_device_spelling(self):
         from splat.mesh import open3d_device
