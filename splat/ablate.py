@@ -257,6 +257,15 @@ def _done(out: Path, keys: list[str]) -> dict | None:
     return data if data.get("key") in keys else None
 
 
+def floor_key(cfg: AblateConfig, example, folder: Path) -> str:
+    """The floor's key: the views, TSDF settings, exact depth and scoring it was fused and scored with
+    (``tsdf.smooth_iters`` left out while unset, so floors fused before the option keep their key)."""
+    tsdf = {k: v for k, v in asdict(example.tsdf).items() if k != "smooth_iters" or v}
+    return config_key({"views": [example.downscale, example.test_every, example.mesh_every],
+                       "tsdf": tsdf, "depth": str(folder), "png": cfg.gt_depth_png_scale,
+                       "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
+
+
 def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> dict | None:
     from splat.floor import fuse_floor, find_gt_depth_dir
 
@@ -266,9 +275,7 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> di
     if folder is None:
         log.info("floor: %s has no gt/depth and no --gt-depth was given: no floor row", scene_dir)
         return {"status": "n/a", "reason": "no GT depth"}
-    key = config_key({"views": [example.downscale, example.test_every, example.mesh_every],
-                      "tsdf": asdict(example.tsdf), "depth": str(folder), "png": cfg.gt_depth_png_scale,
-                      "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
+    key = floor_key(cfg, example, folder)
     out = out_dir / "floor"
     done = _done(out, [key])
     if done is not None:

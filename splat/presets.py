@@ -96,6 +96,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
     Preset("mv-plane-normals", "+ L_mv and L_n on each view's own plane normals",
            {"loss.lambda_mv": 0.15, "loss.plane_normals": True}, needs=("plane_anchors", "views_without_normal_priors"),
            extension=True),
+    Preset("flat-all", "+ L_s flattens every Gaussian, not only LINE's (PGSR / 2DGS-like thin Gaussians)",
+           {"loss.flat_types": (0, 1, 2)}, extension=True),
     Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
            {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}

@@ -7,6 +7,7 @@ import json
 import shutil
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -302,6 +303,8 @@ def test_preset_overrides_and_cli_options():
     cfg = train_config("no-cues-long", ["--loss.lambda-nc", "0.3"], 100, 1, (1.0,))
     assert cfg.iters == 300 and cfg.seed == 1 and cfg.loss.lambda_nc == 0.3 and cfg.init_from == "sfm"
     assert train_config("no-line-adc", [], 10, 0, (1.0,)).strategy.custom_types == ("SFM", "PLANE")
+    assert train_config("flat-all", [], 10, 0, (1.0,)).loss.flat_types == (0, 1, 2)  # every CueType
+    assert train_config("full", [], 10, 0, (1.0,)).loss.flat_types == (1,)  # the paper: LINE only
     with pytest.raises(ValueError, match="--iters"):
         train_config("full", ["--iters", "5"], 10, 0, (1.0,))
     assert PRESETS["full"].paper == (0.040, 0.776, 0.877)
@@ -516,3 +519,30 @@ def test_plane_rule_left_at_the_paper_keeps_finished_rows_keys(tiny, tmp_path):
     del before["train_config"]["strategy"]["plane_rule"]
     assert row_keys(before) == specs[0]["keys"]
     assert specs[1]["train_config"]["strategy"]["plane_rule"] == "tangent" and specs[1]["key"] != specs[0]["key"]
+
+
+def test_mesh_smoothing_left_off_keeps_finished_rows_and_floor_keys(tiny, tmp_path):
+    """Rows and floors keyed before tsdf.smooth_iters existed keep their keys; smoothed ones get new ones."""
+    from dataclasses import asdict, replace
+
+    from splat.ablate import AblateConfig, config_key, floor_key, plan, row_keys
+
+    base, root, cues = tiny
+    cfg = AblateConfig(rows=("full",), iters=30)
+    specs, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS)
+    before = json.loads(json.dumps(specs[0]))
+    del before["train_config"]["tsdf"]["smooth_iters"]
+    assert row_keys(before) == specs[0]["keys"]
+    smoothed, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS + ["--tsdf.smooth-iters", "30"])
+    assert smoothed[0]["train_config"]["tsdf"]["smooth_iters"] == 30 and smoothed[0]["key"] != specs[0]["key"]
+
+    from splat.train import TrainConfig
+
+    example = TrainConfig()
+    old_tsdf = {k: v for k, v in asdict(example.tsdf).items() if k != "smooth_iters"}
+    old_key = config_key({"views": [example.downscale, example.test_every, example.mesh_every], "tsdf": old_tsdf,
+                          "depth": "gt/depth", "png": cfg.gt_depth_png_scale, "metrics": asdict(cfg.metrics),
+                          "gt": str(cfg.gt)})
+    assert floor_key(cfg, example, Path("gt/depth")) == old_key
+    smooth = replace(example, tsdf=replace(example.tsdf, smooth_iters=30))
+    assert floor_key(cfg, smooth, Path("gt/depth")) != old_key
