@@ -1,0 +1,150 @@
+"""Diagnostic (issue 12): do wall-floor junctions, lifted from single views onto the floor plane, pin
+the walls of a benchmark room where the triangulated 3D lines do not reach?
+
+On the bare rooms the far walls are placed by the aligned prior alone (docs/training.md, "Where the
+bare rooms lose"): the views that see them stand 3.4-5 m away and move along their viewing
+direction, so their lines triangulate badly. A segment at a wall's foot, though, lies on the floor,
+whose plane the plane cues give to a millimetre: intersecting its two end rays with that plane puts it
+in 3D from one view. This measures that, without building it into the cues: the floor height is the
+median of the lowest 30 % of the horizontal PLANE cues (the rooms are z-up); every LSD segment of
+every image (geocues.lines.detect.detect_gray, the extraction's own settings) whose end rays meet the
+floor within 8 m and 20 cm apart is lifted; a lifted segment is kept when at least ``--min-views``
+other images lift one within 2 degrees and 3 cm of its line; each kept one is scored by its larger
+end distance to the nearest wall foot of the GT box (x = min/max, y = min/max of the GT mesh). For
+contrast, the extraction's triangulated 3D lines (CUES/lines3d.npz) along each wall's foot are counted.
+Segments at objects' feet (boxes, cabinets) and lines of a textured floor are on the floor too but
+count as "not at a wall"; whether a kept segment truly lies on the floor is checked against the exact
+depth of its own view (``kept_truly_on_the_floor``).
+
+    python bench/floor_lines_diag.py --room outputs/rooms/bare_s0 --cues outputs/rooms/bare_s0_cues --name bare_s0
+
+Writes bench/results/floor_lines_NAME.json.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tyro
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from geocues.cue_io import read_cues_ply  # noqa: E402
+from geocues.lines.config import LineConfig  # noqa: E402
+from geocues.lines.detect import detect_gray  # noqa: E402
+from geocues.scene import Scene  # noqa: E402
+from geocues.types import CueType  # noqa: E402
+
+
+@dataclass
+class FloorLines:
+    room: Path
+    """a benchmark room (`evaluate make-room`; z-up, walls on its GT mesh's bounding box)."""
+    cues: Path
+    """its `geocues extract` folder."""
+    name: str
+    """result name: bench/results/floor_lines_NAME.json."""
+    min_views: int = 4
+    """a lifted segment is kept when this many other images lift one onto the same floor line."""
+
+
+def floor_height(cues: Path) -> float:
+    """Median height of the lowest 30 % of the horizontal PLANE cues."""
+    c = read_cues_ply(cues / "cues.ply")
+    z = c.xyz[(c.cue_type == CueType.PLANE) & (np.abs(c.normal[:, 2]) > 0.95), 2]
+    if len(z) == 0:
+        raise ValueError(f"{cues} has no horizontal PLANE cues to give the floor")
+    return float(np.median(z[z <= np.percentile(z, 30)]))
+
+
+def lift_segments(scene: Scene, z0: float) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """(image index, [2] xy, [2] xy, [4] the 2D segment) of every LSD segment whose end rays meet
+    the plane z = z0."""
+    cfg, out = LineConfig(), []
+    for i, cam in enumerate(scene.cameras):
+        gray = cv2.cvtColor((np.clip(scene.load_image(i), 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+        R, t = np.asarray(cam.R), np.asarray(cam.t)
+        C, Kinv = -R.T @ t, np.linalg.inv(cam.K)
+        for s in detect_gray(gray, cfg):
+            ends = []
+            for x, y in ((s[0], s[1]), (s[2], s[3])):
+                d = R.T @ (Kinv @ np.array([x, y, 1.0]))
+                depth = (z0 - C[2]) / d[2] if abs(d[2]) > 1e-9 else -1.0
+                if not 0 < depth * np.linalg.norm(d) <= 8.0:
+                    break
+                ends.append((C + depth * d)[:2])
+            if len(ends) == 2 and np.linalg.norm(ends[0] - ends[1]) > 0.2:
+                out.append((i, ends[0], ends[1], s))
+    return out
+
+
+def on_the_floor(scene: Scene, room: Path, z0: float, index: int, seg: np.ndarray) -> bool:
+    """Whether the GT depth of the segment's own view agrees, within 3 cm, with the ray's depth to
+    the floor on 4 of 5 points along it (a segment that is not on the floor, lifted onto it, does not)."""
+    cam = scene.cameras[index]
+    gt = np.load(room / "gt" / "depth" / f"{Path(cam.name).stem}.npy")
+    R, t = np.asarray(cam.R), np.asarray(cam.t)
+    C, Kinv = -R.T @ t, np.linalg.inv(cam.K)
+    ok = 0
+    for f in np.linspace(0.1, 0.9, 5):
+        x, y = seg[:2] + f * (seg[2:] - seg[:2])
+        ray = Kinv @ np.array([x, y, 1.0])  # camera frame, z = 1: its scale is the z-depth
+        z = (z0 - C[2]) / (R.T @ ray)[2]
+        row = min(int(y * gt.shape[0] / cam.height), gt.shape[0] - 1)
+        col = min(int(x * gt.shape[1] / cam.width), gt.shape[1] - 1)
+        ok += abs(gt[row, col] - z) < 0.03
+    return ok >= 4
+
+
+def main(cfg: FloorLines) -> dict:
+    import open3d as o3d
+
+    scene = Scene.load(cfg.room)
+    z0 = floor_height(cfg.cues)
+    segs = lift_segments(scene, z0)
+    th = np.array([np.arctan2(*(q - p)[::-1]) % np.pi for _, p, q, _ in segs])
+    rho = np.array([np.array([-np.sin(a), np.cos(a)]) @ p for a, (_, p, _, _) in zip(th, segs)])
+    views = np.array([v for v, _, _, _ in segs])
+    support = np.array([len(set(views[(np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < np.radians(2))
+                                     & (np.abs(rho - rho[a]) < 0.03) & (views != views[a])]))
+                        for a in range(len(segs))])
+    gt = o3d.io.read_triangle_mesh(str(cfg.room / "gt" / "mesh.ply"))
+    lo, hi = gt.get_min_bound(), gt.get_max_bound()
+    walls = {f"x={lo[0]:.2f}": (0, lo[0]), f"x={hi[0]:.2f}": (0, hi[0]),
+             f"y={lo[1]:.2f}": (1, lo[1]), f"y={hi[1]:.2f}": (1, hi[1])}
+    dist, per_wall = [], {w: 0 for w in walls}
+    for a in np.flatnonzero(support >= cfg.min_views):
+        _, p, q, _ = segs[a]
+        name, (ax, val) = min(walls.items(), key=lambda kv: abs(p[kv[1][0]] - kv[1][1]) + abs(q[kv[1][0]] - kv[1][1]))
+        d = max(abs(p[ax] - val), abs(q[ax] - val))
+        dist.append(d)
+        per_wall[name] += int(d < 0.05)
+    dist = np.array(dist)
+    on_floor = [on_the_floor(scene, cfg.room, z0, *segs[a][::3]) for a in np.flatnonzero(support >= cfg.min_views)]
+    triangulated = {w: 0 for w in walls}  # the extraction's 3D lines along each wall's foot, for contrast
+    lines = cfg.cues / "lines3d.npz"
+    for a, b in (np.load(lines)["segments"] if lines.is_file() else []):
+        for name, (ax, val) in walls.items():
+            if max(abs(a[2] - z0), abs(b[2] - z0), abs(a[ax] - val), abs(b[ax] - val)) < 0.05:
+                triangulated[name] += 1
+    res = {"room": str(cfg.room), "cues": str(cfg.cues), "images": len(scene.cameras),
+           "floor_z_from_cues": z0, "lifted": len(segs), "min_views": cfg.min_views, "kept": len(dist),
+           "within_2cm_of_a_wall_foot": float(np.mean(dist < 0.02)) if len(dist) else None,
+           "within_5cm_of_a_wall_foot": float(np.mean(dist < 0.05)) if len(dist) else None,
+           "kept_truly_on_the_floor": float(np.mean(on_floor)) if on_floor else None,
+           "kept_within_5cm_per_wall": per_wall, "triangulated_3d_lines_per_wall_foot": triangulated}
+    print(json.dumps(res, indent=1))
+    path = REPO / "bench" / "results" / f"floor_lines_{cfg.name}.json"
+    path.write_text(json.dumps(res, indent=1))
+    print(f"wrote {path}")
+    return res
+
+
+if __name__ == "__main__":
+    main(tyro.cli(FloorLines))
