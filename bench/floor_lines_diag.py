@@ -52,6 +52,10 @@ class FloorLines:
     """result name: bench/results/floor_lines_NAME.json."""
     min_views: int = 4
     """a lifted segment is kept when this many other images lift one onto the same floor line."""
+    min_azimuth_deg: float = 0.0
+    """... and one of them sees the segment's midpoint from a horizontal direction at least this far
+    (degrees) from its own view's: a horizontal line above the floor, seen by views that move along
+    their viewing direction, lifts onto the same floor line from all of them (0 = no such test)."""
 
 
 def floor_height(cues: Path) -> float:
@@ -111,9 +115,20 @@ def main(cfg: FloorLines) -> dict:
     th = np.array([np.arctan2(*(q - p)[::-1]) % np.pi for _, p, q, _ in segs])
     rho = np.array([np.array([-np.sin(a), np.cos(a)]) @ p for a, (_, p, _, _) in zip(th, segs)])
     views = np.array([v for v, _, _, _ in segs])
-    support = np.array([len(set(views[(np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < np.radians(2))
-                                     & (np.abs(rho - rho[a]) < 0.03) & (views != views[a])]))
-                        for a in range(len(segs))])
+    centres = np.array([-np.asarray(c.R).T @ np.asarray(c.t) for c in scene.cameras])[:, :2]
+
+    def azimuth(view: int, xy: np.ndarray) -> float:
+        d = xy - centres[view]
+        return float(np.arctan2(d[1], d[0]))
+
+    support = np.zeros(len(segs), int)
+    for a in range(len(segs)):
+        same = (np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < np.radians(2)) & (np.abs(rho - rho[a]) < 0.03)
+        others = set(views[same & (views != views[a])])
+        mid = 0.5 * (segs[a][1] + segs[a][2])
+        wide = any(abs((azimuth(v, mid) - azimuth(views[a], mid) + np.pi) % (2 * np.pi) - np.pi)
+                   >= np.radians(cfg.min_azimuth_deg) for v in others)
+        support[a] = len(others) if wide or cfg.min_azimuth_deg <= 0 else 0
     gt = o3d.io.read_triangle_mesh(str(cfg.room / "gt" / "mesh.ply"))
     lo, hi = gt.get_min_bound(), gt.get_max_bound()
     walls = {f"x={lo[0]:.2f}": (0, lo[0]), f"x={hi[0]:.2f}": (0, hi[0]),
@@ -134,7 +149,7 @@ def main(cfg: FloorLines) -> dict:
             if max(abs(a[2] - z0), abs(b[2] - z0), abs(a[ax] - val), abs(b[ax] - val)) < 0.05:
                 triangulated[name] += 1
     res = {"room": str(cfg.room), "cues": str(cfg.cues), "images": len(scene.cameras),
-           "floor_z_from_cues": z0, "lifted": len(segs), "min_views": cfg.min_views, "kept": len(dist),
+           "floor_z_from_cues": z0, "lifted": len(segs), "min_views": cfg.min_views, "min_azimuth_deg": cfg.min_azimuth_deg, "kept": len(dist),
            "within_2cm_of_a_wall_foot": float(np.mean(dist < 0.02)) if len(dist) else None,
            "within_5cm_of_a_wall_foot": float(np.mean(dist < 0.05)) if len(dist) else None,
            "kept_truly_on_the_floor": float(np.mean(on_floor)) if on_floor else None,
