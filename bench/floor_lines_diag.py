@@ -88,6 +88,37 @@ def lift_segments(scene: Scene, z0: float) -> list[tuple[int, np.ndarray, np.nda
     return out
 
 
+def kept_segments(scene: Scene, segs: list, min_views: int = 4, min_azimuth_deg: float = 0.0
+                  ) -> list[tuple[int, list[int]]]:
+    """(index into ``segs``, the other images that lift a segment onto the same floor line: within
+    2 degrees and 3 cm) of the segments with at least ``min_views`` such images, one of which sees
+    the segment's midpoint from a horizontal direction at least ``min_azimuth_deg`` away from its own."""
+    if not segs:
+        return []
+    th = np.array([np.arctan2(*(q - p)[::-1]) % np.pi for _, p, q, _ in segs])
+    rho = np.array([np.array([-np.sin(a), np.cos(a)]) @ p for a, (_, p, _, _) in zip(th, segs)])
+    views = np.array([v for v, _, _, _ in segs])
+    centres = np.array([-np.asarray(c.R).T @ np.asarray(c.t) for c in scene.cameras])[:, :2]
+
+    def azimuth(view: int, xy: np.ndarray) -> float:
+        d = xy - centres[view]
+        return float(np.arctan2(d[1], d[0]))
+
+    out = []
+    for a in range(len(segs)):
+        same = (np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < np.radians(2)) & (np.abs(rho - rho[a]) < 0.03)
+        others = sorted({int(v) for v in views[same & (views != views[a])]})
+        if len(others) < min_views:
+            continue
+        mid = 0.5 * (segs[a][1] + segs[a][2])
+        if min_azimuth_deg > 0 and not any(
+                abs((azimuth(v, mid) - azimuth(views[a], mid) + np.pi) % (2 * np.pi) - np.pi) >= np.radians(min_azimuth_deg)
+                for v in others):
+            continue
+        out.append((a, others))
+    return out
+
+
 def on_the_floor(scene: Scene, room: Path, z0: float, index: int, seg: np.ndarray) -> bool:
     """Whether the GT depth of the segment's own view agrees, within 3 cm, with the ray's depth to
     the floor on 4 of 5 points along it (a segment that is not on the floor, lifted onto it, does not)."""
@@ -112,23 +143,10 @@ def main(cfg: FloorLines) -> dict:
     scene = Scene.load(cfg.room)
     z0 = floor_height(cfg.cues)
     segs = lift_segments(scene, z0)
-    th = np.array([np.arctan2(*(q - p)[::-1]) % np.pi for _, p, q, _ in segs])
-    rho = np.array([np.array([-np.sin(a), np.cos(a)]) @ p for a, (_, p, _, _) in zip(th, segs)])
-    views = np.array([v for v, _, _, _ in segs])
-    centres = np.array([-np.asarray(c.R).T @ np.asarray(c.t) for c in scene.cameras])[:, :2]
-
-    def azimuth(view: int, xy: np.ndarray) -> float:
-        d = xy - centres[view]
-        return float(np.arctan2(d[1], d[0]))
-
+    keep = kept_segments(scene, segs, cfg.min_views, cfg.min_azimuth_deg)
     support = np.zeros(len(segs), int)
-    for a in range(len(segs)):
-        same = (np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < np.radians(2)) & (np.abs(rho - rho[a]) < 0.03)
-        others = set(views[same & (views != views[a])])
-        mid = 0.5 * (segs[a][1] + segs[a][2])
-        wide = any(abs((azimuth(v, mid) - azimuth(views[a], mid) + np.pi) % (2 * np.pi) - np.pi)
-                   >= np.radians(cfg.min_azimuth_deg) for v in others)
-        support[a] = len(others) if wide or cfg.min_azimuth_deg <= 0 else 0
+    for a, others in keep:
+        support[a] = len(others)
     gt = o3d.io.read_triangle_mesh(str(cfg.room / "gt" / "mesh.ply"))
     lo, hi = gt.get_min_bound(), gt.get_max_bound()
     walls = {f"x={lo[0]:.2f}": (0, lo[0]), f"x={hi[0]:.2f}": (0, hi[0]),
