@@ -73,8 +73,7 @@ def lift_segments(scene: Scene, z0: float) -> list[tuple[int, np.ndarray, np.nda
     cfg, out = LineConfig(), []
     for i, cam in enumerate(scene.cameras):
         gray = cv2.cvtColor((np.clip(scene.load_image(i), 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-        R, t = np.asarray(cam.R), np.asarray(cam.t)
-        C, Kinv = -R.T @ t, np.linalg.inv(cam.K)
+        R, C, Kinv = np.asarray(cam.R), np.asarray(cam.center), np.linalg.inv(cam.K)
         for s in detect_gray(gray, cfg):
             ends = []
             for x, y in ((s[0], s[1]), (s[2], s[3])):
@@ -98,7 +97,7 @@ def kept_segments(scene: Scene, segs: list, min_views: int = 4, min_azimuth_deg:
     th = np.array([np.arctan2(*(q - p)[::-1]) % np.pi for _, p, q, _ in segs])
     rho = np.array([np.array([-np.sin(a), np.cos(a)]) @ p for a, (_, p, _, _) in zip(th, segs)])
     views = np.array([v for v, _, _, _ in segs])
-    centres = np.array([-np.asarray(c.R).T @ np.asarray(c.t) for c in scene.cameras])[:, :2]
+    centres = np.array([c.center for c in scene.cameras])[:, :2]
 
     def azimuth(view: int, xy: np.ndarray) -> float:
         d = xy - centres[view]
@@ -119,13 +118,11 @@ def kept_segments(scene: Scene, segs: list, min_views: int = 4, min_azimuth_deg:
     return out
 
 
-def on_the_floor(scene: Scene, room: Path, z0: float, index: int, seg: np.ndarray) -> bool:
-    """Whether the GT depth of the segment's own view agrees, within 3 cm, with the ray's depth to
-    the floor on 4 of 5 points along it (a segment that is not on the floor, lifted onto it, does not)."""
-    cam = scene.cameras[index]
-    gt = np.load(room / "gt" / "depth" / f"{Path(cam.name).stem}.npy")
-    R, t = np.asarray(cam.R), np.asarray(cam.t)
-    C, Kinv = -R.T @ t, np.linalg.inv(cam.K)
+def on_the_floor(cam, gt: np.ndarray, z0: float, seg: np.ndarray) -> bool:
+    """Whether the GT depth ``gt`` of the segment's own view ``cam`` agrees, within 3 cm, with the
+    ray's depth to the floor on 4 of 5 points along it (a segment that is not on the floor, lifted
+    onto it, does not)."""
+    R, C, Kinv = np.asarray(cam.R), np.asarray(cam.center), np.linalg.inv(cam.K)
     ok = 0
     for f in np.linspace(0.1, 0.9, 5):
         x, y = seg[:2] + f * (seg[2:] - seg[:2])
@@ -143,23 +140,26 @@ def main(cfg: FloorLines) -> dict:
     scene = Scene.load(cfg.room)
     z0 = floor_height(cfg.cues)
     segs = lift_segments(scene, z0)
-    keep = kept_segments(scene, segs, cfg.min_views, cfg.min_azimuth_deg)
-    support = np.zeros(len(segs), int)
-    for a, others in keep:
-        support[a] = len(others)
+    keep = [a for a, _ in kept_segments(scene, segs, cfg.min_views, cfg.min_azimuth_deg)]
     gt = o3d.io.read_triangle_mesh(str(cfg.room / "gt" / "mesh.ply"))
     lo, hi = gt.get_min_bound(), gt.get_max_bound()
     walls = {f"x={lo[0]:.2f}": (0, lo[0]), f"x={hi[0]:.2f}": (0, hi[0]),
              f"y={lo[1]:.2f}": (1, lo[1]), f"y={hi[1]:.2f}": (1, hi[1])}
     dist, per_wall = [], {w: 0 for w in walls}
-    for a in np.flatnonzero(support >= cfg.min_views):
+    for a in keep:
         _, p, q, _ = segs[a]
         name, (ax, val) = min(walls.items(), key=lambda kv: abs(p[kv[1][0]] - kv[1][1]) + abs(q[kv[1][0]] - kv[1][1]))
         d = max(abs(p[ax] - val), abs(q[ax] - val))
         dist.append(d)
         per_wall[name] += int(d < 0.05)
     dist = np.array(dist)
-    on_floor = [on_the_floor(scene, cfg.room, z0, *segs[a][::3]) for a in np.flatnonzero(support >= cfg.min_views)]
+    gt_depth = {}  # view -> its exact depth, read once
+    on_floor = []
+    for a in keep:
+        cam = scene.cameras[segs[a][0]]
+        if segs[a][0] not in gt_depth:
+            gt_depth[segs[a][0]] = np.load(cfg.room / "gt" / "depth" / f"{cam.stem}.npy")
+        on_floor.append(on_the_floor(cam, gt_depth[segs[a][0]], z0, segs[a][3]))
     triangulated = {w: 0 for w in walls}  # the extraction's 3D lines along each wall's foot, for contrast
     lines = cfg.cues / "lines3d.npz"
     for a, b in (np.load(lines)["segments"] if lines.is_file() else []):
