@@ -5,7 +5,8 @@ On the bare rooms the far walls are placed by the aligned prior alone (docs/trai
 bare rooms lose"): the views that see them stand 3.4-5 m away and move along their viewing
 direction, so their lines triangulate badly. A segment at a wall's foot, though, lies on the floor,
 whose plane the plane cues give to a millimetre: intersecting its two end rays with that plane puts it
-in 3D from one view. This measures that, without building it into the cues: the floor height is the
+in 3D from one view. This measures that with the lifting and keep test of `geocues extract
+--floor.lines` (geocues.floor_lines) on every raw LSD segment and a level floor: the floor height is the
 median of the lowest 30 % of the horizontal PLANE cues (the rooms are z-up); every LSD segment of
 every image (geocues.lines.detect.detect_gray, the extraction's own settings) whose end rays meet the
 floor within 8 m and 20 cm apart is lifted; a lifted segment is kept when at least ``--min-views``
@@ -36,6 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from geocues.cue_io import read_cues_ply  # noqa: E402
+from geocues.floor_lines import Floor, FloorLineConfig, kept_segments, lift_segments  # noqa: E402
 from geocues.lines.config import LineConfig  # noqa: E402
 from geocues.lines.detect import detect_gray  # noqa: E402
 from geocues.scene import Scene  # noqa: E402
@@ -67,55 +69,17 @@ def floor_height(cues: Path) -> float:
     return float(np.median(z[z <= np.percentile(z, 30)]))
 
 
-def lift_segments(scene: Scene, z0: float) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
-    """(image index, [2] xy, [2] xy, [4] the 2D segment) of every LSD segment whose end rays meet
-    the plane z = z0."""
-    cfg, out = LineConfig(), []
-    for i, cam in enumerate(scene.cameras):
-        gray = cv2.cvtColor((np.clip(scene.load_image(i), 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-        R, C, Kinv = np.asarray(cam.R), np.asarray(cam.center), np.linalg.inv(cam.K)
-        for s in detect_gray(gray, cfg):
-            ends = []
-            for x, y in ((s[0], s[1]), (s[2], s[3])):
-                d = R.T @ (Kinv @ np.array([x, y, 1.0]))
-                depth = (z0 - C[2]) / d[2] if abs(d[2]) > 1e-9 else -1.0
-                if not 0 < depth * np.linalg.norm(d) <= 8.0:
-                    break
-                ends.append((C + depth * d)[:2])
-            if len(ends) == 2 and np.linalg.norm(ends[0] - ends[1]) > 0.2:
-                out.append((i, ends[0], ends[1], s))
-    return out
-
-
-def kept_segments(scene: Scene, segs: list, min_views: int = 4, min_azimuth_deg: float = 0.0
-                  ) -> list[tuple[int, list[int]]]:
-    """(index into ``segs``, the other images that lift a segment onto the same floor line: within
-    2 degrees and 3 cm) of the segments with at least ``min_views`` such images, one of which sees
-    the segment's midpoint from a horizontal direction at least ``min_azimuth_deg`` away from its own."""
-    if not segs:
-        return []
-    th = np.array([np.arctan2(*(q - p)[::-1]) % np.pi for _, p, q, _ in segs])
-    rho = np.array([np.array([-np.sin(a), np.cos(a)]) @ p for a, (_, p, _, _) in zip(th, segs)])
-    views = np.array([v for v, _, _, _ in segs])
-    centres = np.array([c.center for c in scene.cameras])[:, :2]
-
-    def azimuth(view: int, xy: np.ndarray) -> float:
-        d = xy - centres[view]
-        return float(np.arctan2(d[1], d[0]))
-
-    out = []
-    for a in range(len(segs)):
-        same = (np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < np.radians(2)) & (np.abs(rho - rho[a]) < 0.03)
-        others = sorted({int(v) for v in views[same & (views != views[a])]})
-        if len(others) < min_views:
-            continue
-        mid = 0.5 * (segs[a][1] + segs[a][2])
-        if min_azimuth_deg > 0 and not any(
-                abs((azimuth(v, mid) - azimuth(views[a], mid) + np.pi) % (2 * np.pi) - np.pi) >= np.radians(min_azimuth_deg)
-                for v in others):
-            continue
-        out.append((a, others))
-    return out
+def lifted_and_kept(scene: Scene, z0: float, min_views: int, min_azimuth_deg: float):
+    """(the raw LSD segments of every image, geocues.floor_lines.Lifted on z = z0, the kept ones'
+    indices into it): the option's lifting and keep test (`geocues extract --floor.lines`) on every
+    segment LSD finds, with the floor known to be level."""
+    cfg = FloorLineConfig(min_views=min_views, min_azimuth_deg=min_azimuth_deg)
+    segments = [detect_gray(cv2.cvtColor((np.clip(scene.load_image(i), 0, 1) * 255).astype(np.uint8),
+                                         cv2.COLOR_RGB2GRAY), LineConfig()) for i in range(len(scene.cameras))]
+    floor = Floor(np.array([0.0, 0.0, 1.0]), z0, 0)
+    lifted = lift_segments(scene.cameras, segments, floor, cfg)
+    centres = np.array([c.center for c in scene.cameras]) @ floor.basis().T
+    return segments, lifted, [a for a, _ in kept_segments(lifted, centres, cfg)]
 
 
 def on_the_floor(cam, gt: np.ndarray, z0: float, seg: np.ndarray) -> bool:
@@ -139,15 +103,14 @@ def main(cfg: FloorLines) -> dict:
 
     scene = Scene.load(cfg.room)
     z0 = floor_height(cfg.cues)
-    segs = lift_segments(scene, z0)
-    keep = [a for a, _ in kept_segments(scene, segs, cfg.min_views, cfg.min_azimuth_deg)]
+    segments, lifted, keep = lifted_and_kept(scene, z0, cfg.min_views, cfg.min_azimuth_deg)
     gt = o3d.io.read_triangle_mesh(str(cfg.room / "gt" / "mesh.ply"))
     lo, hi = gt.get_min_bound(), gt.get_max_bound()
     walls = {f"x={lo[0]:.2f}": (0, lo[0]), f"x={hi[0]:.2f}": (0, hi[0]),
              f"y={lo[1]:.2f}": (1, lo[1]), f"y={hi[1]:.2f}": (1, hi[1])}
     dist, per_wall = [], {w: 0 for w in walls}
     for a in keep:
-        _, p, q, _ = segs[a]
+        p, q = lifted.ends[a][:, :2]
         name, (ax, val) = min(walls.items(), key=lambda kv: abs(p[kv[1][0]] - kv[1][1]) + abs(q[kv[1][0]] - kv[1][1]))
         d = max(abs(p[ax] - val), abs(q[ax] - val))
         dist.append(d)
@@ -156,10 +119,10 @@ def main(cfg: FloorLines) -> dict:
     gt_depth = {}  # view -> its exact depth, read once
     on_floor = []
     for a in keep:
-        cam = scene.cameras[segs[a][0]]
-        if segs[a][0] not in gt_depth:
-            gt_depth[segs[a][0]] = np.load(cfg.room / "gt" / "depth" / f"{cam.stem}.npy")
-        on_floor.append(on_the_floor(cam, gt_depth[segs[a][0]], z0, segs[a][3]))
+        v = int(lifted.view[a])
+        if v not in gt_depth:
+            gt_depth[v] = np.load(cfg.room / "gt" / "depth" / f"{scene.cameras[v].stem}.npy")
+        on_floor.append(on_the_floor(scene.cameras[v], gt_depth[v], z0, segments[v][lifted.seg[a]]))
     triangulated = {w: 0 for w in walls}  # the extraction's 3D lines along each wall's foot, for contrast
     lines = cfg.cues / "lines3d.npz"
     for a, b in (np.load(lines)["segments"] if lines.is_file() else []):
@@ -167,7 +130,7 @@ def main(cfg: FloorLines) -> dict:
             if max(abs(a[2] - z0), abs(b[2] - z0), abs(a[ax] - val), abs(b[ax] - val)) < 0.05:
                 triangulated[name] += 1
     res = {"room": str(cfg.room), "cues": str(cfg.cues), "images": len(scene.cameras),
-           "floor_z_from_cues": z0, "lifted": len(segs), "min_views": cfg.min_views, "min_azimuth_deg": cfg.min_azimuth_deg, "kept": len(dist),
+           "floor_z_from_cues": z0, "lifted": len(lifted), "min_views": cfg.min_views, "min_azimuth_deg": cfg.min_azimuth_deg, "kept": len(dist),
            "within_2cm_of_a_wall_foot": float(np.mean(dist < 0.02)) if len(dist) else None,
            "within_5cm_of_a_wall_foot": float(np.mean(dist < 0.05)) if len(dist) else None,
            "kept_truly_on_the_floor": float(np.mean(on_floor)) if on_floor else None,

@@ -33,6 +33,7 @@ from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
+from geocues.floor_lines import FloorLineConfig, floor_line_anchors
 from geocues.depth_align import (DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning,
                                   write_alignments)
 from geocues.lines import LineConfig, LineCues
@@ -78,6 +79,8 @@ class ExtractConfig:
     """Depth-prior alignment."""
     plane: PlaneConfig = field(default_factory=PlaneConfig)
     """Plane-like cues."""
+    floor: FloorLineConfig = field(default_factory=FloorLineConfig)
+    """Floor-contact lines as plane anchors (an extension, off by default)."""
 
 
 # Plane options added after cue folders were made that change nothing while fuse_surfaces is off:
@@ -87,8 +90,11 @@ _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg"
 
 
 def _key_config(cfg: ExtractConfig) -> dict:
-    """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` left out while off)."""
+    """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` and ``floor`` left out
+    while off)."""
     d = asdict(cfg)
+    if not cfg.floor.lines:  # added later, like the surface fields: off = the key of older folders
+        d.pop("floor")
     if not cfg.plane.fuse_surfaces:
         for k in _SURFACE_FIELDS:
             d["plane"].pop(k)
@@ -170,6 +176,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     if cfg.downscale <= 0:
         raise ValueError(f"downscale must be > 0, got {cfg.downscale}")
     cfg.line.validate()
+    cfg.floor.validate()
     check_output_dir(out_dir)
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
     far = metric_warning(scene)
@@ -230,19 +237,19 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             notes.append(f"{int((~seen).sum())} of {n_img} images support no 3D line")
 
     # ---- 3. plane-like cues (texture -> alignment -> planes, per image)
-    anchors = Anchors.build(
-        sfm_xyz=sfm.cloud.xyz if sfm else None,
-        sfm_views=({c: np.flatnonzero(np.isin(sfm.kept, v)) for c, v in scene.points.visible_in.items()}
-                   if sfm and len(sfm.kept) else None),
-        line_points=lines.points if lines else None,
-        line_of_point=lines.point_line if lines else None,
-        line_views=lines.views if lines else None)
+    anchors = _anchors(scene, sfm, lines)
     plane_ok = np.ones(len(anchors), bool)  # anchors the planes may use
     if not cfg.plane.sfm_anchors:
         plane_ok &= anchors.cue_type != int(CueType.SFM)
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
+    floor_stats = None
+    if cfg.planes and cfg.floor.lines:
+        extra, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
+        if len(extra[0]):
+            anchors = _anchors(scene, sfm, lines, extra)
+            plane_ok = np.concatenate([plane_ok, np.ones(len(extra[0]), bool)])  # they come last
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
@@ -283,6 +290,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         "planes": plane_stats, "per_image_seconds": _per_image_seconds(per_image, timings, n_img),
         "per_image": per_image, "notes": notes,
     }
+    if floor_stats is not None:
+        report["floor_lines"] = floor_stats
     if sfm is not None:
         report["sfm"] = {"n_input": sfm.n_input, "n_kept": len(sfm.kept), "n_removed": sfm.n_removed,
                          "sor_threshold_m": sfm.sor_threshold if np.isfinite(sfm.sor_threshold) else None}
@@ -293,6 +302,44 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         log.info("extract: %s", line)
     log.info("extract: %s -> %s in %.1f s", cues.counts(), out_dir, timings["total"])
     return out_dir
+
+
+def _anchors(scene: Scene, sfm: SfmCues | None, lines: LineCues | None,
+             extra: tuple[np.ndarray, np.ndarray, list[np.ndarray]] | None = None) -> Anchors:
+    """The plane stage's anchors: SfM cues, line samples, then ``extra`` line-like anchors (points,
+    their line index from 0, views per line: the floor-contact lines) after them."""
+    lp, lo, lv = (lines.points, lines.point_line, list(lines.views)) if lines else (None, None, None)
+    if extra is not None:
+        n = len(lv) if lv is not None else 0
+        lp = extra[0] if lp is None else np.concatenate([lp, extra[0]])
+        lo = extra[1] if lo is None else np.concatenate([lo, extra[1] + n])
+        lv = (lv or []) + list(extra[2])
+    return Anchors.build(
+        sfm_xyz=sfm.cloud.xyz if sfm else None,
+        sfm_views=({c: np.flatnonzero(np.isin(sfm.kept, v)) for c, v in scene.points.visible_in.items()}
+                   if sfm and len(sfm.kept) else None),
+        line_points=lp, line_of_point=lo, line_views=lv)
+
+
+def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
+                 lines: LineCues | None, cache: Path, timings: dict[str, float], notes: list[str]
+                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], dict]:
+    """A first plane pass for the floor, then the floor-contact lines (geocues.floor_lines): returns
+    ((points, line index, views per line), statistics for the report)."""
+    from geocues.lines.detect import detect_all
+
+    t0 = time.perf_counter()
+    first, *_ = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [])
+    segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
+    P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
+                                        cfg.floor)
+    timings["floor_lines"] = time.perf_counter() - t0
+    if "note" in stats:
+        notes.append(f"floor lines: {stats['note']}; no floor-line anchors")
+    else:
+        notes.append(f"floor lines: floor found in {stats['floor']['n_points']} plane cues; {stats['kept']} of "
+                     f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors")
+    return (P, L, V), stats
 
 
 def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:

@@ -84,9 +84,10 @@ def _hash_noise(p: np.ndarray, cell: float) -> np.ndarray:
     return v - np.floor(v)
 
 
-def render(K: np.ndarray, R: np.ndarray, t: np.ndarray, w: int, h: int
+def render(K: np.ndarray, R: np.ndarray, t: np.ndarray, w: int, h: int, plain_floor: bool = False
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(rgb [H, W, 3] float32, z-depth [H, W] float32, material index [H, W])."""
+    """(rgb [H, W, 3] float32, z-depth [H, W] float32, material index [H, W]); ``plain_floor``: an
+    untextured floor (weak texture, like the walls)."""
     import open3d as o3d
 
     _, _, mats = room_mesh()
@@ -109,7 +110,8 @@ def render(K: np.ndarray, R: np.ndarray, t: np.ndarray, w: int, h: int
     tex = _hash_noise(P, 0.04)
     checker = ((np.floor(P[:, 0] / 0.25) + np.floor(P[:, 1] / 0.25)) % 2)
     floor = name == "floor"
-    col[floor] = (0.35 + 0.25 * checker[floor] + 0.3 * tex[floor])[:, None] * np.array([0.9, 0.7, 0.5])
+    col[floor] = (0.6 if plain_floor else (0.35 + 0.25 * checker[floor] + 0.3 * tex[floor])[:, None]) \
+        * np.array([0.9, 0.7, 0.5])
     box = name == "box"
     col[box] = (0.2 + 0.6 * _hash_noise(P[box], 0.03))[:, None] * np.array([0.5, 0.6, 0.9])
     light = np.array([2.0, 1.5, 2.4])
@@ -163,12 +165,14 @@ def fake_line_cues(cams: list, step: float = 0.05, drop: tuple[int, ...] = ()):
 
 def make_room_scene(root: Path, n_views: int = 6, w: int = 160, h: int = 120,
                     priors: str = "all", n_sfm: int = 300, n_outliers: int = 30,
-                    prior_scale: float = 0.5, prior_shift: float = 0.3, seed: int = 0) -> Path:
+                    prior_scale: float = 0.5, prior_shift: float = 0.3, seed: int = 0,
+                    plain_floor: bool = False) -> Path:
     """Write the synthetic room scene to ``root`` and return it.
 
     priors: "all", "none" or "some" (every other image) -- simulated depth priors
     prior = prior_scale * z + prior_shift (+ 2 mm noise), labelled simulated in scene.json.
     n_sfm: SfM points on the textured floor and box (3 mm noise) plus ``n_outliers`` in the air.
+    plain_floor: an untextured floor (it gets plane cues, as in the bare rooms).
     """
     import json
 
@@ -184,7 +188,7 @@ def make_room_scene(root: Path, n_views: int = 6, w: int = 160, h: int = 120,
         c = np.array([2.0, 1.5, 1.4]) + 0.3 * np.array([np.cos(yaw + 1), np.sin(yaw + 1), 0])
         target = c + np.array([np.cos(yaw), np.sin(yaw), -0.35])
         R, t = look_at(c, target)
-        rgb, depth, _ = render(K, R, t, w, h)
+        rgb, depth, _ = render(K, R, t, w, h, plain_floor)
         name = f"{k:05d}.png"
         cv2.imwrite(str(root / "images" / name), (rgb[:, :, ::-1] * 255 + 0.5).astype(np.uint8))
         images.append(RawImage(k + 1, 1, name, "PINHOLE", w, h, K, R, t))

@@ -34,7 +34,9 @@ def scenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("extract")
     # 16 views, 22.5 degrees apart: every wall point is seen by ~3 views, as the multi-view plane
     # test (min_views = 3) needs
-    return {p: make_room_scene(root / p, n_views=16, priors=p) for p in ("all", "none", "some")}
+    out = {p: make_room_scene(root / p, n_views=16, priors=p) for p in ("all", "none", "some")}
+    out["plain_floor"] = make_room_scene(root / "plain_floor", n_views=16, priors="all", plain_floor=True)
+    return out
 
 
 def _report(out):
@@ -116,6 +118,31 @@ class TestRun:
         assert rep["seconds"]["planes_surfaces"] >= 0
         with pytest.raises(ValueError, match="overwrite"):
             ex.run(None, scenes["all"], out)
+
+    def test_floor_lines_run(self, scenes, tmp_path):
+        """--floor.lines end to end on the room with a plain floor: the floor from the first plane
+        pass, wall and box feet kept as plane anchors, plane cues as accurate as before, no NaN; a
+        plain run of that folder is another config, and off it leaves the key of folders made
+        before the option. On the textured floor (no plane cues there): no floor, a note, the cues
+        of a plain run."""
+        cfg = ex.ExtractConfig()
+        cfg.floor.lines = True
+        out = ex.run(cfg, scenes["plain_floor"], tmp_path / "floor")
+        rep = _report(out)
+        fl = rep["floor_lines"]
+        assert fl["floor"]["normal"][2] > 0.9999 and abs(fl["floor"]["height"]) < 0.005
+        assert fl["kept"] > 0 and fl["samples"] > fl["kept"] and rep["seconds"]["floor_lines"] > 0
+        assert any(n.startswith("floor lines:") for n in rep["notes"])
+        plane = _no_nan(out).of_type(CueType.PLANE)
+        assert len(plane) > 100 and np.mean(distance_to_surface(plane.xyz) < 0.03) > 0.95
+        with pytest.raises(ValueError, match="overwrite"):
+            ex.run(None, scenes["plain_floor"], out)
+        assert "floor" not in ex._key_config(ex.ExtractConfig()) and "floor" in ex._key_config(cfg)
+        rep = _report(ex.run(cfg, scenes["all"], tmp_path / "textured_floor"))
+        assert rep["floor_lines"]["floor"] is None
+        assert any("no floor found" in n and "horizontal plane cues" in n for n in rep["notes"])
+        plain = _report(ex.run(None, scenes["all"], tmp_path / "plain_run"))
+        assert rep["counts"] == plain["counts"]
 
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
         out = ex.run(ex.ExtractConfig(priors=False), scenes["all"], tmp_path / "free")

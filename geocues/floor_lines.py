@@ -1,0 +1,252 @@
+"""Floor-contact lines as plane-stage anchors (an extension; `geocues extract --floor.lines`).
+
+Where the views that see a wall stand far from it and move along their viewing direction, its lines
+triangulate badly and no 3D line cue reaches it (docs/training.md, "Which wall, and what could pin
+it"). Its foot, though, lies on the floor, whose plane a first pass of the plane stage gives to a
+millimetre: a 2D segment along the foot, lifted onto that plane from its own view (both end rays
+cut with the plane), is placed in 3D from one image. Lifted segments of objects above the floor land
+somewhere on it too, so a segment is kept only when ``min_views`` other images lift one onto the same
+floor line (within ``angle_deg`` and ``dist``) and one of them sees its midpoint from at least
+``min_azimuth_deg`` away in azimuth (a horizontal edge above the floor seen by views that move
+along their viewing direction lifts consistently from all of them; from another azimuth it does not).
+Kept segments are sampled every ``step`` metres and join the line anchors of the plane stage (with
+the views that lifted them); they are not written as cue points.
+
+The floor: up is the mean of the cameras' up vectors (-R[1]) snapped to the horizontal PLANE cues'
+normals; the floor is the lowest well-supported height of the horizontal PLANE cues below the
+cameras, refined by a plane fit. With no such cues there is no floor and nothing is lifted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class FloorLineConfig:
+    """Floor-contact lines (an extension, off by default): 2D segments lifted onto the floor plane
+    from single views, kept when other views agree, used as anchors of the plane stage."""
+
+    lines: bool = False
+    """Lift 2D segments onto the floor found by a first plane pass and anchor the plane stage with the
+    ones other views agree on (an extension: pins walls no 3D line reaches; runs the plane stage twice)."""
+    min_views: int = 4
+    """A lifted segment is kept when this many other images lift one onto the same floor line ..."""
+    angle_deg: float = 2.0
+    """... within this angle (degrees) ..."""
+    dist: float = 0.03
+    """... and this distance (metres) ..."""
+    min_azimuth_deg: float = 15.0
+    """... and one of them sees its midpoint from a horizontal direction at least this far (degrees)
+    from its own view's (0 = no such test)."""
+    step: float = 0.02
+    """Spacing (metres) of the anchor samples along a kept segment."""
+    max_range: float = 8.0
+    """End rays that meet the floor farther than this (metres) from the camera are not lifted."""
+    min_length: float = 0.2
+    """Lifted segments shorter than this on the floor (metres) are dropped."""
+    horizontal_deg: float = 20.0
+    """PLANE cues whose normal is within this angle of up are horizontal (floor candidates)."""
+    min_floor_points: int = 50
+    """The floor needs at least this many horizontal PLANE cues near its height."""
+
+    def validate(self) -> None:
+        for name in ("angle_deg", "dist", "step", "max_range", "min_length"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"floor.{name} must be > 0, got {getattr(self, name)}")
+        if self.min_views < 1:
+            raise ValueError(f"floor.min_views must be >= 1, got {self.min_views}")
+        if not 0 <= self.min_azimuth_deg < 180:
+            raise ValueError(f"floor.min_azimuth_deg must be in [0, 180), got {self.min_azimuth_deg}")
+        if not 0 < self.horizontal_deg < 90:
+            raise ValueError(f"floor.horizontal_deg must be in (0, 90), got {self.horizontal_deg}")
+
+
+@dataclass
+class Floor:
+    """The plane n . X = height (n: unit, up)."""
+
+    normal: np.ndarray  # [3]
+    height: float
+    n_points: int  # horizontal PLANE cues it was fitted to
+
+    def basis(self) -> np.ndarray:
+        """[2, 3] orthonormal in-plane axes."""
+        a = np.eye(3)[int(np.argmin(np.abs(self.normal)))]
+        e1 = np.cross(self.normal, a)
+        e1 /= np.linalg.norm(e1)
+        return np.stack([e1, np.cross(self.normal, e1)])
+
+
+def up_direction(cameras) -> np.ndarray | None:
+    """Mean of the cameras' up vectors (-R[1], OpenCV y points down), unit; None when they do not
+    agree (norm of the mean < 0.5: cameras rolled every way)."""
+    m = -np.mean([np.asarray(c.R)[1] for c in cameras], axis=0)
+    n = float(np.linalg.norm(m))
+    return m / n if n >= 0.5 else None
+
+
+def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfig) -> tuple[Floor | None, str]:
+    """The floor from PLANE cues ``xyz`` / ``normal`` [N, 3]; (None, why) when there is none."""
+    up = up_direction(cameras)
+    if up is None:
+        return None, "the cameras agree on no up direction"
+    n = np.asarray(normal, np.float64).reshape(-1, 3)
+    x = np.asarray(xyz, np.float64).reshape(-1, 3)
+    for deg in (min(2 * cfg.horizontal_deg, 60.0), cfg.horizontal_deg):  # cameras pitched down tilt
+        horiz = np.abs(n @ up) > np.cos(np.radians(deg))  # their mean up: snap it to the horizontal
+        if horiz.sum() < cfg.min_floor_points:  # cues' mean normal, first in a wider cone
+            return None, f"{int(horiz.sum())} horizontal plane cues (fewer than {cfg.min_floor_points})"
+        up = (n[horiz] * np.sign(n[horiz] @ up)[:, None]).mean(axis=0)
+        up /= np.linalg.norm(up)
+    horiz = np.abs(n @ up) > np.cos(np.radians(cfg.horizontal_deg))
+    h = x[horiz] @ up
+    below = h < min(float(np.asarray(c.center) @ up) for c in cameras)
+    h, pts = h[below], x[horiz][below]
+    if len(h) < cfg.min_floor_points:
+        return None, f"{len(h)} horizontal plane cues below the cameras (fewer than {cfg.min_floor_points})"
+    bins = np.floor((h - h.min()) / 0.02).astype(np.int64)  # 2 cm bins; the lowest well-filled one
+    count = np.bincount(bins)
+    width3 = np.convolve(count, np.ones(3, np.int64), mode="same")  # a surface spreads over a few bins
+    need = max(cfg.min_floor_points, 0.2 * width3.max())
+    b = int(np.flatnonzero(width3 >= need)[0])
+    b = max(b - 1, 0) + int(np.argmax(count[max(b - 1, 0):b + 2]))  # the peak bin of that surface
+    h0 = h.min() + 0.02 * (b + 0.5)
+    near = np.abs(h - h0) < 0.03
+    if near.sum() < cfg.min_floor_points:
+        return None, f"{int(near.sum())} plane cues on the lowest horizontal surface (fewer than {cfg.min_floor_points})"
+    normal, height = _level_fit(pts[near], up)
+    return Floor(normal, height, int(near.sum())), ""
+
+
+def _level_fit(pts: np.ndarray, up: np.ndarray, cell: float = 0.25, band: float = 0.01) -> tuple[np.ndarray, float]:
+    """(normal, height) of the plane through floor points ``pts`` [N, 3]: the median height of each
+    ``cell``-wide square (things lying on the floor, or a prior's local bump, are not the floor but
+    pull a least-squares fit: 0.7 degrees on a benchmark room), then a plane through the cell
+    medians, refitted without cells more than ``band`` from it; level (normal ``up``) with fewer
+    than three cells."""
+    floor = Floor(up, 0.0, 0)
+    uv, h = pts @ floor.basis().T, pts @ up
+    key = np.floor(uv / cell).astype(np.int64)
+    _, cell_of, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    cell_of = cell_of.reshape(-1)
+    cells = np.flatnonzero(count >= 5)
+    if len(cells) < 3:
+        return up, float(np.median(h))
+    med = np.array([np.median(h[cell_of == c]) for c in cells])
+    cuv = np.array([np.median(uv[cell_of == c], axis=0) for c in cells])
+    keep = np.ones(len(cells), bool)
+    for _ in range(3):
+        A = np.c_[cuv[keep], np.ones(keep.sum())]
+        coef = np.linalg.lstsq(A, med[keep], rcond=None)[0]
+        res = np.abs(np.c_[cuv, np.ones(len(cells))] @ coef - med)
+        if (res < band).sum() < 3:
+            break
+        keep = res < band
+    e = floor.basis()
+    n = up - coef[0] * e[0] - coef[1] * e[1]  # h = a u + b v + c  <=>  (up - a e1 - b e2) . X = c
+    norm = float(np.linalg.norm(n))
+    return n / norm, float(coef[2] / norm)
+
+
+@dataclass
+class Lifted:
+    """2D segments lifted onto the floor."""
+
+    view: np.ndarray  # [N] image index
+    seg: np.ndarray  # [N] index of the 2D segment in its image's list
+    ends: np.ndarray  # [N, 2, 3] world end points on the floor
+    uv: np.ndarray  # [N, 2, 2] the same in the floor's in-plane coordinates
+
+    def __len__(self) -> int:
+        return len(self.view)
+
+
+def lift_segments(cameras, segments: list[np.ndarray], floor: Floor, cfg: FloorLineConfig) -> Lifted:
+    """Every segment (``segments[i]``: [S, 4] x1 y1 x2 y2 in COLMAP pixels of ``cameras[i]``) whose
+    two end rays meet the floor within ``cfg.max_range`` and ``cfg.min_length`` apart."""
+    views, index, ends = [], [], []
+    for cam, segs in zip(cameras, segments):
+        segs = np.asarray(segs, np.float64).reshape(-1, 4)
+        if not len(segs):
+            continue
+        R, C = np.asarray(cam.R), np.asarray(cam.center)
+        px = segs.reshape(-1, 2)  # [2S, 2]
+        d = (np.c_[px, np.ones(len(px))] @ np.linalg.inv(cam.K).T) @ R  # world ray directions, [2S, 3]
+        den = d @ floor.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (floor.height - C @ floor.normal) / den
+        ok = (np.abs(den) > 1e-9) & (t > 0) & (t * np.linalg.norm(d, axis=1) <= cfg.max_range)
+        X = (C + np.where(ok, t, 0.0)[:, None] * d).reshape(-1, 2, 3)
+        ok = ok.reshape(-1, 2).all(axis=1) & (np.linalg.norm(X[:, 1] - X[:, 0], axis=1) > cfg.min_length)
+        views.append(np.full(int(ok.sum()), cam.index, np.int64))
+        index.append(np.flatnonzero(ok))
+        ends.append(X[ok])
+    if not views:
+        return Lifted(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros((0, 2, 2)))
+    ends_ = np.concatenate(ends)
+    return Lifted(np.concatenate(views), np.concatenate(index), ends_, ends_ @ floor.basis().T)
+
+
+def kept_segments(lifted: Lifted, centres_uv: np.ndarray, cfg: FloorLineConfig) -> list[tuple[int, np.ndarray]]:
+    """(index into ``lifted``, the other images that lift a segment onto the same floor line) of the
+    kept segments (module docstring); ``centres_uv`` [V, 2]: camera centres in floor coordinates."""
+    if not len(lifted):
+        return []
+    p, q = lifted.uv[:, 0], lifted.uv[:, 1]
+    mids = 0.5 * (p + q)  # [N, 2]
+    th = np.arctan2(q[:, 1] - p[:, 1], q[:, 0] - p[:, 0]) % np.pi  # [N] line direction
+    nrm = np.stack([-np.sin(th), np.cos(th)], axis=1)  # [N, 2] line normals
+    tol = np.radians(cfg.angle_deg)
+    out = []
+    for a in range(len(lifted)):  # same line: parallel within tol, midpoints within dist of a's line
+        same = (np.abs((th - th[a] + np.pi / 2) % np.pi - np.pi / 2) < tol) \
+            & (np.abs((mids - p[a]) @ nrm[a]) < cfg.dist)
+        others = np.unique(lifted.view[same & (lifted.view != lifted.view[a])])
+        if len(others) < cfg.min_views:
+            continue
+        if cfg.min_azimuth_deg > 0:
+            mid = mids[a]
+            az = np.arctan2(*(mid - centres_uv[others]).T[::-1])
+            az0 = np.arctan2(*(mid - centres_uv[lifted.view[a]])[::-1])
+            if not (np.abs((az - az0 + np.pi) % (2 * np.pi) - np.pi) >= np.radians(cfg.min_azimuth_deg)).any():
+                continue
+        out.append((a, others))
+    return out
+
+
+def anchor_samples(lifted: Lifted, keep: list[tuple[int, np.ndarray]], step: float
+                   ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """([P, 3] points every ``step`` along each kept segment, [P] its index in ``keep``, per kept
+    segment the views that lifted it, its own included)."""
+    pts, lid, views = [], [], []
+    for k, (a, others) in enumerate(keep):
+        p, q = lifted.ends[a]
+        n = max(int(np.linalg.norm(q - p) / step), 2)
+        f = np.linspace(0.0, 1.0, n)[:, None]
+        pts.append(p + f * (q - p))
+        lid.append(np.full(n, k, np.int64))
+        views.append(np.union1d(others, [lifted.view[a]]).astype(np.int64))
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), []
+    return np.concatenate(pts), np.concatenate(lid), views
+
+
+def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarray, plane_normal: np.ndarray,
+                       cfg: FloorLineConfig) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
+    """The floor-line anchors of a scene: (points [P, 3], kept-segment index [P], views per kept
+    segment, statistics for the report; ``"note"`` there when nothing could be lifted)."""
+    cfg.validate()
+    floor, why = find_floor(plane_xyz, plane_normal, cameras, cfg)
+    if floor is None:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), [], {"floor": None, "note": f"no floor found: {why}"}
+    lifted = lift_segments(cameras, segments, floor, cfg)
+    centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
+    keep = kept_segments(lifted, centres_uv, cfg)
+    P, L, V = anchor_samples(lifted, keep, cfg.step)
+    stats = {"floor": {"normal": floor.normal.round(5).tolist(), "height": round(floor.height, 5),
+                       "n_points": floor.n_points},
+             "lifted": len(lifted), "kept": len(keep), "samples": len(P)}
+    return P, L, V, stats

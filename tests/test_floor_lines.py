@@ -1,0 +1,155 @@
+"""Floor-contact lines (geocues.floor_lines, `geocues extract --floor.lines`): the floor from the
+horizontal plane cues in any world frame, a wall foot lifted from single views to a millimetre, an
+edge above the floor that lifts consistently from views moving along it dropped by the azimuth test,
+and nothing (with a reason) where there is no floor."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from geocues.floor_lines import (Floor, FloorLineConfig, Lifted, anchor_samples, find_floor, floor_line_anchors,
+                                 kept_segments, lift_segments, up_direction)
+from geocues.scene import Camera
+
+from cues_synth import look_at
+
+W, H = 320, 240
+K = np.array([[250.0, 0, W / 2], [0, 250.0, H / 2], [0, 0, 1]])
+
+
+def camera(index: int, centre, target, Q: np.ndarray | None = None) -> Camera:
+    """An OpenCV camera at ``centre`` looking at ``target`` (z up), the world rotated by ``Q``."""
+    R, _ = look_at(np.asarray(centre, float), np.asarray(target, float))
+    C = np.asarray(centre, float)
+    if Q is not None:
+        R, C = R @ Q.T, Q @ C
+    return Camera(index, index + 1, f"{index}.png", Path(f"{index}.png"), W, H, K, R, -R @ C)
+
+
+def segment_px(cam: Camera, a, b) -> np.ndarray:
+    """The 2D segment [4] of the 3D segment a-b in ``cam``."""
+    uv, z = cam.project(np.array([a, b], float))
+    assert np.all(z > 0)
+    return uv.reshape(4)
+
+
+FOOT = (np.array([1.0, 3.0, 0.0]), np.array([3.0, 3.0, 0.0]))  # a wall's foot on the floor z = 0
+EDGE = (np.array([1.2, 3.0, 0.5]), np.array([2.8, 3.0, 0.5]))  # a horizontal edge 0.5 m above it
+
+
+@pytest.fixture
+def views():
+    """Five views 1.5 m up moving 0.8 m along the wall (they see the foot and the edge), and two
+    from the sides 2 m away in azimuth (they see the foot only)."""
+    along = [camera(k, (x, 0.0, 1.5), (2.0, 3.0, 0.3)) for k, x in enumerate(np.linspace(1.8, 2.6, 5))]
+    sides = [camera(5, (0.0, 1.5, 1.5), (2.0, 3.0, 0.2)), camera(6, (4.0, 1.5, 1.5), (2.0, 3.0, 0.2))]
+    cams = along + sides
+    segs = [np.array([segment_px(c, *FOOT)] + ([segment_px(c, *EDGE)] if c.index < 5 else [])) for c in cams]
+    return cams, segs
+
+
+def test_wall_foot_kept_to_a_millimetre_and_edge_above_dropped_by_azimuth(views):
+    cams, segs = views
+    floor = Floor(np.array([0.0, 0.0, 1.0]), 0.0, 100)
+    cfg = FloorLineConfig()
+    lifted = lift_segments(cams, segs, floor, cfg)
+    assert len(lifted) == 12  # every segment meets the floor in range
+    centres = np.array([c.center for c in cams]) @ floor.basis().T
+    kept = kept_segments(lifted, centres, cfg)
+    foot = [a for a, _ in kept if np.allclose(lifted.ends[a][:, 1], 3.0, atol=1e-6)]
+    assert len(foot) == len(kept) == 7  # the foot from every view; the edge from none
+    P, L, V = anchor_samples(lifted, kept, cfg.step)
+    assert np.abs(P[:, 1] - 3.0).max() < 1e-3 and np.abs(P[:, 2]).max() < 1e-3
+    assert P[:, 0].min() > 1.0 - 1e-3 and P[:, 0].max() < 3.0 + 1e-3
+    assert len(P) > 7 * 90 and set(L.tolist()) == set(range(7))  # every 2 cm along 2 m
+    assert all(len(v) == 7 for v in V)  # own view + the six that agree
+    # without the azimuth test the edge, lifted onto one wrong floor line by the five views moving
+    # along it, is kept too: the test is what drops it
+    no_az = kept_segments(lifted, centres, FloorLineConfig(min_azimuth_deg=0.0))
+    edge = [a for a, _ in no_az if not np.allclose(lifted.ends[a][:, 1], 3.0, atol=1e-6)]
+    assert len(edge) == 5 and np.allclose(lifted.ends[edge][:, :, 1], 4.5)  # one wrong line, y = 4.5
+    # fewer agreeing views than min_views: nothing kept
+    assert kept_segments(lifted, centres, FloorLineConfig(min_views=7)) == []
+
+
+def test_segments_that_miss_the_floor_are_not_lifted(views):
+    cams, _ = views
+    floor = Floor(np.array([0.0, 0.0, 1.0]), 0.0, 100)
+    above_horizon = [np.array([segment_px(cams[0], (1.0, 3.0, 2.0), (3.0, 3.0, 2.0))])]  # above the camera
+    assert len(lift_segments(cams[:1], above_horizon, floor, FloorLineConfig())) == 0
+    far = [np.array([segment_px(cams[0], (1.0, 9.0, 0.0), (3.0, 9.0, 0.0))])]  # 9 m away
+    assert len(lift_segments(cams[:1], far, floor, FloorLineConfig())) == 0
+    assert len(lift_segments(cams[:1], far, floor, FloorLineConfig(max_range=12.0))) == 1
+    assert len(lift_segments(cams[:1], [np.zeros((0, 4))], floor, FloorLineConfig())) == 0
+
+
+def room_plane_cues(rng, Q: np.ndarray, n_floor: int = 1500):
+    """Plane cues of a 5 x 4 x 2.6 m room in a world rotated by ``Q``: floor (z = 0), a table top
+    (z = 0.75), ceiling (above the cameras) and walls, 2 mm noise."""
+    parts = [(np.c_[rng.uniform(0, 5, n_floor), rng.uniform(0, 4, n_floor), np.zeros(n_floor)], [0, 0, 1]),
+             (np.c_[rng.uniform(1, 2, 800), rng.uniform(1, 2, 800), np.full(800, 0.75)], [0, 0, 1]),
+             (np.c_[rng.uniform(0, 5, 2000), rng.uniform(0, 4, 2000), np.full(2000, 2.6)], [0, 0, -1]),
+             (np.c_[np.zeros(2000), rng.uniform(0, 4, 2000), rng.uniform(0, 2.6, 2000)], [1, 0, 0])]
+    xyz = np.concatenate([p for p, _ in parts]) + rng.normal(0, 0.002, (sum(len(p) for p, _ in parts), 3))
+    n = np.concatenate([np.tile(nn, (len(p), 1)) for p, nn in parts]).astype(float)
+    return xyz @ Q.T, n @ Q.T
+
+
+def test_floor_in_a_rotated_world():
+    """The floor under a table and a ceiling, in a world frame whose up is not z; the cameras all
+    look one way, 23 degrees down (their mean up vector is that far off the floor's normal)."""
+    rng = np.random.default_rng(0)
+    from scipy.spatial.transform import Rotation
+
+    Q = Rotation.from_euler("xyz", [70, -20, 35], degrees=True).as_matrix()
+    cams = [camera(k, (x, 0.5, 1.5), (x, 4.0, 0.0), Q) for k, x in enumerate(np.linspace(1, 4, 8))]
+    assert np.degrees(np.arccos(up_direction(cams) @ Q[:, 2])) > 10
+    xyz, n = room_plane_cues(rng, Q, n_floor=600)  # the floor is mostly hidden: fewer cues than the table
+    floor, why = find_floor(xyz, n, cams, FloorLineConfig())
+    assert floor is not None, why
+    assert np.degrees(np.arccos(floor.normal @ Q[:, 2])) < 0.2
+    assert abs(floor.height) < 0.002
+
+
+def test_no_floor_gives_nothing_and_a_reason():
+    rng = np.random.default_rng(1)
+    cams = [camera(k, (2.5, 2.0, 1.5), (2.5 + np.cos(a), 2 + np.sin(a), 1.0))
+            for k, a in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False))]
+    walls = np.c_[np.zeros(500), rng.uniform(0, 4, 500), rng.uniform(0, 2.6, 500)]
+    normals = np.tile([1.0, 0, 0], (500, 1))
+    P, L, V, stats = floor_line_anchors(cams, [np.zeros((0, 4))] * len(cams), walls, normals, FloorLineConfig())
+    assert len(P) == len(L) == len(V) == 0 and stats["floor"] is None and "horizontal" in stats["note"]
+    ceiling = np.c_[rng.uniform(0, 5, 500), rng.uniform(0, 4, 500), np.full(500, 2.6)]  # above the cameras only
+    floor, why = find_floor(ceiling, np.tile([0, 0, -1.0], (500, 1)), cams, FloorLineConfig())
+    assert floor is None and "below the cameras" in why
+    rolled = []  # looking straight down, each rolled 90 degrees more than the last: no up direction
+    for k, a in enumerate(np.arange(4) * np.pi / 2):
+        down, fwd = np.array([np.cos(a), np.sin(a), 0.0]), np.array([0.0, 0.0, -1.0])
+        R = np.stack([np.cross(down, fwd), down, fwd])
+        rolled.append(Camera(k, k + 1, f"{k}.png", Path(f"{k}.png"), W, H, K, R, -R @ np.array([2.5, 2.0, 1.5])))
+    assert up_direction(rolled) is None
+    assert "up direction" in find_floor(ceiling, np.tile([0, 0, -1.0], (500, 1)), rolled, FloorLineConfig())[1]
+
+
+@pytest.mark.parametrize("bad", [{"min_views": 0}, {"step": 0.0}, {"min_azimuth_deg": 180.0},
+                                 {"horizontal_deg": 90.0}, {"dist": -1.0}])
+def test_validation_names_the_option(bad):
+    with pytest.raises(ValueError, match=f"floor.{next(iter(bad))}"):
+        FloorLineConfig(**bad).validate()
+
+
+def test_one_line_whose_views_disagree_in_sign_of_direction_is_one_line():
+    """Segments of one floor line lifted at +-0.5 degrees about the in-plane x axis (where the
+    direction angle wraps from pi to 0) are the same line: a (direction, offset-from-origin) test
+    flips the offset's sign across the wrap and splits them."""
+    n = 6
+    ang = np.radians(np.where(np.arange(n) % 2, 0.5, -0.5))
+    p = np.stack([np.zeros(n), np.full(n, 2.0)], axis=1)
+    q = p + np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    uv = np.stack([p, q], axis=1)
+    lifted = Lifted(np.arange(n), np.zeros(n, np.int64), np.concatenate([uv, np.zeros((n, 2, 1))], axis=2), uv)
+    kept = kept_segments(lifted, np.zeros((n, 2)), FloorLineConfig(min_views=n - 1, min_azimuth_deg=0.0))
+    assert [a for a, _ in kept] == list(range(n))
