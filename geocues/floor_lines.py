@@ -37,7 +37,7 @@ class FloorLineConfig:
     angle_deg: float = 2.0
     """... within this angle (degrees) ..."""
     dist: float = 0.03
-    """... and this distance (metres) ..."""
+    """... with its midpoint within this distance (metres) of the line ..."""
     min_azimuth_deg: float = 15.0
     """... and one of them sees its midpoint from a horizontal direction at least this far (degrees)
     from its own view's (0 = no such test)."""
@@ -55,13 +55,15 @@ class FloorLineConfig:
     def validate(self) -> None:
         for name in ("angle_deg", "dist", "step", "max_range", "min_length"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"floor.{name} must be > 0, got {getattr(self, name)}")
+                raise ValueError(f"--floor.{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
         if self.min_views < 1:
-            raise ValueError(f"floor.min_views must be >= 1, got {self.min_views}")
+            raise ValueError(f"--floor.min-views must be >= 1, got {self.min_views}")
         if not 0 <= self.min_azimuth_deg < 180:
-            raise ValueError(f"floor.min_azimuth_deg must be in [0, 180), got {self.min_azimuth_deg}")
+            raise ValueError(f"--floor.min-azimuth-deg must be in [0, 180), got {self.min_azimuth_deg}")
+        if self.min_floor_points < 3:
+            raise ValueError(f"--floor.min-floor-points must be >= 3, got {self.min_floor_points}")
         if not 0 < self.horizontal_deg < 90:
-            raise ValueError(f"floor.horizontal_deg must be in (0, 90), got {self.horizontal_deg}")
+            raise ValueError(f"--floor.horizontal-deg must be in (0, 90), got {self.horizontal_deg}")
 
 
 @dataclass

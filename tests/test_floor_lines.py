@@ -135,9 +135,10 @@ def test_no_floor_gives_nothing_and_a_reason():
 
 
 @pytest.mark.parametrize("bad", [{"min_views": 0}, {"step": 0.0}, {"min_azimuth_deg": 180.0},
-                                 {"horizontal_deg": 90.0}, {"dist": -1.0}])
+                                 {"horizontal_deg": 90.0}, {"dist": -1.0},
+                                 {"min_floor_points": 2}])
 def test_validation_names_the_option(bad):
-    with pytest.raises(ValueError, match=f"floor.{next(iter(bad))}"):
+    with pytest.raises(ValueError, match=f"--floor.{next(iter(bad)).replace('_', '-')}"):
         FloorLineConfig(**bad).validate()
 
 
