@@ -63,6 +63,10 @@ class InitConfig:
     """Open pixels are sampled every this many pixels (training resolution) in each direction."""
     hole_voxel: float = 0.1
     """Seed points of all views are averaged per voxel of this edge (m)."""
+    plane_share: float = 0.0
+    """With a budget (--strategy.max-gaussians): thin the PLANE seeds (at random, --seed) so the initial
+    Gaussians take at most this share of it, leaving the rest to densification (an extension; 0 = off:
+    a cue cloud over the budget then leaves no room to grow)."""
 
 
 def scene_scale(camera_centers: np.ndarray, points: np.ndarray | None = None) -> float:

@@ -31,7 +31,28 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     if cfg.init_from != "cues":
         raise ValueError(f"init_from must be 'cues' or 'sfm', got {cfg.init_from!r}")
     cloud = read_cues_ply(cues_ply)
-    return cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
+    cloud = cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
+    return thin_planes(cloud, cfg.init.plane_share, cfg.strategy.max_gaussians, cfg.seed)
+
+
+def thin_planes(cloud: CueCloud, share: float, budget: int, seed: int = 0) -> CueCloud:
+    """``cloud`` with its PLANE points thinned at random (``seed``) so that it holds at most
+    ``share`` x ``budget`` points (``--init.plane-share``); unchanged when off (share or budget 0)
+    or already within. PLANE points only: never cloned under the paper's rule, they are the ones a
+    budget-filling init has most of, and their neighbours' distance sets the survivors' scale."""
+    if not 0 <= share <= 1:
+        raise ValueError(f"--init.plane-share must be in [0, 1], got {share}")
+    if share == 0 or budget <= 0 or len(cloud) <= share * budget:
+        return cloud
+    plane = np.flatnonzero(cloud.cue_type == CueType.PLANE)
+    keep_n = max(int(share * budget) - (len(cloud) - len(plane)), 0)
+    if keep_n >= len(plane):
+        return cloud
+    keep = np.ones(len(cloud), bool)
+    keep[np.random.default_rng(seed).choice(plane, len(plane) - keep_n, replace=False)] = False
+    log.info("--init.plane-share %.2f: %d of %d PLANE seeds kept, the initial Gaussians take %d of the %d budget",
+             share, keep_n, len(plane), int(keep.sum()), budget)
+    return cloud.select(keep)
 
 
 def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path, views=None

@@ -546,3 +546,17 @@ def test_mesh_smoothing_left_off_keeps_finished_rows_and_floor_keys(tiny, tmp_pa
     assert floor_key(cfg, example, Path("gt/depth")) == old_key
     smooth = replace(example, tsdf=replace(example.tsdf, smooth_iters=30))
     assert floor_key(cfg, smooth, Path("gt/depth")) != old_key
+
+
+def test_plane_share_left_off_keeps_finished_rows_keys(tiny, tmp_path):
+    """Rows planned before init.plane_share existed keep their key; a row with it gets its own."""
+    from splat.ablate import AblateConfig, plan, row_keys
+
+    base, root, cues = tiny
+    cfg = AblateConfig(rows=("full",), iters=30)
+    specs, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS)
+    before = json.loads(json.dumps(specs[0]))
+    del before["train_config"]["init"]["plane_share"]
+    assert row_keys(before) == specs[0]["keys"]
+    thinned, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS + ["--init.plane-share", "0.7"])
+    assert thinned[0]["train_config"]["init"]["plane_share"] == 0.7 and thinned[0]["key"] != specs[0]["key"]

@@ -195,3 +195,23 @@ def test_load_ply_refuses_truncated_and_non_finite_files(tmp_path):
     (tmp_path / "nan.ply").write_bytes(bytes(bad))
     with pytest.raises(ValueError, match=r"nan.ply holds non-finite values \(Gaussians per parameter: means 1\)"):
         load_ply(tmp_path / "nan.ply")
+
+
+def test_thin_planes_leaves_room_in_the_budget():
+    """--init.plane-share: only PLANE seeds are dropped, down to share x budget in all; off, within
+    the budget or without one nothing changes; the same seed drops the same points."""
+    from splat.init_gaussians import thin_planes
+
+    rng = np.random.default_rng(0)
+    n = {CueType.SFM: 100, CueType.LINE: 200, CueType.PLANE: 1000}
+    cloud = CueCloud.concat([CueCloud.make(rng.uniform(0, 1, (k, 3)), np.zeros((k, 3), np.uint8), t)
+                             for t, k in n.items()])
+    out = thin_planes(cloud, 0.5, 1000, seed=3)
+    assert len(out) == 500 and out.counts() == {"SFM": 100, "LINE": 200, "PLANE": 200}
+    assert np.array_equal(out.xyz, thin_planes(cloud, 0.5, 1000, seed=3).xyz)
+    assert not np.array_equal(out.xyz, thin_planes(cloud, 0.5, 1000, seed=4).xyz)
+    assert thin_planes(cloud, 0.2, 1000).counts()["PLANE"] == 0  # SFM and LINE are never dropped
+    for share, budget in ((0.0, 1000), (0.5, 0), (1.0, 2000)):
+        assert thin_planes(cloud, share, budget) is cloud
+    with pytest.raises(ValueError, match="plane-share"):
+        thin_planes(cloud, 1.5, 1000)
