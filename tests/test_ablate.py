@@ -521,23 +521,15 @@ def test_plane_rule_left_at_the_paper_keeps_finished_rows_keys(tiny, tmp_path):
     assert specs[1]["train_config"]["strategy"]["plane_rule"] == "tangent" and specs[1]["key"] != specs[0]["key"]
 
 
-def test_mesh_smoothing_left_off_keeps_finished_rows_and_floor_keys(tiny, tmp_path):
-    """Rows and floors keyed before tsdf.smooth_iters existed keep their keys; smoothed ones get new ones."""
+def test_mesh_smoothing_left_off_keeps_finished_floor_keys():
+    """Floors keyed before tsdf.smooth_iters existed keep their keys; smoothed ones get new ones
+    (rows: test_options_left_off_keep_finished_rows_keys)."""
     from dataclasses import asdict, replace
 
-    from splat.ablate import AblateConfig, config_key, floor_key, plan, row_keys
-
-    base, root, cues = tiny
-    cfg = AblateConfig(rows=("full",), iters=30)
-    specs, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS)
-    before = json.loads(json.dumps(specs[0]))
-    del before["train_config"]["tsdf"]["smooth_iters"]
-    assert row_keys(before) == specs[0]["keys"]
-    smoothed, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS + ["--tsdf.smooth-iters", "30"])
-    assert smoothed[0]["train_config"]["tsdf"]["smooth_iters"] == 30 and smoothed[0]["key"] != specs[0]["key"]
-
+    from splat.ablate import AblateConfig, config_key, floor_key
     from splat.train import TrainConfig
 
+    cfg = AblateConfig(rows=("full",), iters=30)
     example = TrainConfig()
     old_tsdf = {k: v for k, v in asdict(example.tsdf).items() if k != "smooth_iters"}
     old_key = config_key({"views": [example.downscale, example.test_every, example.mesh_every], "tsdf": old_tsdf,
@@ -548,15 +540,17 @@ def test_mesh_smoothing_left_off_keeps_finished_rows_and_floor_keys(tiny, tmp_pa
     assert floor_key(cfg, smooth, Path("gt/depth")) != old_key
 
 
-def test_plane_share_left_off_keeps_finished_rows_keys(tiny, tmp_path):
-    """Rows planned before init.plane_share existed keep their key; a row with it gets its own."""
+@pytest.mark.parametrize("section, field, flag, value", [("tsdf", "smooth_iters", "--tsdf.smooth-iters", 30),
+                                                          ("init", "plane_share", "--init.plane-share", 0.7)])
+def test_options_left_off_keep_finished_rows_keys(tiny, tmp_path, section, field, flag, value):
+    """Rows planned before an option existed keep their key while it is off; set, it gets its own."""
     from splat.ablate import AblateConfig, plan, row_keys
 
     base, root, cues = tiny
     cfg = AblateConfig(rows=("full",), iters=30)
     specs, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS)
     before = json.loads(json.dumps(specs[0]))
-    del before["train_config"]["init"]["plane_share"]
+    del before["train_config"][section][field]
     assert row_keys(before) == specs[0]["keys"]
-    thinned, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS + ["--init.plane-share", "0.7"])
-    assert thinned[0]["train_config"]["init"]["plane_share"] == 0.7 and thinned[0]["key"] != specs[0]["key"]
+    on, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS + [flag, str(value)])
+    assert on[0]["train_config"][section][field] == value and on[0]["key"] != specs[0]["key"]

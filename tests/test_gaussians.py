@@ -215,3 +215,32 @@ def test_thin_planes_leaves_room_in_the_budget():
         assert thin_planes(cloud, share, budget) is cloud
     with pytest.raises(ValueError, match="plane-share"):
         thin_planes(cloud, 1.5, 1000)
+
+
+def test_init_cloud_over_the_budget_warns_unless_thinned(tmp_path, caplog):
+    """`splat train` with a cue cloud that fills the budget says so and names --init.plane-share;
+    with it the cloud is thinned to share x budget."""
+    import logging
+
+    from geocues.cue_io import write_cues_ply
+    from splat.init_gaussians import load_init_cloud
+    from splat.train_config import TrainConfig
+
+    rng = np.random.default_rng(0)
+    cloud = CueCloud.concat([CueCloud.make(rng.uniform(0, 1, (k, 3)), np.zeros((k, 3), np.uint8), t)
+                             for t, k in ((CueType.LINE, 300), (CueType.PLANE, 1000))])
+    write_cues_ply(tmp_path / "cues.ply", cloud)
+    cfg = TrainConfig()
+    cfg.strategy.max_gaussians = 1400
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        assert len(load_init_cloud(cfg, None, tmp_path / "cues.ply")) == 1300
+    assert "--init.plane-share" in caplog.text and "93%" in caplog.text
+    caplog.clear()
+    cfg.init.plane_share = 0.5
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        assert load_init_cloud(cfg, None, tmp_path / "cues.ply").counts()["PLANE"] == 400
+    assert "plane-share" not in caplog.text
+    cfg.init.plane_share, cfg.strategy.max_gaussians = 0.0, 2000  # within 90 %: silent
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        load_init_cloud(cfg, None, tmp_path / "cues.ply")
+    assert caplog.text == ""
