@@ -329,10 +329,12 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     from geocues.lines.detect import detect_all
 
     t0 = time.perf_counter()
-    first, *_ = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [])
+    aligned: dict[int, np.ndarray] = {}
+    first, *_ = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [],
+                             aligned if cfg.floor.prior_check else None)
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
-                                        cfg.floor)
+                                        cfg.floor, aligned)
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:
         notes.append(f"floor lines: {stats['note']}; no floor-line anchors")
@@ -356,10 +358,11 @@ def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:
 
 def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
-                 timings: dict[str, float], notes: list[str]
+                 timings: dict[str, float], notes: list[str], aligned_out: dict | None = None
                  ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
-    rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image)."""
+    rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
+    ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -403,6 +406,8 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
             if al.ok:
                 n_aligned += 1
                 aligned = al.apply(depth, cfg.align.warp_max)
+                if aligned_out is not None:
+                    aligned_out[i] = aligned[::4, ::4].copy()
             else:
                 rej_align[al.reason.split(" (")[0]] = rej_align.get(al.reason.split(" (")[0], 0) + 1
         t2 = time.perf_counter()

@@ -47,13 +47,18 @@ class FloorLineConfig:
     """End rays that meet the floor farther than this (metres) from the camera are not lifted."""
     min_length: float = 0.2
     """Lifted segments shorter than this on the floor (metres) are dropped."""
+    prior_check: bool = False
+    """Also drop a kept segment whose own view's aligned depth prior puts its pixels off the floor (3 of
+    5 points along it within prior_rel of the floor's depth; views without an aligned prior pass)."""
+    prior_rel: float = 0.05
+    """That test's tolerance, a fraction of the depth (the warp a monocular prior keeps after alignment)."""
     horizontal_deg: float = 20.0
     """PLANE cues whose normal is within this angle of up are horizontal (floor candidates)."""
     min_floor_points: int = 50
     """The floor needs at least this many horizontal PLANE cues near its height."""
 
     def validate(self) -> None:
-        for name in ("angle_deg", "dist", "step", "max_range", "min_length"):
+        for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--floor.{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
         if self.min_views < 1:
@@ -236,10 +241,31 @@ def anchor_samples(lifted: Lifted, keep: list[tuple[int, np.ndarray]], step: flo
     return np.concatenate(pts), np.concatenate(lid), views
 
 
+def on_floor_by_prior(cam, seg: np.ndarray, floor: Floor, prior: np.ndarray, rel: float) -> bool:
+    """Whether the aligned depth ``prior`` of ``cam`` (any resolution: every 4th pixel in
+    `geocues extract`) agrees, within ``rel`` of the depth, with the floor's depth at 3 of 5 points
+    along the 2D segment ``seg`` [4]; True when fewer than 3 of them have prior depth."""
+    R, C = np.asarray(cam.R), np.asarray(cam.center)
+    f = np.linspace(0.1, 0.9, 5)[:, None]
+    px = seg[:2] + f * (seg[2:] - seg[:2])  # [5, 2] COLMAP pixels
+    d = (np.c_[px, np.ones(5)] @ np.linalg.inv(cam.K).T) @ R  # world rays with camera z = 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (floor.height - C @ floor.normal) / (d @ floor.normal)  # the floor's z-depth along them
+    rows = np.clip((px[:, 1] * prior.shape[0] / cam.height).astype(int), 0, prior.shape[0] - 1)
+    cols = np.clip((px[:, 0] * prior.shape[1] / cam.width).astype(int), 0, prior.shape[1] - 1)
+    p = prior[rows, cols].astype(np.float64)
+    valid = (p > 0) & np.isfinite(p)
+    if valid.sum() < 3:
+        return True
+    return int((valid & (np.abs(p - z) <= rel * np.abs(z))).sum()) >= 3
+
+
 def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarray, plane_normal: np.ndarray,
-                       cfg: FloorLineConfig) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
+                       cfg: FloorLineConfig, priors: dict[int, np.ndarray] | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
     """The floor-line anchors of a scene: (points [P, 3], kept-segment index [P], views per kept
-    segment, statistics for the report; ``"note"`` there when nothing could be lifted)."""
+    segment, statistics for the report; ``"note"`` there when nothing could be lifted). ``priors``:
+    image index -> aligned prior depth, for ``cfg.prior_check``."""
     cfg.validate()
     floor, why = find_floor(plane_xyz, plane_normal, cameras, cfg)
     if floor is None:
@@ -247,8 +273,14 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
     lifted = lift_segments(cameras, segments, floor, cfg)
     centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
     keep = kept_segments(lifted, centres_uv, cfg)
+    n_views_kept = len(keep)
+    if cfg.prior_check and priors:
+        keep = [(a, o) for a, o in keep if (v := int(lifted.view[a])) not in priors or on_floor_by_prior(
+            cameras[v], np.asarray(segments[v])[lifted.seg[a]], floor, priors[v], cfg.prior_rel)]
     P, L, V = anchor_samples(lifted, keep, cfg.step)
     stats = {"floor": {"normal": floor.normal.round(5).tolist(), "height": round(floor.height, 5),
                        "n_points": floor.n_points},
              "lifted": len(lifted), "kept": len(keep), "samples": len(P)}
+    if cfg.prior_check:
+        stats["dropped_by_prior"] = n_views_kept - len(keep)
     return P, L, V, stats

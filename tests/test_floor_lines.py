@@ -154,3 +154,35 @@ def test_one_line_whose_views_disagree_in_sign_of_direction_is_one_line():
     lifted = Lifted(np.arange(n), np.zeros(n, np.int64), np.concatenate([uv, np.zeros((n, 2, 1))], axis=2), uv)
     kept = kept_segments(lifted, np.zeros((n, 2)), FloorLineConfig(min_views=n - 1, min_azimuth_deg=0.0))
     assert [a for a, _ in kept] == list(range(n))
+
+
+def floor_depth_map(cam: Camera, floor: Floor, step: int = 4) -> np.ndarray:
+    """The floor's z-depth at every ``step``-th pixel of ``cam`` (0 where the ray misses it)."""
+    rows, cols = np.mgrid[0:cam.height:step, 0:cam.width:step]
+    d = cam.rays_at(rows, cols) @ np.asarray(cam.R)
+    z = (floor.height - cam.center @ floor.normal) / (d @ floor.normal)
+    return np.where(z > 0, z, 0.0).astype(np.float32)
+
+
+def test_prior_check_keeps_floor_segments_and_drops_edges_the_prior_puts_in_front(views):
+    """--floor.prior-check: the foot, whose pixels the aligned prior puts at the floor's depth, stays;
+    a segment whose pixels the prior puts 20 % nearer (an object's edge) goes; no prior depth: kept."""
+    from geocues.floor_lines import on_floor_by_prior
+
+    cams, segs = views
+    floor = Floor(np.array([0.0, 0.0, 1.0]), 0.0, 100)
+    cam, foot = cams[0], segs[0][0]
+    prior = floor_depth_map(cam, floor)
+    assert on_floor_by_prior(cam, foot, floor, prior, 0.05)
+    assert not on_floor_by_prior(cam, foot, floor, 0.8 * prior, 0.05)
+    assert on_floor_by_prior(cam, foot, floor, np.zeros_like(prior), 0.05)
+    # in the whole chain: with every view's prior 20 % nearer, nothing is kept; with the true one, all
+    cfg = FloorLineConfig(prior_check=True)
+    xyz = np.c_[np.random.default_rng(0).uniform(0, 4, (200, 2)), np.zeros(200)]
+    normals = np.tile([0.0, 0.0, 1.0], (200, 1))
+    true = {c.index: floor_depth_map(c, floor) for c in cams}
+    _, _, V, stats = floor_line_anchors(cams, segs, xyz, normals, cfg, true)
+    assert stats["kept"] == 7 and stats["dropped_by_prior"] == 0
+    near = {i: 0.8 * p for i, p in true.items()}
+    _, _, V, stats = floor_line_anchors(cams, segs, xyz, normals, cfg, near)
+    assert stats["kept"] == 0 and stats["dropped_by_prior"] == 7 and V == []
