@@ -13,8 +13,10 @@ Kept segments are sampled every ``step`` metres and join the line anchors of the
 the views that lifted them); they are not written as cue points.
 
 The floor: up is the mean of the cameras' up vectors (-R[1]) snapped to the horizontal PLANE cues'
-normals; the floor is the lowest well-supported height of the horizontal PLANE cues below the
-cameras, refined by a plane fit. With no such cues there is no floor and nothing is lifted.
+normals; the floor is the lowest well-filled 2 cm height bin of the horizontal PLANE cues below the
+cameras, then a plane through the median heights of 25 cm cells (:func:`_level_fit`). With no such
+cues there is no floor and nothing is lifted. ``prior_check`` also asks each kept segment's own view's
+aligned depth prior (:func:`on_floor_by_prior`).
 """
 
 from __future__ import annotations
