@@ -331,7 +331,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     t0 = time.perf_counter()
     aligned: dict[int, np.ndarray] = {}
     first, *_ = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [],
-                             aligned if cfg.floor.prior_check else None)
+                             aligned if cfg.floor.prior_check else None, desc="planes (first pass: the floor)")
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned)
@@ -358,8 +358,8 @@ def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:
 
 def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
-                 timings: dict[str, float], notes: list[str], aligned_out: dict | None = None
-                 ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
+                 timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
+                 desc: str = "planes") -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
     ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel."""
@@ -382,7 +382,7 @@ def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     for li, v in enumerate(lines.views if lines is not None else []):
         for c in np.asarray(v, np.int64).tolist():
             lines_of.setdefault(c, []).append(li)
-    for cam in tqdm(scene.cameras, desc="planes", unit="img", disable=None):
+    for cam in tqdm(scene.cameras, desc=desc, unit="img", disable=None):
         i = cam.index
         row: dict = {"index": i, "name": cam.name}
         t0 = time.perf_counter()
