@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from geocues.cue_io import read_cues_ply  # noqa: E402
-from geocues.floor_lines import Floor, FloorLineConfig, kept_segments, lift_segments  # noqa: E402
+from geocues.floor_lines import Floor, FloorLineConfig, depth_along, kept_segments, lift_segments  # noqa: E402
 from geocues.lines.config import LineConfig  # noqa: E402
 from geocues.lines.detect import detect_gray  # noqa: E402
 from geocues.scene import Scene  # noqa: E402
@@ -86,16 +86,8 @@ def on_the_floor(cam, gt: np.ndarray, z0: float, seg: np.ndarray) -> bool:
     """Whether the GT depth ``gt`` of the segment's own view ``cam`` agrees, within 3 cm, with the
     ray's depth to the floor on 4 of 5 points along it (a segment that is not on the floor, lifted
     onto it, does not)."""
-    R, C, Kinv = np.asarray(cam.R), np.asarray(cam.center), np.linalg.inv(cam.K)
-    ok = 0
-    for f in np.linspace(0.1, 0.9, 5):
-        x, y = seg[:2] + f * (seg[2:] - seg[:2])
-        ray = Kinv @ np.array([x, y, 1.0])  # camera frame, z = 1: its scale is the z-depth
-        z = (z0 - C[2]) / (R.T @ ray)[2]
-        row = min(int(y * gt.shape[0] / cam.height), gt.shape[0] - 1)
-        col = min(int(x * gt.shape[1] / cam.width), gt.shape[1] - 1)
-        ok += abs(gt[row, col] - z) < 0.03
-    return ok >= 4
+    z, g = depth_along(cam, seg, Floor(np.array([0.0, 0.0, 1.0]), z0, 0), gt)
+    return int((np.abs(g - z) < 0.03).sum()) >= 4
 
 
 def main(cfg: FloorLines) -> dict:

@@ -6,7 +6,9 @@ Stages (each can be switched off for the paper's ablations, each is timed):
 2. ``lines``  3D line segments and their point samples                 (geocues.lines)
 3. ``planes`` per image: weak-texture regions (geocues.texture), depth-prior alignment
               (geocues.depth_align, when the image has a prior and priors are on), plane-like
-              points with or without the prior (geocues.planes); then a voxel merge.
+              points with or without the prior (geocues.planes); then a voxel merge
+              (geocues.plane_stage). With ``--floor.lines`` a first pass of it gives the floor and
+              the floor-contact lines join the anchors of the second (geocues.floor_lines).
 
 Outputs: ``CUES/cues.ply`` (typed points), ``CUES/lines3d.npz``, ``CUES/lines3d.ply`` and
 ``CUES/cues_by_type.ply`` (to look at in MeshLab / CloudCompare), ``CUES/depth_alignments.json``
@@ -27,23 +29,20 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from tqdm import tqdm
 
 from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
 from geocues.floor_lines import FloorLineConfig, floor_line_anchors
-from geocues.depth_align import (DepthAlignConfig, DepthAlignment, align_depth_prior, kind_warning,
-                                  write_alignments)
+from geocues.depth_align import DepthAlignConfig, write_alignments
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
-from geocues.plane_merge import merge_plane_points
-from geocues.plane_regions import split_regions_by_lines
-from geocues.planes import PlaneConfig, plane_cues_prior_free, plane_cues_with_prior
+from geocues.plane_stage import plane_stage
+from geocues.planes import PlaneConfig
 from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
-from geocues.texture import TextureConfig, config_key, file_stamp, load_or_compute, tree_stamp
+from geocues.texture import TextureConfig, config_key, file_stamp, tree_stamp
 from geocues.types import CueType
 
 log = logging.getLogger(__name__)
@@ -255,7 +254,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     plane_stats: dict = {}
     anchor_pts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))  # plane anchors: X, normal, image
     if cfg.planes:
-        plane_cloud, per_image, pr, plane_stats, anchor_pts = _plane_stage(scene, cfg, kind, anchors, plane_ok,
+        plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
                                                                            lines, cache, timings, notes)
         rejections.update(pr)
 
@@ -330,7 +329,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
 
     t0 = time.perf_counter()
     aligned: dict[int, np.ndarray] = {}
-    first, *_ = _plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [],
+    first, *_ = plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [],
                              aligned if cfg.floor.prior_check else None, desc="planes (first pass: the floor)")
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
@@ -354,156 +353,3 @@ def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:
         log.warning("--prior-kind %s overrides priors.depth_kind %r of %s", cfg.prior_kind,
                     scene.depth_kind, scene.root / "scene.json")
     return cfg.prior_kind
-
-
-def _plane_stage(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
-                 lines: LineCues | None, cache: Path,
-                 timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
-                 desc: str = "planes") -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
-    """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
-    rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
-    ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel."""
-    n_img = len(scene.cameras)
-    rej_tex: dict[str, int] = {}
-    rej_align: dict[str, int] = {}
-    rej_plane: dict[str, int] = {}
-    rows: list[dict] = []
-    xyz, rgb, nrm, pid, planes, plane_view = [], [], [], [], [], []
-    n_planes = 0
-    for k in ("texture", "depth_align", "planes"):
-        timings.setdefault(k, 0.0)
-    cache_hits = 0
-    n_prior = n_aligned = 0
-    fits: list[DepthAlignment] = []
-    has_priors = scene.has_depth_priors
-    strict = anchors.cue_type == int(CueType.SFM)  # SfM anchors count only inside a region
-    candidates: list = []  # the images' prior planes, for surface fusion (cfg.plane.fuse_surfaces)
-    lines_of: dict[int, list[int]] = {}  # camera -> lines it supports (they cut its regions)
-    for li, v in enumerate(lines.views if lines is not None else []):
-        for c in np.asarray(v, np.int64).tolist():
-            lines_of.setdefault(c, []).append(li)
-    for cam in tqdm(scene.cameras, desc=desc, unit="img", disable=None):
-        i = cam.index
-        row: dict = {"index": i, "name": cam.name}
-        t0 = time.perf_counter()
-        image = scene.load_image(i)  # [H, W, 3] float32
-        wt, hit = load_or_compute(cam.image_path, lambda: image, cfg.texture, cache / "texture",
-                                  (cam.width, cam.height))
-        cache_hits += hit
-        t1 = time.perf_counter()
-        row.update(texture_s=t1 - t0, texture_cached=hit, n_segments=wt.n_segments,
-                   n_keypoints=wt.n_keypoints, n_weak_regions=wt.n_regions,
-                   weak_fraction=round(wt.weak_fraction, 4))
-        timings["texture"] += t1 - t0
-        cand = anchors.candidates(i)
-        depth = scene.depth_prior(i) if cfg.priors else None
-        aligned = None
-        if depth is not None:
-            n_prior += 1
-            al = align_depth_prior(cam, depth, anchors.xyz[cand], cfg.align, seed=cfg.seed, kind=kind)
-            row["alignment"] = al.to_dict()
-            fits.append(al)
-            if al.ok:
-                n_aligned += 1
-                aligned = al.apply(depth, cfg.align.warp_max)
-                if aligned_out is not None:
-                    aligned_out[i] = aligned[::4, ::4].copy()
-            else:
-                rej_align[al.reason.split(" (")[0]] = rej_align.get(al.reason.split(" (")[0], 0) + 1
-        t2 = time.perf_counter()
-        timings["depth_align"] += t2 - t1
-        row["align_s"] = t2 - t1
-        regions = wt.regions
-        pc = cand[plane_ok[cand]]  # the planes' anchors
-        if lines is not None and cfg.plane.cut_px > 0 and lines_of.get(i):
-            regions = split_regions_by_lines(cam, regions, lines.segments[lines_of[i]],
-                                             cfg.plane.cut_px * cam.width / 640.0,
-                                             int(cfg.texture.min_region_frac * cam.width * cam.height))
-        n_regions = int(regions.max(initial=-1)) + 1
-        row["n_regions_after_cut"] = n_regions
-        if n_regions == 0:
-            rej_tex["no_weak_region"] = rej_tex.get("no_weak_region", 0) + 1
-            pp = None
-            row["plane_mode"] = "none"
-        elif aligned is not None:
-            pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[pc], cfg.plane,
-                                       seed=cfg.seed + i, inside_only=strict[pc],
-                                       anchors_group=anchors.group[pc], anchor_ids=pc)
-            candidates += pp.candidates
-            row["plane_mode"] = "prior"
-            if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in
-                row["regions_prior_free"] = len(pp.no_depth_regions)
-                relabel = np.full(n_regions + 1, -1, regions.dtype)  # region id -> hole id; -1 stays -1
-                relabel[pp.no_depth_regions] = np.arange(len(pp.no_depth_regions))
-                holes = relabel[regions]
-                pp = pp.concat(plane_cues_prior_free(cam, image, holes, anchors.xyz[pc], anchors.group[pc],
-                                                     cfg.plane, seed=cfg.seed + i, inside_only=strict[pc]))
-        elif cfg.prior_free_fallback or not cfg.priors or not has_priors:
-            pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[pc], anchors.group[pc],
-                                       cfg.plane, seed=cfg.seed + i, inside_only=strict[pc])
-            row["plane_mode"] = "prior_free"
-        else:
-            pp = None
-            row["plane_mode"] = "skipped_no_prior"
-            rej_plane["image_without_usable_prior"] = rej_plane.get("image_without_usable_prior", 0) + 1
-        if pp is not None:
-            for r, c in pp.rejected.items():
-                rej_plane[r] = rej_plane.get(r, 0) + c
-            row.update(plane_points=len(pp.xyz), regions_accepted=pp.n_accepted)
-            xyz.append(pp.xyz)
-            rgb.append(pp.rgb)
-            nrm.append(pp.normal)
-            pid.append(pp.plane_id + n_planes)
-            planes.append(pp.planes)
-            plane_view.append(np.full(len(pp.planes), i))
-            n_planes += len(pp.planes)
-        t3 = time.perf_counter()
-        timings["planes"] += t3 - t2
-        row["planes_s"] = t3 - t2
-        rows.append(row)
-    t0 = time.perf_counter()
-    surface_stats = None
-    if cfg.plane.fuse_surfaces:
-        from geocues.plane_surfaces import fuse_surfaces
-
-        fused, surface_stats = fuse_surfaces(candidates, scene.cameras, anchors.xyz, anchors.group, cfg.plane)
-        for view, fx, frgb, fn, fplane in fused:
-            xyz.append(fx)
-            rgb.append(frgb)
-            nrm.append(fn.astype(np.float32))
-            pid.append(np.full(len(fx), n_planes, np.int64))
-            planes.append(fplane[None])
-            plane_view.append(np.array([view]))
-            n_planes += 1
-        log.info("surface fusion: %s", surface_stats)
-    timings["planes_surfaces"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    centers = np.array([c.center for c in scene.cameras])
-    cloud, merge_rej, anchor_pts = merge_plane_points(centers, cfg.plane, xyz, rgb, nrm, pid, planes, plane_view)
-    rej_plane.update(merge_rej)
-    timings["planes_merge"] = time.perf_counter() - t0
-    timings["planes"] += timings["planes_merge"] + timings["planes_surfaces"]
-    if not has_priors:
-        notes.append("the scene has no depth priors: plane-like cues are prior-free for every image "
-                     "(`geocues mvs SCENE -o SCENE_MVS` computes depth priors from the photos; on ICL living "
-                     "room 1 they lowered the mesh's Chamfer-L1 from 5.0 to 3.8 cm, docs/geocues.md)")
-    elif not cfg.priors:
-        notes.append("depth priors ignored (priors off): plane-like cues are prior-free")
-    else:
-        if n_prior < n_img:
-            notes.append(f"depth priors for {n_prior} of {n_img} images; the others get "
-                         + ("prior-free plane cues" if cfg.prior_free_fallback else "no plane cues"))
-        if n_aligned < n_prior:
-            notes.append(f"depth alignment skipped for {n_prior - n_aligned} of {n_prior} images: "
-                         + ", ".join(f"{k} x{v}" for k, v in rej_align.items()))
-        warning = kind_warning(fits, scene.root / "scene.json", cfg.align.inlier_rel)
-        if warning:
-            log.warning("%s", warning)
-            notes.append(warning)
-    notes.append(f"texture cache: {cache_hits} of {n_img} images reused")
-    stats = {"texture_cache_hits": cache_hits, "images_with_prior": n_prior, "images_aligned": n_aligned,
-             "plane_modes": {m: sum(r["plane_mode"] == m for r in rows)
-                             for m in ("prior", "prior_free", "none", "skipped_no_prior")}}
-    if surface_stats is not None:
-        stats["surface_fusion"] = surface_stats
-    return cloud, rows, {"texture": rej_tex, "depth_align": rej_align, "planes": rej_plane}, stats, anchor_pts

@@ -173,6 +173,24 @@ class Lifted:
         return len(self.view)
 
 
+def floor_depth(cam, px: np.ndarray, floor: Floor) -> tuple[np.ndarray, np.ndarray]:
+    """(z-depth [M] at which the rays through COLMAP pixels ``px`` [M, 2] of ``cam`` meet the floor
+    -- inf or negative where they do not --, the rays' world directions [M, 3], camera z = 1)."""
+    d = (np.c_[px, np.ones(len(px))] @ np.linalg.inv(cam.K).T) @ np.asarray(cam.R)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (floor.height - np.asarray(cam.center) @ floor.normal) / (d @ floor.normal), d
+
+
+def depth_along(cam, seg: np.ndarray, floor: Floor, depth: np.ndarray, n: int = 5
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(the floor's z-depth [n], ``depth``'s value [n]) at ``n`` points from 10 to 90 % along the 2D
+    segment ``seg`` [4] of ``cam``; ``depth`` may have any resolution (nearest pixel)."""
+    px = seg[:2] + np.linspace(0.1, 0.9, n)[:, None] * (seg[2:] - seg[:2])  # [n, 2] COLMAP pixels
+    rows = np.clip((px[:, 1] * depth.shape[0] / cam.height).astype(int), 0, depth.shape[0] - 1)
+    cols = np.clip((px[:, 0] * depth.shape[1] / cam.width).astype(int), 0, depth.shape[1] - 1)
+    return floor_depth(cam, px, floor)[0], depth[rows, cols].astype(np.float64)
+
+
 def lift_segments(cameras, segments: list[np.ndarray], floor: Floor, cfg: FloorLineConfig) -> Lifted:
     """Every segment (``segments[i]``: [S, 4] x1 y1 x2 y2 in COLMAP pixels of ``cameras[i]``) whose
     two end rays meet the floor within ``cfg.max_range`` and ``cfg.min_length`` apart."""
@@ -181,14 +199,9 @@ def lift_segments(cameras, segments: list[np.ndarray], floor: Floor, cfg: FloorL
         segs = np.asarray(segs, np.float64).reshape(-1, 4)
         if not len(segs):
             continue
-        R, C = np.asarray(cam.R), np.asarray(cam.center)
-        px = segs.reshape(-1, 2)  # [2S, 2]
-        d = (np.c_[px, np.ones(len(px))] @ np.linalg.inv(cam.K).T) @ R  # world ray directions, [2S, 3]
-        den = d @ floor.normal
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (floor.height - C @ floor.normal) / den
-        ok = (np.abs(den) > 1e-9) & (t > 0) & (t * np.linalg.norm(d, axis=1) <= cfg.max_range)
-        X = (C + np.where(ok, t, 0.0)[:, None] * d).reshape(-1, 2, 3)
+        t, d = floor_depth(cam, segs.reshape(-1, 2), floor)  # [2S], [2S, 3]: both ends of each segment
+        ok = (np.abs(d @ floor.normal) > 1e-9) & (t > 0) & (t * np.linalg.norm(d, axis=1) <= cfg.max_range)
+        X = (np.asarray(cam.center) + np.where(ok, t, 0.0)[:, None] * d).reshape(-1, 2, 3)
         ok = ok.reshape(-1, 2).all(axis=1) & (np.linalg.norm(X[:, 1] - X[:, 0], axis=1) > cfg.min_length)
         views.append(np.full(int(ok.sum()), cam.index, np.int64))
         index.append(np.flatnonzero(ok))
@@ -247,15 +260,7 @@ def on_floor_by_prior(cam, seg: np.ndarray, floor: Floor, prior: np.ndarray, rel
     """Whether the aligned depth ``prior`` of ``cam`` (any resolution: every 4th pixel in
     `geocues extract`) agrees, within ``rel`` of the depth, with the floor's depth at 3 of 5 points
     along the 2D segment ``seg`` [4]; True when fewer than 3 of them have prior depth."""
-    R, C = np.asarray(cam.R), np.asarray(cam.center)
-    f = np.linspace(0.1, 0.9, 5)[:, None]
-    px = seg[:2] + f * (seg[2:] - seg[:2])  # [5, 2] COLMAP pixels
-    d = (np.c_[px, np.ones(5)] @ np.linalg.inv(cam.K).T) @ R  # world rays with camera z = 1
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = (floor.height - C @ floor.normal) / (d @ floor.normal)  # the floor's z-depth along them
-    rows = np.clip((px[:, 1] * prior.shape[0] / cam.height).astype(int), 0, prior.shape[0] - 1)
-    cols = np.clip((px[:, 0] * prior.shape[1] / cam.width).astype(int), 0, prior.shape[1] - 1)
-    p = prior[rows, cols].astype(np.float64)
+    z, p = depth_along(cam, seg, floor, prior)
     valid = (p > 0) & np.isfinite(p)
     if valid.sum() < 3:
         return True
@@ -275,7 +280,7 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
     lifted = lift_segments(cameras, segments, floor, cfg)
     centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
     keep = kept_segments(lifted, centres_uv, cfg)
-    n_views_kept = len(keep)
+    n_kept = len(keep)
     if cfg.prior_check and priors:
         keep = [(a, o) for a, o in keep if (v := int(lifted.view[a])) not in priors or on_floor_by_prior(
             cameras[v], np.asarray(segments[v])[lifted.seg[a]], floor, priors[v], cfg.prior_rel)]
@@ -284,5 +289,5 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
                        "n_points": floor.n_points},
              "lifted": len(lifted), "kept": len(keep), "samples": len(P)}
     if cfg.prior_check:
-        stats["dropped_by_prior"] = n_views_kept - len(keep)
+        stats["dropped_by_prior"] = n_kept - len(keep)
     return P, L, V, stats

@@ -19,6 +19,8 @@ from splat.train_config import TrainConfig
 
 log = logging.getLogger(__name__)
 
+FULL_INIT = 0.9  # an initial cloud above this share of the budget leaves densification too little room
+
 
 def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     """The points that seed the Gaussians: the cue cloud's ``cfg.cue_types``, or with
@@ -39,9 +41,6 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
                     "--init.plane-share %.1f thins the PLANE seeds to leave some", len(cloud),
                     100 * len(cloud) / budget, budget, FULL_INIT)
     return thin_planes(cloud, cfg.init.plane_share, budget, cfg.seed)
-
-
-FULL_INIT = 0.9  # an initial cloud above this share of the budget leaves densification too little room
 
 
 def thin_planes(cloud: CueCloud, share: float, budget: int, seed: int = 0) -> CueCloud:
