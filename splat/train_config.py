@@ -142,6 +142,8 @@ class TrainConfig:
         if self.init.hole_stride < 1 or not 0 < self.init.hole_alpha <= 1:
             raise ValueError(f"--init.hole-stride must be >= 1 and --init.hole-alpha in (0, 1], got "
                              f"{self.init.hole_stride}, {self.init.hole_alpha}")
+        if not 0 <= self.init.plane_share <= 1:
+            raise ValueError(f"--init.plane-share must be in [0, 1], got {self.init.plane_share}")
         finite_pos("loss.fused-voxel", self.loss.fused_voxel)
         if self.loss.fused_neighbours < 1 or self.loss.fused_method not in ("tsdf", "median"):
             raise ValueError(f"--loss.fused-neighbours must be >= 1 and --loss.fused-method 'tsdf' or 'median', "
