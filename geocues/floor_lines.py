@@ -50,8 +50,9 @@ class FloorLineConfig:
     min_length: float = 0.2
     """Lifted segments shorter than this on the floor (metres) are dropped."""
     prior_check: bool = False
-    """Also drop a kept segment whose own view's aligned depth prior puts its pixels off the floor (3 of
-    5 points along it within prior_rel of the floor's depth; views without an aligned prior pass)."""
+    """Also drop a kept segment unless its own view's aligned depth prior is within prior_rel of the
+    floor's depth at 3 of 5 points along it (views without an aligned prior, or with prior depth at
+    fewer than 3 of the points, pass)."""
     prior_rel: float = 0.05
     """That test's tolerance, a fraction of the depth (the warp a monocular prior keeps after alignment)."""
     horizontal_deg: float = 20.0
