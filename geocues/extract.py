@@ -34,7 +34,7 @@ from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
-from geocues.floor_lines import FloorLineConfig, floor_line_anchors
+from geocues.floor_lines import FloorLineConfig, floor_line_anchors, wall_anchors
 from geocues.depth_align import DepthAlignConfig, write_alignments
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
@@ -87,6 +87,8 @@ class ExtractConfig:
 _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg", "fuse_prior_rel",
                    "fuse_prior_dist")
 
+_WALL_FIELDS = ("walls", "wall_step", "wall_height")  # added after --floor.lines folders were made
+
 
 def _key_config(cfg: ExtractConfig) -> dict:
     """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` and ``floor`` left out
@@ -94,6 +96,9 @@ def _key_config(cfg: ExtractConfig) -> dict:
     d = asdict(cfg)
     if not cfg.floor.lines:  # added later, like the surface fields: off = the key of older folders
         d.pop("floor")
+    elif not cfg.floor.walls:
+        for k in _WALL_FIELDS:
+            d["floor"].pop(k)
     if not cfg.plane.fuse_surfaces:
         for k in _SURFACE_FIELDS:
             d["plane"].pop(k)
@@ -243,19 +248,22 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
-    floor_stats = None
+    floor_stats, align_ok = None, None
     if cfg.planes and cfg.floor.lines:
-        extra, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
+        extra, n_wall, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
             anchors = _anchors(scene, sfm, lines, extra)
             plane_ok = np.concatenate([plane_ok, np.ones(len(extra[0]), bool)])  # they come last
+            align_ok = np.ones(len(anchors), bool)
+            align_ok[len(anchors) - n_wall:] = False  # the raised walls (last) are assumptions, not cues
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
     anchor_pts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))  # plane anchors: X, normal, image
     if cfg.planes:
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
-                                                                           lines, cache, timings, notes)
+                                                                           lines, cache, timings, notes,
+                                                                           align_ok=align_ok)
         rejections.update(pr)
 
     # ---- merge and write
@@ -322,9 +330,10 @@ def _anchors(scene: Scene, sfm: SfmCues | None, lines: LineCues | None,
 
 def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path, timings: dict[str, float], notes: list[str]
-                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], dict]:
+                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], int, dict]:
     """A first plane pass for the floor, then the floor-contact lines (geocues.floor_lines): returns
-    ((points, line index, views per line), statistics for the report)."""
+    ((points, line index, views per line), how many of the points (the last) are raised walls,
+    statistics for the report)."""
     from geocues.lines.detect import detect_all
 
     t0 = time.perf_counter()
@@ -333,14 +342,23 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                              aligned if cfg.floor.prior_check else None, desc="planes (first pass: the floor)")
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
-                                        cfg.floor, aligned)
+                                        cfg.floor, aligned, lines.segments if lines is not None else None)
+    n_wall = 0
+    if cfg.floor.walls and len(P):
+        W, WL, top = wall_anchors(P, L, np.array(stats["floor"]["normal"]), stats["floor"]["height"],
+                                  first.xyz, scene.cameras, cfg.floor)
+        every = np.arange(len(scene.cameras))  # seen from wherever they project in front of the prior
+        P, L, V = np.concatenate([P, W]), np.concatenate([L, WL + len(V)]), V + [every] * (int(WL.max()) + 1)
+        n_wall = len(W)
+        stats["walls"] = {"samples": n_wall, "top": round(top, 3)}
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:
         notes.append(f"floor lines: {stats['note']}; no floor-line anchors")
     else:
         notes.append(f"floor lines: floor found in {stats['floor']['n_points']} plane cues; {stats['kept']} of "
-                     f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors")
-    return (P, L, V), stats
+                     f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors"
+                     + (f", {n_wall} raised up to {stats['walls']['top']:.2f} m (--floor.walls)" if n_wall else ""))
+    return (P, L, V), n_wall, stats
 
 
 def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:

@@ -14,9 +14,18 @@ the views that lifted them); they are not written as cue points.
 
 The floor: up is the mean of the cameras' up vectors (-R[1]) snapped to the horizontal PLANE cues'
 normals; the floor is the lowest well-filled 2 cm height bin of the horizontal PLANE cues below the
-cameras, then a plane through the median heights of 25 cm cells (:func:`_level_fit`). With no such
+cameras, then a plane through the median heights of 25 cm cells (:func:`_level_fit`), then refitted
+through the 3D line cues lying on it (:func:`snap_to_lines`, ``line_snap``: the plane cues' floor sat
+1 cm high on a benchmark room, which put a far wall's lifted foot 5 cm in front of it). With no such
 cues there is no floor and nothing is lifted. ``prior_check`` also asks each kept segment's own view's
 aligned depth prior (:func:`on_floor_by_prior`).
+
+``walls`` (:func:`wall_anchors`) raises every kept segment straight up into rows of anchors for the
+plane checks of the second pass (not for the prior alignment): a foot line alone leaves a wall's
+plane free to turn about it, so only a band above the foot was cut; with the vertical-wall
+assumption the foot places the whole wall. Rows that stand in free space (a floor texture line's)
+agree with no region's prior plane and are not used; rows behind a view's aligned surface are left
+out of its checks.
 """
 
 from __future__ import annotations
@@ -59,9 +68,20 @@ class FloorLineConfig:
     """PLANE cues whose normal is within this angle of up are horizontal (floor candidates)."""
     min_floor_points: int = 50
     """The floor needs at least this many horizontal PLANE cues near its height."""
+    line_snap: bool = True
+    """Refit the floor through the 3D line cues lying on it (the plane cues' floor can sit a centimetre
+    high, which moves a far wall's lifted foot several centimetres toward the cameras)."""
+    walls: bool = False
+    """Also raise each kept segment into a vertical sheet of anchors for the plane checks only, not the
+    prior alignment (an extension on top of --floor.lines: assumes walls stand vertical on their foot)."""
+    wall_step: float = 0.1
+    """Spacing (metres) of those anchors, along the segment and upwards."""
+    wall_height: float = 0.0
+    """How high they reach above the floor (metres); 0 = the higher of the first pass's plane cues
+    (99th percentile) and the highest camera + 1 m. Anchors behind a view's aligned surface are dropped."""
 
     def validate(self) -> None:
-        for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel"):
+        for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--floor.{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
         if self.min_views < 1:
@@ -70,6 +90,10 @@ class FloorLineConfig:
             raise ValueError(f"--floor.min-azimuth-deg must be in [0, 180), got {self.min_azimuth_deg}")
         if self.min_floor_points < 3:
             raise ValueError(f"--floor.min-floor-points must be >= 3, got {self.min_floor_points}")
+        if self.wall_height < 0:
+            raise ValueError(f"--floor.wall-height must be >= 0 (0 = automatic), got {self.wall_height}")
+        if self.walls and not self.lines:
+            raise ValueError("--floor.walls raises the floor lines: it needs --floor.lines")
         if not 0 < self.horizontal_deg < 90:
             raise ValueError(f"--floor.horizontal-deg must be in (0, 90), got {self.horizontal_deg}")
 
@@ -129,6 +153,54 @@ def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfi
         return None, f"{int(near.sum())} plane cues on the lowest horizontal surface (fewer than {cfg.min_floor_points})"
     normal, height = _level_fit(pts[near], up)
     return Floor(normal, height, int(near.sum())), ""
+
+
+def snap_to_lines(floor: Floor, segments: np.ndarray, band: float = 0.03, min_length: float = 0.3,
+                  max_tilt_deg: float = 2.0) -> tuple[Floor, int]:
+    """The floor refitted through the 3D line cues ``segments`` [L, 2, 3] lying on it: of the lines
+    at least ``min_length`` long with both ends within ``band`` of it, the largest set within a third
+    of the band of one plane (tried through each line, tilted from the floor's normal just enough to
+    hold it, and through each pair; a skirting board's top is not the floor), then a plane through
+    their end points where they span the floor in two directions (0.3 m spread across their main
+    direction), else the floor's normal at their ends' median height. Unchanged when no line lies on
+    it, or when the fit tilts more than ``max_tilt_deg`` or moves more than ``band``. Returns (floor,
+    lines used)."""
+    seg = np.asarray(segments, np.float64).reshape(-1, 2, 3)
+    on = (np.abs(seg @ floor.normal - floor.height) < band).all(axis=1) \
+        & (np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) >= min_length)
+    seg = seg[on]
+    if not len(seg):
+        return floor, 0
+    hyps = []  # (normal, height) through each line, and each pair of lines
+    for i, (p, q) in enumerate(seg):
+        d = (q - p) / np.linalg.norm(q - p)
+        n = floor.normal - (floor.normal @ d) * d
+        hyps.append((n / np.linalg.norm(n), float(n @ (p + q) / (2 * np.linalg.norm(n)))))
+        for j in range(i + 1, len(seg)):
+            hyps.append(_plane_through(np.r_[seg[i], seg[j]], floor.normal))
+    cos_tilt = np.cos(np.radians(max_tilt_deg))
+    best = max(((np.abs(seg @ n - h) < band / 3).all(axis=1) for n, h in hyps
+                if n is not None and n @ floor.normal >= cos_tilt), key=np.sum, default=None)
+    if best is None:
+        return floor, 0
+    normal, height = _plane_through(seg[best].reshape(-1, 3), floor.normal, min_spread=0.3)
+    if normal is None:  # one direction only: the floor's normal at their height
+        normal, height = floor.normal, float(np.median(seg[best].reshape(-1, 3) @ floor.normal))
+    if np.degrees(np.arccos(min(1.0, float(normal @ floor.normal)))) > max_tilt_deg \
+            or abs(height - floor.height) > band:
+        return floor, 0
+    return Floor(normal, height, floor.n_points), int(best.sum())
+
+
+def _plane_through(pts: np.ndarray, up: np.ndarray, min_spread: float = 0.0) -> tuple[np.ndarray | None, float]:
+    """(normal on ``up``'s side, height) of the least-squares plane through ``pts`` [N, 3]; (None, 0)
+    when they spread less than ``min_spread`` across their main direction (or lie on one line)."""
+    c = pts.mean(axis=0)
+    _, sv, vt = np.linalg.svd(pts - c)
+    if len(sv) < 2 or sv[1] / np.sqrt(len(pts)) < max(min_spread, 1e-6):
+        return None, 0.0
+    n = vt[2] * np.sign(vt[2] @ up)
+    return n, float(n @ c)
 
 
 def _level_fit(pts: np.ndarray, up: np.ndarray, cell: float = 0.25, band: float = 0.01) -> tuple[np.ndarray, float]:
@@ -269,15 +341,20 @@ def on_floor_by_prior(cam, seg: np.ndarray, floor: Floor, prior: np.ndarray, rel
 
 
 def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarray, plane_normal: np.ndarray,
-                       cfg: FloorLineConfig, priors: dict[int, np.ndarray] | None = None
+                       cfg: FloorLineConfig, priors: dict[int, np.ndarray] | None = None,
+                       line_segments: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
     """The floor-line anchors of a scene: (points [P, 3], kept-segment index [P], views per kept
     segment, statistics for the report; ``"note"`` there when nothing could be lifted). ``priors``:
-    image index -> aligned prior depth, for ``cfg.prior_check``."""
+    image index -> aligned prior depth, for ``cfg.prior_check``; ``line_segments`` [L, 2, 3]: the 3D
+    line cues, for ``cfg.line_snap``."""
     cfg.validate()
     floor, why = find_floor(plane_xyz, plane_normal, cameras, cfg)
     if floor is None:
         return np.zeros((0, 3)), np.zeros(0, np.int64), [], {"floor": None, "note": f"no floor found: {why}"}
+    n_snap = 0
+    if cfg.line_snap and line_segments is not None and len(line_segments):
+        floor, n_snap = snap_to_lines(floor, line_segments)
     lifted = lift_segments(cameras, segments, floor, cfg)
     centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
     keep = kept_segments(lifted, centres_uv, cfg)
@@ -287,8 +364,35 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
             cameras[v], np.asarray(segments[v])[lifted.seg[a]], floor, priors[v], cfg.prior_rel)]
     P, L, V = anchor_samples(lifted, keep, cfg.step)
     stats = {"floor": {"normal": floor.normal.round(5).tolist(), "height": round(floor.height, 5),
-                       "n_points": floor.n_points},
+                       "n_points": floor.n_points, "snapped_to_lines": n_snap},
              "lifted": len(lifted), "kept": len(keep), "samples": len(P)}
     if cfg.prior_check:
         stats["dropped_by_prior"] = n_kept - len(keep)
     return P, L, V, stats
+
+
+def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray, floor_height: float,
+                 plane_xyz: np.ndarray, cameras, cfg: FloorLineConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """The vertical-wall assumption (``--floor.walls``): each kept floor segment (its anchor samples
+    ``points`` [P, 3], kept-segment index ``line`` [P]) raised every ``cfg.wall_step`` up to the wall
+    top. Returns (points [Q, 3], row index [Q]: one horizontal row per segment and height, the
+    height they reach above the floor). The top is ``cfg.wall_height``, or with 0 the higher of the
+    99th percentile of ``plane_xyz``'s heights and the highest camera + 1 m."""
+    up = np.asarray(floor_normal, np.float64)
+    top = cfg.wall_height
+    if top <= 0:
+        h = np.asarray(plane_xyz, np.float64).reshape(-1, 3) @ up - floor_height
+        cam_top = max(float(np.asarray(c.center) @ up) for c in cameras) - floor_height + 1.0
+        top = max(float(np.percentile(h, 99)) if len(h) else 0.0, cam_top)
+    heights = np.arange(cfg.wall_step, top + 1e-9, cfg.wall_step)  # [H]
+    pts, row = [], []
+    for k in np.unique(line):
+        seg = points[line == k]
+        p, q = seg[0], seg[-1]
+        n = max(int(round(np.linalg.norm(q - p) / cfg.wall_step)) + 1, 2)
+        along = p + np.linspace(0.0, 1.0, n)[:, None] * (q - p)  # [n, 3]
+        pts.append((along[None] + heights[:, None, None] * up).reshape(-1, 3))  # [H * n, 3]
+        row.append(np.repeat(len(row) * len(heights) + np.arange(len(heights)), n))
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), float(top)
+    return np.concatenate(pts), np.concatenate(row), float(top)

@@ -33,10 +33,11 @@ log = logging.getLogger(__name__)
 def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
-                 desc: str = "planes") -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
+                 desc: str = "planes", align_ok: np.ndarray | None = None) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
-    ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel."""
+    ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel;
+    ``align_ok`` [P]: the anchors the depth alignment may use (default all; the planes use ``plane_ok``)."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -74,7 +75,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         aligned = None
         if depth is not None:
             n_prior += 1
-            al = align_depth_prior(cam, depth, anchors.xyz[cand], cfg.align, seed=cfg.seed, kind=kind)
+            ca = cand if align_ok is None else cand[align_ok[cand]]
+            al = align_depth_prior(cam, depth, anchors.xyz[ca], cfg.align, seed=cfg.seed, kind=kind)
             row["alignment"] = al.to_dict()
             fits.append(al)
             if al.ok:

@@ -142,6 +142,11 @@ class TrainConfig:
         if self.init.hole_stride < 1 or not 0 < self.init.hole_alpha <= 1:
             raise ValueError(f"--init.hole-stride must be >= 1 and --init.hole-alpha in (0, 1], got "
                              f"{self.init.hole_stride}, {self.init.hole_alpha}")
+        if self.loss.plane_first and not self.loss.plane_anchor:
+            raise ValueError("--loss.plane-first puts the plane cues' depth first in L_a: it needs --loss.plane-anchor")
+        if self.loss.plane_views != "own" and not (self.loss.plane_anchor or self.loss.plane_normals):
+            raise ValueError("--loss.plane-views chooses the plane cues of --loss.plane-anchor / --loss.plane-normals: "
+                             "it needs one of them")
         if not 0 <= self.init.plane_share <= 1:
             raise ValueError(f"--init.plane-share must be in [0, 1], got {self.init.plane_share}")
         finite_pos("loss.fused-voxel", self.loss.fused_voxel)

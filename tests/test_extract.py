@@ -138,6 +138,14 @@ class TestRun:
         with pytest.raises(ValueError, match="overwrite"):
             ex.run(None, scenes["plain_floor"], out)
         assert "floor" not in ex._key_config(ex.ExtractConfig()) and "floor" in ex._key_config(cfg)
+        assert "walls" not in ex._key_config(cfg)["floor"]  # --floor.walls off: older folders' key
+        cfg.floor.walls = True  # the feet raised: walls and box sides as accurate, no NaN
+        rep = _report(out := ex.run(cfg, scenes["plain_floor"], tmp_path / "walls"))
+        assert rep["floor_lines"]["walls"]["samples"] > 0 and "wall_step" in ex._key_config(cfg)["floor"]
+        assert any("--floor.walls" in n for n in rep["notes"])
+        walls = _no_nan(out).of_type(CueType.PLANE)
+        assert len(walls) >= len(plane) and np.mean(distance_to_surface(walls.xyz) < 0.03) > 0.95
+        cfg.floor.walls = False
         rep = _report(ex.run(cfg, scenes["all"], tmp_path / "textured_floor"))
         assert rep["floor_lines"]["floor"] is None
         assert any("no floor found" in n and "horizontal plane cues" in n for n in rep["notes"])

@@ -186,3 +186,100 @@ def test_prior_check_keeps_floor_segments_and_drops_edges_the_prior_puts_in_fron
     near = {i: 0.8 * p for i, p in true.items()}
     _, _, V, stats = floor_line_anchors(cams, segs, xyz, normals, cfg, near)
     assert stats["kept"] == 0 and stats["dropped_by_prior"] == 7 and V == []
+
+
+def test_wall_anchors_raise_each_segment_vertically_in_a_rotated_world(views):
+    """--floor.walls: each kept segment becomes rows of anchors straight above it (along the floor's
+    normal, whatever the world frame), one row per segment and height, up to the set height or the
+    automatic top (the higher of the plane cues' 99th percentile and the highest camera + 1 m)."""
+    from scipy.spatial.transform import Rotation
+
+    from geocues.floor_lines import wall_anchors
+
+    Q = Rotation.from_euler("xyz", [30, -50, 10], degrees=True).as_matrix()
+    up = Q[:, 2]
+    a, b = Q @ FOOT[0], Q @ FOOT[1]  # 2 m along the floor
+    P = np.r_[a + np.linspace(0, 1, 101)[:, None] * (b - a), np.array([[0.0, 0, 0], [0, 0.5, 0]]) @ Q.T]
+    L = np.r_[np.zeros(101, np.int64), np.ones(2, np.int64)]
+    cams = [camera(k, c.center, c.center + c.R[2], Q) for k, c in enumerate(views[0])]  # 1.5 m up
+    cfg = FloorLineConfig(lines=True, walls=True, wall_step=0.1, wall_height=1.0)
+    W, row, top = wall_anchors(P, L, up, 0.0, np.zeros((0, 3)), cams, cfg)
+    assert top == 1.0 and len(np.unique(row)) == 2 * 10  # 10 heights (0.1 .. 1.0 m) per segment
+    assert len(W) == 10 * 21 + 10 * 6  # 21 samples along the 2 m segment, 6 along the 0.5 m one
+    h = W @ up
+    np.testing.assert_allclose(np.sort(np.unique(h.round(6))), np.arange(1, 11) * 0.1, atol=1e-9)
+    foot = W - h[:, None] * up  # dropped back onto the floor: on the segments
+    d_first = np.linalg.norm(np.cross(foot[:210] - a, b - a), axis=1) / np.linalg.norm(b - a)
+    assert d_first.max() < 1e-9
+    for r in np.unique(row):  # a row is one segment at one height
+        assert np.ptp(h[row == r]) < 1e-9
+    cfg.wall_height = 0.0  # automatic: plane cues up to 2.6 m beat the cameras' 1.5 + 1 m
+    cues = np.c_[np.zeros(100), np.zeros(100), np.linspace(0, 2.6, 100)] @ Q.T
+    assert wall_anchors(P, L, up, 0.0, cues, cams, cfg)[2] == pytest.approx(np.percentile(np.linspace(0, 2.6, 100), 99))
+    assert wall_anchors(P, L, up, 0.0, cues[:50], cams, cfg)[2] == pytest.approx(2.5)
+    assert len(wall_anchors(P[:0], L[:0], up, 0.0, cues, cams, cfg)[0]) == 0
+
+
+def test_walls_need_floor_lines():
+    with pytest.raises(ValueError, match="--floor.walls .* needs --floor.lines"):
+        FloorLineConfig(walls=True).validate()
+    with pytest.raises(ValueError, match="--floor.wall-step"):
+        FloorLineConfig(lines=True, walls=True, wall_step=0).validate()
+    with pytest.raises(ValueError, match="--floor.wall-height"):
+        FloorLineConfig(lines=True, walls=True, wall_height=-1).validate()
+
+
+def test_raised_foot_places_a_wall_the_foot_alone_does_not():
+    """The plane check of one view of a wall x = 3 (1.5 m up, 3 m away) whose aligned prior is tilted
+    (5 % too near at the top, 5 % too far at the bottom) and whose only anchors are its foot: the
+    foot line leaves the plane free to turn about it, so only a band above the foot is cut; raised by
+    --floor.walls, the same foot places the whole wall to a millimetre."""
+    from geocues.floor_lines import wall_anchors
+    from geocues.planes import PlaneConfig, plane_cues_with_prior
+
+    cam = camera(0, (0.0, 1.0, 1.5), (3.0, 1.0, 1.2))
+    rows, cols = np.mgrid[0:H, 0:W]
+    d = cam.rays_at(rows, cols) @ np.asarray(cam.R)  # [H, W, 3] world directions, camera z = 1
+    z = (3.0 - cam.center[0]) / d[..., 0]
+    X = cam.center + z[..., None] * d
+    wall = (X[..., 2] > 0) & (X[..., 2] < 2.6)
+    prior = np.where(wall, z * (1 + 0.1 * (rows / H - 0.5)), 0.0).astype(np.float32)  # tilted
+    regions = np.where(wall, 0, -1).astype(np.int32)
+    foot = np.c_[np.full(101, 3.0), np.linspace(0.0, 2.0, 101), np.zeros(101)]  # y in [0, 2] at z = 0
+    cfg = PlaneConfig()
+    alone = plane_cues_with_prior(cam, np.full((H, W, 3), 0.5, np.float32), regions, prior, foot, cfg,
+                                  anchors_group=np.zeros(101, np.int64))
+    fc = FloorLineConfig(lines=True, walls=True)
+    W_, row, _ = wall_anchors(foot, np.zeros(101, np.int64), np.array([0, 0, 1.0]), 0.0, np.zeros((0, 3)),
+                              [cam], fc)
+    raised = plane_cues_with_prior(cam, np.full((H, W, 3), 0.5, np.float32), regions, prior,
+                                   np.r_[foot, W_], cfg, anchors_group=np.r_[np.zeros(101, np.int64), row + 1])
+    assert len(raised.xyz) > 0
+    assert np.abs(raised.xyz[:, 0] - 3.0).max() < 0.002
+    assert np.ptp(raised.xyz[:, 2]) > 2.0  # foot to top
+    assert len(alone.xyz) == 0 or alone.xyz[:, 2].max() < 0.5
+    assert len(raised.xyz) > 4 * len(alone.xyz)
+
+
+def test_floor_snapped_to_the_3d_lines_on_it():
+    """The plane cues' floor 1 cm high and tilted 0.2 degrees: two wall feet (3D line cues) on the
+    true floor z = 0 put it back exactly; one foot alone fixes only the height; lines that do not lie
+    on it (an edge 0.5 m up, a line on the floor shorter than 0.3 m) leave it as it was."""
+    from geocues.floor_lines import snap_to_lines
+
+    t = np.radians(0.2)
+    off = Floor(np.array([np.sin(t), 0.0, np.cos(t)]), 0.01, 100)
+    feet = np.array([[[0.0, 0, 0], [5, 0, 0]], [[0.0, 0, 0], [0, 4, 0]]])
+    snapped, n = snap_to_lines(off, feet)
+    assert n == 2 and abs(snapped.height) < 1e-9 and snapped.normal[2] > 1 - 1e-12
+    one, n = snap_to_lines(off, feet[1:])  # along y: spans the floor in one direction only
+    assert n == 1 and np.allclose(one.normal, off.normal) and abs(one.height) < 1e-4
+    skirting = np.r_[feet, [[[0.0, 3, 0.025], [4, 3, 0.025]]]]  # 2.5 cm up: in the band, dropped on the refit
+    snapped, n = snap_to_lines(off, skirting)
+    assert n == 2 and abs(snapped.height) < 1e-9 and snapped.normal[2] > 1 - 1e-12
+    stray = np.array([[[0.0, 1, 0.5], [4, 1, 0.5]], [[1.0, 1, 0], [1.2, 1, 0]]])
+    same, n = snap_to_lines(off, stray)
+    assert n == 0 and same is off
+    steep = np.array([[[0.0, 0, 0.029], [1, 0, -0.029]], [[0.0, 2, 0.0], [0, 3, 0.0]]])  # 3.3 degrees
+    assert snap_to_lines(Floor(np.array([0, 0, 1.0]), 0.0, 10), steep[:1])[1] == 0  # tilts too far
+    assert snap_to_lines(Floor(np.array([0, 0, 1.0]), 0.0, 10), steep)[1] == 1  # the level one wins

@@ -165,3 +165,21 @@ def test_a_wall_whose_prior_agrees_with_the_wrong_place_comes_back_only_with_pla
         assert after < 0.045, (before, after)
     else:
         assert after > 0.8 * before, (before, after)  # the prior's anchor holds the wall where it is
+
+
+def test_plane_options_that_would_do_nothing_are_refused():
+    """--loss.plane-first without --loss.plane-anchor (or --loss.plane-views all without either plane
+    option) changed nothing and said nothing: a run measured with it was the plain run."""
+    from splat.train_config import TrainConfig
+
+    for loss, match in (({"plane_first": True}, "plane-first .* needs --loss.plane-anchor"),
+                        ({"plane_views": "all"}, "plane-views .* needs one of them")):
+        cfg = TrainConfig()
+        cfg.loss = replace(cfg.loss, **loss)
+        with pytest.raises(ValueError, match=match):
+            cfg.validate()
+    cfg = TrainConfig()
+    cfg.loss = replace(cfg.loss, plane_anchor=True, plane_first=True, plane_views="all")
+    cfg.validate()
+    cfg.loss = replace(cfg.loss, plane_anchor=False, plane_first=False, plane_normals=True)
+    cfg.validate()
