@@ -36,6 +36,18 @@ class Anchors:
         known = self.views.get(cam_index, np.zeros(0, np.int64))
         return np.union1d(known, np.flatnonzero(self.unknown)).astype(np.int64)
 
+    def with_unknown(self, xyz: np.ndarray, group: np.ndarray) -> "Anchors":
+        """These anchors, then line-like ``xyz`` [Q, 3] (``group`` [Q]: their line index) whose
+        visibility is unknown: candidates of every camera, tested by projection (cheaper than
+        listing every camera for each of many lines)."""
+        from geocues.types import CueType
+
+        q = len(xyz)
+        return Anchors(np.concatenate([self.xyz, np.asarray(xyz, np.float64).reshape(q, 3)]),
+                       np.concatenate([self.cue_type, np.full(q, int(CueType.LINE), np.uint8)]),
+                       np.concatenate([self.group, np.asarray(group, np.int64).reshape(q)]),
+                       self.views, np.concatenate([self.unknown, np.ones(q, bool)]))
+
     @staticmethod
     def build(sfm_xyz: np.ndarray | None = None, sfm_views: dict[int, np.ndarray] | None = None,
               line_points: np.ndarray | None = None, line_of_point: np.ndarray | None = None,

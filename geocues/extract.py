@@ -248,14 +248,16 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
-    floor_stats, align_ok = None, None
+    floor_stats, assumed = None, None
     if cfg.planes and cfg.floor.lines:
-        extra, n_wall, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
+        extra, walls, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
             anchors = _anchors(scene, sfm, lines, extra)
-            plane_ok = np.concatenate([plane_ok, np.ones(len(extra[0]), bool)])  # they come last
-            align_ok = np.ones(len(anchors), bool)
-            align_ok[len(anchors) - n_wall:] = False  # the raised walls (last) are assumptions, not cues
+            n_lines = (len(lines) if lines is not None else 0) + len(extra[2])
+            anchors = anchors.with_unknown(walls[0], walls[1] + n_lines)  # seen wherever they project
+            plane_ok = np.concatenate([plane_ok, np.ones(len(extra[0]) + len(walls[0]), bool)])  # they come last
+            assumed = np.zeros(len(anchors), bool)
+            assumed[len(anchors) - len(walls[0]):] = True  # the raised walls (last) are assumptions, not cues
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
@@ -263,7 +265,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     if cfg.planes:
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
                                                                            lines, cache, timings, notes,
-                                                                           align_ok=align_ok)
+                                                                           assumed=assumed)
         rejections.update(pr)
 
     # ---- merge and write
@@ -330,10 +332,10 @@ def _anchors(scene: Scene, sfm: SfmCues | None, lines: LineCues | None,
 
 def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path, timings: dict[str, float], notes: list[str]
-                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], int, dict]:
+                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], tuple[np.ndarray, np.ndarray], dict]:
     """A first plane pass for the floor, then the floor-contact lines (geocues.floor_lines): returns
-    ((points, line index, views per line), how many of the points (the last) are raised walls,
-    statistics for the report)."""
+    ((points, line index, views per line), (--floor.walls' raised points, their row index), statistics
+    for the report)."""
     from geocues.lines.detect import detect_all
 
     t0 = time.perf_counter()
@@ -343,14 +345,12 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned, lines.segments if lines is not None else None)
-    n_wall = 0
+    W, WL = np.zeros((0, 3)), np.zeros(0, np.int64)
     if cfg.floor.walls and len(P):
         W, WL, top = wall_anchors(P, L, np.array(stats["floor"]["normal"]), stats["floor"]["height"],
                                   first.xyz, scene.cameras, cfg.floor)
-        every = np.arange(len(scene.cameras))  # seen from wherever they project in front of the prior
-        P, L, V = np.concatenate([P, W]), np.concatenate([L, WL + len(V)]), V + [every] * (int(WL.max()) + 1)
-        n_wall = len(W)
-        stats["walls"] = {"samples": n_wall, "top": round(top, 3)}
+        stats["walls"] = {"samples": len(W), "top": round(top, 3)}
+    n_wall = len(W)
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:
         notes.append(f"floor lines: {stats['note']}; no floor-line anchors")
@@ -358,7 +358,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         notes.append(f"floor lines: floor found in {stats['floor']['n_points']} plane cues; {stats['kept']} of "
                      f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors"
                      + (f", {n_wall} raised up to {stats['walls']['top']:.2f} m (--floor.walls)" if n_wall else ""))
-    return (P, L, V), n_wall, stats
+    return (P, L, V), (W, WL), stats
 
 
 def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:

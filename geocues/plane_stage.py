@@ -33,11 +33,12 @@ log = logging.getLogger(__name__)
 def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
-                 desc: str = "planes", align_ok: np.ndarray | None = None) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
+                 desc: str = "planes", assumed: np.ndarray | None = None) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
     ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel;
-    ``align_ok`` [P]: the anchors the depth alignment may use (default all; the planes use ``plane_ok``)."""
+    ``assumed`` [P]: anchors that are assumptions, not cues (`--floor.walls`' raised rows): left out of
+    the depth alignment, and a plane counts their lines only whole (geocues.planes)."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -75,7 +76,7 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         aligned = None
         if depth is not None:
             n_prior += 1
-            ca = cand if align_ok is None else cand[align_ok[cand]]
+            ca = cand if assumed is None else cand[~assumed[cand]]
             al = align_depth_prior(cam, depth, anchors.xyz[ca], cfg.align, seed=cfg.seed, kind=kind)
             row["alignment"] = al.to_dict()
             fits.append(al)
@@ -104,7 +105,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         elif aligned is not None:
             pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[pc], cfg.plane,
                                        seed=cfg.seed + i, inside_only=strict[pc],
-                                       anchors_group=anchors.group[pc], anchor_ids=pc)
+                                       anchors_group=anchors.group[pc], anchor_ids=pc,
+                                       whole_lines=None if assumed is None else assumed[pc])
             candidates += pp.candidates
             row["plane_mode"] = "prior"
             if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in

@@ -214,13 +214,15 @@ def _bump(d: dict[str, int], key: str, n: int = 1) -> None:
 def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           aligned_depth: np.ndarray, anchors_xyz: np.ndarray, cfg: PlaneConfig,
                           seed: int = 0, inside_only: np.ndarray | None = None,
-                          anchors_group: np.ndarray | None = None, anchor_ids: np.ndarray | None = None
-                          ) -> PlanePoints:
+                          anchors_group: np.ndarray | None = None, anchor_ids: np.ndarray | None = None,
+                          whole_lines: np.ndarray | None = None) -> PlanePoints:
     """Plane-like points of one image from its aligned depth prior [H, W] (metres, 0 = invalid).
 
     ``anchors_xyz`` [P, 3]: line / SfM cue points that may be visible in the image; those flagged
     ``inside_only`` [P] (SfM points) count only when they project inside a region;
-    ``anchors_group`` [P] (line index, or < 0 for SfM points) weighs each line like one point.
+    ``anchors_group`` [P] (line index, or < 0 for SfM points) weighs each line like one point;
+    the lines of anchors flagged ``whole_lines`` [P] (the raised floor lines of `--floor.walls`, an
+    assumption rather than a cue) count for a plane only where all their points near the region agree.
     Each region's back-projected prior is split into planes by sequential RANSAC; a plane is kept
     if the nearby anchors agree with it -- after it is snapped onto them (``snap_to_plane``), which
     removes the prior's residual low-frequency error -- and its pixels' rays are cut with it.
@@ -280,6 +282,9 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             remaining = remaining[~inl]
             # agreement with the nearby cues (paper: keep points close to the 3D line samples)
             near_plane = np.abs(a_c @ n_c + d_c) < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
+            if whole_lines is not None and len(a_ids):  # a raised row crossing the plane is not on it
+                w = whole_lines[a_ids]
+                near_plane &= ~(w & np.isin(groups[a_ids], groups[a_ids][w & ~near_plane]))
             r = rays[sel[keep]]
             if cfg.fuse_surfaces:
                 candidates.append(_candidate(cam, image, n_c, d_c, rows[sel[keep]], cols[sel[keep]], z[sel[keep]],

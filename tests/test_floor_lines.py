@@ -283,3 +283,41 @@ def test_floor_snapped_to_the_3d_lines_on_it():
     steep = np.array([[[0.0, 0, 0.029], [1, 0, -0.029]], [[0.0, 2, 0.0], [0, 3, 0.0]]])  # 3.3 degrees
     assert snap_to_lines(Floor(np.array([0, 0, 1.0]), 0.0, 10), steep[:1])[1] == 0  # tilts too far
     assert snap_to_lines(Floor(np.array([0, 0, 1.0]), 0.0, 10), steep)[1] == 1  # the level one wins
+
+
+@pytest.mark.parametrize("whole", [False, True])
+def test_a_raised_floor_texture_line_crossing_the_wall_counts_only_whole(whole):
+    """The raised rows of a floor texture line that runs toward the wall at 16 degrees cross the wall's
+    plane near its foot: counted point by point they tilt the plane 3 cm off; counted only as whole
+    rows (``whole_lines``, what `geocues extract --floor.walls` passes) the wall stays within 1 cm."""
+    from geocues.floor_lines import wall_anchors
+    from geocues.planes import PlaneConfig, plane_cues_with_prior
+
+    cam = camera(0, (0.0, 1.0, 1.5), (3.0, 1.0, 1.2))
+    rows, cols = np.mgrid[0:H, 0:W]
+    d = cam.rays_at(rows, cols) @ np.asarray(cam.R)
+    z = (3.0 - cam.center[0]) / d[..., 0]
+    wall = ((cam.center + z[..., None] * d)[..., 2] > 0) & ((cam.center + z[..., None] * d)[..., 2] < 2.6)
+    prior = np.where(wall, z * (1 + 0.1 * (rows / H - 0.5)), 0.0).astype(np.float32)
+    foot = np.c_[np.full(101, 3.0), np.linspace(0.0, 2.0, 101), np.zeros(101)]
+    tex = np.array([2.5, 0.2, 0]) + np.linspace(0, 1, 51)[:, None] * np.array([0.45, 1.6, 0])
+    P, L = np.r_[foot, tex], np.r_[np.zeros(101, np.int64), np.ones(51, np.int64)]
+    raised, row, _ = wall_anchors(P, L, np.array([0, 0, 1.0]), 0.0, np.zeros((0, 3)), [cam],
+                                  FloorLineConfig(lines=True, walls=True))
+    flags = np.r_[np.zeros(len(P), bool), np.ones(len(raised), bool)]
+    out = plane_cues_with_prior(cam, np.full((H, W, 3), 0.5, np.float32), np.where(wall, 0, -1).astype(np.int32),
+                                prior, np.r_[P, raised], PlaneConfig(), anchors_group=np.r_[L, row + 2],
+                                whole_lines=flags if whole else None)
+    err = np.abs(out.xyz[:, 0] - 3.0).max()
+    assert (err < 0.01) if whole else (err > 0.025)
+
+
+def test_anchors_of_unknown_visibility_are_every_cameras_candidates():
+    from geocues.anchors import Anchors
+
+    a = Anchors.build(line_points=np.zeros((4, 3)), line_of_point=np.array([0, 0, 1, 1]),
+                      line_views=[np.array([0]), np.array([1])])
+    b = a.with_unknown(np.ones((3, 3)), np.array([2, 2, 3]))
+    assert len(b) == 7 and list(b.group) == [0, 0, 1, 1, 2, 2, 3]
+    assert list(b.candidates(0)) == [0, 1, 4, 5, 6] and list(b.candidates(1)) == [2, 3, 4, 5, 6]
+    assert list(b.candidates(5)) == [4, 5, 6]
