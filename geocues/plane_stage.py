@@ -33,12 +33,14 @@ log = logging.getLogger(__name__)
 def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
-                 desc: str = "planes", assumed: np.ndarray | None = None) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
+                 desc: str = "planes", assumed: np.ndarray | None = None
+                 ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
     ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel;
     ``assumed`` [P]: anchors that are assumptions, not cues (`--floor.walls`' raised rows): left out of
-    the depth alignment, and a plane counts their lines only whole (geocues.planes)."""
+    the depth alignment and of prior-free planes (which they would place on their own), and a prior
+    plane counts their lines only whole (geocues.planes)."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -92,6 +94,7 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         row["align_s"] = t2 - t1
         regions = wt.regions
         pc = cand[plane_ok[cand]]  # the planes' anchors
+        pf = pc if assumed is None else pc[~assumed[pc]]  # the prior-free planes': cues only
         if lines is not None and cfg.plane.cut_px > 0 and lines_of.get(i):
             regions = split_regions_by_lines(cam, regions, lines.segments[lines_of[i]],
                                              cfg.plane.cut_px * cam.width / 640.0,
@@ -114,11 +117,11 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
                 relabel = np.full(n_regions + 1, -1, regions.dtype)  # region id -> hole id; -1 stays -1
                 relabel[pp.no_depth_regions] = np.arange(len(pp.no_depth_regions))
                 holes = relabel[regions]
-                pp = pp.concat(plane_cues_prior_free(cam, image, holes, anchors.xyz[pc], anchors.group[pc],
-                                                     cfg.plane, seed=cfg.seed + i, inside_only=strict[pc]))
+                pp = pp.concat(plane_cues_prior_free(cam, image, holes, anchors.xyz[pf], anchors.group[pf],
+                                                     cfg.plane, seed=cfg.seed + i, inside_only=strict[pf]))
         elif cfg.prior_free_fallback or not cfg.priors or not has_priors:
-            pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[pc], anchors.group[pc],
-                                       cfg.plane, seed=cfg.seed + i, inside_only=strict[pc])
+            pp = plane_cues_prior_free(cam, image, regions, anchors.xyz[pf], anchors.group[pf],
+                                       cfg.plane, seed=cfg.seed + i, inside_only=strict[pf])
             row["plane_mode"] = "prior_free"
         else:
             pp = None

@@ -145,7 +145,12 @@ class TestRun:
         assert any("--floor.walls" in n for n in rep["notes"])
         walls = _no_nan(out).of_type(CueType.PLANE)
         assert len(walls) >= len(plane) and np.mean(distance_to_surface(walls.xyz) < 0.03) > 0.95
+        cfg.priors = False  # prior-free planes are fitted to cues only, never to the raised rows
+        free_walls = _report(ex.run(cfg, scenes["plain_floor"], tmp_path / "free_walls"))
         cfg.floor.walls = False
+        free = _report(ex.run(cfg, scenes["plain_floor"], tmp_path / "free"))
+        assert free_walls["floor_lines"]["walls"]["samples"] > 0 and free_walls["counts"] == free["counts"]
+        cfg.priors = True
         rep = _report(ex.run(cfg, scenes["all"], tmp_path / "textured_floor"))
         assert rep["floor_lines"]["floor"] is None
         assert any("no floor found" in n and "horizontal plane cues" in n for n in rep["notes"])
