@@ -4,7 +4,8 @@ The F-score of `evaluate` (the MonoSDF protocol: meshes culled to the training f
 prediction cropped to the GT box plus 5 cm) is one number; this splits it. The GT room's triangles
 are labelled by their material (`gt/triangle_material.npy`, names in scene.json) and the walls by
 which side of the room they face (x min / x max / y min / y max, z up); a predicted sample is
-labelled by its nearest GT sample. Per label: its share of the GT surface, recall (GT samples
+labelled by its nearest GT sample. The samples and distances are `evaluate`'s own
+(``evaluation.mesh_metrics.evaluate_with_scene``), so the rows add up to its figures. Per label: its share of the GT surface, recall (GT samples
 within 5 cm of the mesh), mean completeness distance, its share of the prediction and precision.
 Several meshes (a run's `checkpoints/mesh_*.ply`, the floor row's mesh) print side by side.
 
@@ -24,9 +25,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from evaluation.mesh_metrics import (CameraSet, MeshMetricsConfig, bounds_mask, load_mesh,  # noqa: E402
-                                     nearest_sample_distances, sample_kept_surface, scene_cameras_and_gt,
-                                     visible_mask)
+from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_with_scene, load_mesh  # noqa: E402
 
 
 @dataclass
@@ -53,26 +52,14 @@ def surface_labels(scene: Path, faces: np.ndarray, vertices: np.ndarray, normals
 
 
 def diagnose(scene: Path, mesh_path: Path, cfg: MeshMetricsConfig | None = None) -> dict:
-    """Per label: gt_share, recall, completeness_cm, pred_share, precision (the protocol's samples)."""
+    """Per label: gt_share, recall, completeness_cm, pred_share, precision (the protocol's samples,
+    from ``evaluate``'s own evaluation of the mesh against the scene)."""
     cfg = cfg or MeshMetricsConfig()
-    cams, gt_path = scene_cameras_and_gt(scene)
-    gt, pred = load_mesh(gt_path), load_mesh(mesh_path)
-    cs = CameraSet.from_cameras(cams, cfg.max_cameras)
-    lower, upper = gt.bounds
-
-    def pred_keep(p: np.ndarray) -> np.ndarray:
-        m = bounds_mask(p, lower, upper, cfg.crop_margin)
-        m[m] = visible_mask(p[m], cs, None, cfg.occlusion_tolerance)
-        return m
-
-    rng_pred, rng_gt = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(2))
-    p, _, _ = sample_kept_surface(pred, cfg.n_samples, rng_pred, pred_keep)
-    g, g_face, _ = sample_kept_surface(gt, cfg.n_samples, rng_gt,
-                                       lambda q: visible_mask(q, cs, None, cfg.occlusion_tolerance))
-    d_pg, nearest = nearest_sample_distances(p, g)
-    d_gp, _ = nearest_sample_distances(g, p)
-    label_g = surface_labels(scene, gt.faces, gt.vertices, gt.face_normals)[g_face]
-    label_p = label_g[nearest]
+    m = evaluate_with_scene(mesh_path, scene_dir=scene, cfg=cfg)
+    gt = load_mesh(m.protocol["gt_mesh"])
+    label = surface_labels(scene, gt.faces, gt.vertices, gt.face_normals)
+    label_g, label_p = label[m.gt_face], label[m.gt_face_at_pred]
+    d_pg, d_gp = m.dist_pred_to_gt, m.dist_gt_to_pred
     out = {}
     for name in sorted(set(label_g)):
         mg, mp = label_g == name, label_p == name

@@ -264,6 +264,8 @@ class MeshMetrics:
     protocol: dict[str, Any] = field(default_factory=dict)
     dist_pred_to_gt: np.ndarray | None = field(default=None, repr=False)  # [N] per predicted sample
     dist_gt_to_pred: np.ndarray | None = field(default=None, repr=False)  # [M] per GT sample
+    gt_face: np.ndarray | None = field(default=None, repr=False)  # [M] GT triangle of each GT sample
+    gt_face_at_pred: np.ndarray | None = field(default=None, repr=False)  # [N] GT triangle nearest each predicted one
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form: the seven metric keys plus the ``protocol`` object."""
@@ -327,10 +329,12 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
         d_pg, idx_pg = nearest_sample_distances(p_pts, g_pts)
         d_gp, idx_gp = nearest_sample_distances(g_pts, p_pts)
         n_gt_at_pred, n_pred_at_gt = n_gt[idx_pg], n_pred[idx_gp]
+        gt_face_at_pred = g_face[idx_pg]
     else:
         d_pg, face_pg = surface_distances(p_pts, gt_scene)
         d_gp, face_gp = surface_distances(g_pts, pred_scene)
         n_gt_at_pred, n_pred_at_gt = gt.face_normals[face_pg], pred.face_normals[face_gp]
+        gt_face_at_pred = face_pg
 
     acc, comp = accuracy(d_pg), completeness(d_gp)
     prec, rec, fs = precision_recall_fscore(d_pg, d_gp, cfg.threshold)
@@ -357,7 +361,8 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
         accuracy=acc, completeness=comp, chamfer_l1=chamfer_l1(acc, comp), precision=prec,
         recall=rec, f_score=fs,
         normal_consistency=normal_consistency(n_pred, n_gt_at_pred, n_gt, n_pred_at_gt),
-        protocol=protocol, dist_pred_to_gt=d_pg, dist_gt_to_pred=d_gp,
+        protocol=protocol, dist_pred_to_gt=d_pg, dist_gt_to_pred=d_gp, gt_face=g_face,
+        gt_face_at_pred=gt_face_at_pred,
     )
 
 

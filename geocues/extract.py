@@ -253,8 +253,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         extra, walls, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
             anchors = _anchors(scene, sfm, lines, extra)
-            n_lines = (len(lines) if lines is not None else 0) + len(extra[2])
-            anchors = anchors.with_unknown(walls[0], walls[1] + n_lines)  # seen wherever they project
+            first_row = int(anchors.group.max()) + 1  # rows are lines after every other line
+            anchors = anchors.with_unknown(walls[0], walls[1] + first_row)  # seen wherever they project
             plane_ok = np.concatenate([plane_ok, np.ones(len(extra[0]) + len(walls[0]), bool)])  # they come last
             assumed = np.zeros(len(anchors), bool)
             assumed[len(anchors) - len(walls[0]):] = True  # the raised walls (last) are assumptions, not cues
