@@ -37,6 +37,9 @@ class SurfaceDiag:
 
 def surface_labels(scene: Path, faces: np.ndarray, vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """[F] label per GT triangle: its material's name, walls split into wall_xmin / _xmax / _ymin / _ymax."""
+    if not (scene / "gt" / "triangle_material.npy").is_file() or not (scene / "scene.json").is_file():
+        raise FileNotFoundError(f"{scene} is not a benchmark room (`evaluate make-room`): it has no "
+                                "scene.json with materials and gt/triangle_material.npy")
     names = [m["name"] for m in json.loads((scene / "scene.json").read_text())["room"]["materials"]]
     material = np.load(scene / "gt" / "triangle_material.npy")
     if material.shape != (len(faces),):
@@ -74,7 +77,10 @@ def diagnose(scene: Path, mesh_path: Path, cfg: MeshMetricsConfig | None = None)
 
 
 def main(args: SurfaceDiag) -> None:
-    results = {str(m): diagnose(args.scene, m) for m in args.meshes}
+    try:
+        results = {str(m): diagnose(args.scene, m) for m in args.meshes}
+    except (FileNotFoundError, ValueError, KeyError) as e:  # a bad path or a scene that is no benchmark room
+        raise SystemExit(f"surface_diag: error: {e}") from None
     for mesh, rows in results.items():
         print(f"\n{mesh}\n{'surface':12s} {'GT share':>8s} {'recall':>7s} {'comp cm':>8s} {'pred share':>10s} {'precision':>9s}")
         for name, r in rows.items():
