@@ -17,8 +17,12 @@ Each configuration runs once per ``--variants`` entry side by side, so old and n
 the same conditions: "baseline" (torch's Adam and autograd through the torch SSIM: the training
 step when issue 15 was filed; with ``--baseline-kernels REV`` also that commit's compositing kernels,
 built by bench/old_kernels.py, and its torch pixel maps), "fused-adam" (torch's single-kernel Adam only), "today" (the
-defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py; on a GPU also the loss terms
-and render maps compiled by splat/compiled.py, `splat train --compile`).
+defaults: fused Adam and the C++ SSIM and L_nc of splat/losses_cpu.py, on a GPU the CUDA loss kernels
+of splat/losses_cuda.py; on a GPU also the render maps compiled by splat/compiled.py, `splat train
+--compile`), "fused-loss" ("today" without compiling: the default of `splat train` on a GPU).
+On a GPU the steps are timed in a pass without the stage clocks (which synchronise at every stage
+boundary, as training does not) and the stages in a second pass; ``syncs_per_step`` counts how often
+one step makes the host wait for the GPU (torch's sync debug mode).
 Writes ``bench/results/train_step_<name>.json``. Not part of the default tests.
 """
 
@@ -32,6 +36,7 @@ import platform
 import statistics
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -40,6 +45,7 @@ sys.path.insert(0, str(REPO))
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
+from torch import Tensor  # noqa: E402
 
 from geocues.atomic import atomic_path  # noqa: E402
 from splat import compiled  # noqa: E402
@@ -116,7 +122,7 @@ def detail_timers(acc: dict[str, float]):
 # The same training step computed by other code: (TrainConfig.adam, LossConfig.kernels, whether
 # splat/compiled.py compiles the GPU's loss terms and render maps, TrainConfig.compile; no effect on the CPU).
 VARIANTS = {"baseline": ("torch", "torch", False), "fused-adam": ("fused", "torch", False),
-            "today": ("fused", "fused", True)}
+            "fused-loss": ("fused", "fused", False), "today": ("fused", "fused", True)}
 
 
 def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
@@ -171,24 +177,39 @@ def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, 
     loss_cfg = replace(LossConfig(), nc_from_iter=0, kernels=kernels)  # every term on
     refiner = (CameraRefiner(len(views), 3.0, True, True, tcfg.pose_lr, tcfg.focal_lr, cfg.device)
                if cfg.camera_opt else None)
-    sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
+    cuda = cfg.device.startswith("cuda")
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
     times, stages = [], []
     detail = cfg.detail and cfg.device == "cpu"
+
+    def one_step(step: int, stage_s: dict | None) -> Tensor:
+        k = step % len(views)
+        view = refiner.view(k, views[k]) if refiner is not None else views[k]
+        loss, _, _ = train_step(params, optimizers, strategy, state, view, step,
+                                cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s, refiner=refiner)
+        return loss
+
+    # On a GPU the stage clocks synchronise at every stage boundary, which a training run does not:
+    # the step is timed in a pass without them (synchronised only at its end), the stages in a second one
     for step in range(1, cfg.iters + 4):
         stage_s: dict[str, float] = {}
         sync()
         t0 = time.perf_counter()
         with detail_timers(stage_s) if detail else contextlib.nullcontext():
-            k = step % len(views)
-            view = refiner.view(k, views[k]) if refiner is not None else views[k]
-            loss, _, _ = train_step(params, optimizers, strategy, state, view, step,
-                                    cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s, refiner=refiner)
+            loss = one_step(step, None if cuda else stage_s)
         sync()
         if step > 3:
             times.append(time.perf_counter() - t0)
             stages.append(stage_s)
         if not math.isfinite(float(loss)):
             raise RuntimeError(f"non-finite loss at step {step} ({width}x{height}, {n})")
+    if cuda:
+        stages = []
+        for step in range(cfg.iters + 4, 2 * cfg.iters + 4):
+            stage_s = {}
+            one_step(step, stage_s)
+            stages.append(stage_s)
+        syncs = _count_syncs(lambda: one_step(2 * cfg.iters + 4, None))
     if cfg.profile:
         _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg, f"{width}x{height} {n} {variant}")
     row = {"width": width, "height": height, "n": n, "variant": variant + ("+camera-opt" if cfg.camera_opt else ""),
@@ -201,10 +222,24 @@ def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, 
             st["backward_rest"] = st["backward"] - st.get("composite_bwd", 0.0) - st.get("projection_bwd", 0.0)
         keys = sorted({k for st in stages for k in st} - set(STAGES))
         row["detail_s"] = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in keys}
-    if cfg.device.startswith("cuda"):
+    if cuda:
+        row["syncs_per_step"] = syncs
         row["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20
         torch.cuda.reset_peak_memory_stats()
     return row
+
+
+def _count_syncs(fn) -> int:
+    """How many times ``fn`` made the host wait for the GPU (torch's sync debug mode warns at each)."""
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            fn()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    return sum("called a synchronizing" in str(w.message) for w in caught)
 
 
 def _profile(params, optimizers, strategy, state, views, tcfg, loss_cfg, g, cfg: StepBench, title: str) -> None:

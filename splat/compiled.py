@@ -15,9 +15,10 @@ compiling fails (no Triton, no C compiler, an unsupported operation) or the chec
 warning names the function and why, and that function runs eagerly for the rest of the process.
 
 Off unless asked for: ``splat train --compile`` (``TrainConfig.compile``) calls ``enable(True)`` for
-its run, and then ``applies(*tensors)`` is true for CUDA tensors; the callers (splat/losses.py under
-``LossConfig.kernels = "fused"``, splat/rasterize.py for the "cuda" backend) keep their eager code
-for everything else. Measured on an H100 (docs/rasterizer.md): one training step at 640x480 with
+its run, and then ``applies(*tensors)`` is true for CUDA tensors; the callers (splat/rasterize.py for
+the "cuda" backend; splat/losses.py under ``LossConfig.kernels = "fused"`` only where the CUDA loss
+kernels of splat/losses_cuda.py, which it tries first, did not build) keep their eager code for
+everything else. Measured on an H100 (docs/rasterizer.md): one training step at 640x480 with
 300k Gaussians and priors 15 -> 10 ms; in a prior-free 30k-iteration run on ICL living room 1 the
 steady step 16.4 -> 14.8 ms, after about 90 s of compiling on a machine with no inductor cache yet
 (torch keeps compiled kernels on disk, so later runs on the same machine start in seconds).

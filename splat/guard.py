@@ -53,6 +53,17 @@ class GuardConfig:
             raise ValueError(f"guard.lr_factor must be in (0, 1), got {self.lr_factor}")
 
 
+def _not_finite(tensors: dict[str, Tensor], extra: Tensor | None = None) -> list:
+    """The names of the tensors whose sum is not finite, in one copy from the device (one wait for a
+    GPU, not one per tensor); with ``extra`` (a 0-dim tensor) its value is appended to the list."""
+    flags = [torch.isfinite(t.sum()).logical_not().float() for t in tensors.values()]
+    if extra is not None:
+        flags.append(extra.float())
+    values = torch.stack(flags).tolist() if flags else []
+    bad = [k for k, v in zip(tensors, values) if v]
+    return bad + (values[-1:] if extra is not None else [])
+
+
 class NumericsGuard:
     """State of the guard over one run (module docstring)."""
 
@@ -72,7 +83,7 @@ class NumericsGuard:
         if not self.cfg.enabled:
             return None
         bad_terms = [k for k, v in terms.items() if not math.isfinite(v)]
-        bad_grads = [k for k, p in params.items() if p.grad is not None and not torch.isfinite(p.grad.sum())]
+        bad_grads = _not_finite({k: p.grad for k, p in params.items() if p.grad is not None})
         if not math.isfinite(loss) or bad_terms:
             return self._event(step, "non-finite loss", bad_terms, bad_grads, params, grads=True)
         if bad_grads:
@@ -89,18 +100,18 @@ class NumericsGuard:
         inside the scene bounds, else a report."""
         if not self.cfg.enabled:
             return None
-        bad_values = [k for k, p in params.items() if not torch.isfinite(p.detach().sum())]
+        means = params["means"].detach()
+        outside = (means - self.centre).abs().amax(-1) > self.radius
+        share = outside.float().mean() if len(means) else means.new_zeros(())
+        bad_values = _not_finite({k: p.detach() for k, p in params.items()}, extra=share)
+        share = bad_values.pop()
         if bad_values:
             return self._event(step, "non-finite parameters after the optimizer step", [], bad_values, params)
-        means = params["means"].detach()
-        if len(means):
-            outside = (means - self.centre).abs().amax(-1) > self.radius
-            share = float(outside.float().mean())
-            if share > self.cfg.max_outside:
-                event = self._event(step, f"{share:.0%} of the Gaussians left the scene bounds", [], [], params)
-                event["params"] = ["means"]
-                event["gaussians"] = {"means": {"count": int(outside.sum()), "first": torch.where(outside)[0][:5].tolist()}}
-                return event
+        if len(means) and share > self.cfg.max_outside:
+            event = self._event(step, f"{share:.0%} of the Gaussians left the scene bounds", [], [], params)
+            event["params"] = ["means"]
+            event["gaussians"] = {"means": {"count": int(outside.sum()), "first": torch.where(outside)[0][:5].tolist()}}
+            return event
         return None
 
     def _event(self, step: int, reason: str, bad_terms: list, keys: list, params, grads: bool = False) -> dict:

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from evaluation.image_metrics import ssim_map
-from splat import compiled
+from splat import compiled, losses_cuda
 from splat.multiview import SourceView, multiview_ncc_loss, to_gray
 from splat.losses_cpu import fused_applies, nc_loss, normal_prior_loss_fused, ssim_mean
 
@@ -53,11 +53,14 @@ def rgb_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, fused_ssim: bo
 
     pred, gt: [H, W, 3] colours in [0, 1]. L1 is the mean over pixels and channels; SSIM is the
     3DGS one (11 × 11 Gaussian window, σ = 1.5, zero padding) of ``evaluation.image_metrics``, on
-    the CPU by the fused C++ kernel of splat/losses_cpu.py, on a GPU by this torch code compiled
-    (splat/compiled.py), unless ``fused_ssim`` is False. Returns a 0-dim tensor.
+    the CPU by the fused C++ kernel of splat/losses_cpu.py, on a GPU by the CUDA kernels of
+    splat/losses_cuda.py (this torch code compiled by splat/compiled.py where they did not build),
+    unless ``fused_ssim`` is False. Returns a 0-dim tensor.
     """
     _check_shape("pred", pred, (None, None, 3))
     _check_shape("gt", gt, tuple(pred.shape))
+    if fused_ssim and not gt.requires_grad and losses_cuda.applies(pred, gt):
+        return losses_cuda.rgb_loss(pred, gt, lambda_dssim)
     if fused_ssim and not gt.requires_grad and compiled.applies(pred, gt):
         return compiled.call(_rgb_loss_torch, pred, gt.to(pred.dtype), float(lambda_dssim))
     l1 = (pred - gt).abs().mean()
@@ -146,7 +149,8 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor, fused: bool 
     normal, prior: [H, W, 3] unit camera-frame normals; valid: [H, W] bool. The L1 norm is summed
     over the 3 components and averaged over pixels (range [0, 2√3]); pixels where either normal is
     all zero (undefined) are dropped as well. Empty mask: graph-connected 0. On the CPU the fused
-    kernel of splat/losses_cpu.py computes it, on a GPU this code compiled (splat/compiled.py); this
+    kernel of splat/losses_cpu.py computes it, on a GPU splat/losses_cuda.py's (or, where they did not
+    build, this code compiled by splat/compiled.py); this
     code is their oracle (``fused=False``); a prior that needs a gradient takes it.
     """
     _check_shape("normal", normal, (None, None, 3))
@@ -155,6 +159,8 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor, fused: bool 
     fusable = fused and valid.dtype == torch.bool and not prior.requires_grad and prior.dtype == normal.dtype
     if fusable and fused_applies(normal, prior):
         return normal_prior_loss_fused(normal, prior, valid)
+    if fusable and losses_cuda.applies(normal, prior, valid):
+        return losses_cuda.normal_prior_loss(normal, prior, valid)
     if fusable and compiled.applies(normal, prior, valid):
         return compiled.call(_normal_prior_torch, normal, prior, valid)
     return _normal_prior_torch(normal, prior, valid)
@@ -171,12 +177,23 @@ def flatten_loss(log_scales: Tensor, mask: Tensor) -> Tensor:
     """L_s (IndoorGS §4.3): mean over the masked Gaussians (G_L) of their smallest scale (m).
 
     log_scales: [N, 3] log-scales (log metres); mask: [N] bool. Returns mean_i exp(min_k s_ik)
-    over masked i, a graph-connected 0 when the mask is empty.
+    over masked i, a graph-connected 0 when the mask is empty. On a GPU the same mean is taken over
+    all N with the unmasked ones zeroed (no boolean indexing, whose count would wait for the GPU;
+    the sum's rounding order differs, so the CPU keeps the indexed form its results were made with).
     """
     _check_shape("log_scales", log_scales, (None, 3))
     _check_shape("mask", mask, (log_scales.shape[0],))
+    if log_scales.is_cuda:
+        return _flatten_masked(log_scales, mask)
     smallest = log_scales[mask].min(dim=1).values.exp()  # [M] metres
     return smallest.sum() / max(int(smallest.numel()), 1)
+
+
+def _flatten_masked(log_scales: Tensor, mask: Tensor) -> Tensor:
+    """``flatten_loss`` without boolean indexing (its GPU form)."""
+    # exp only of the masked rows (an unmasked huge log-scale would give 0 * inf = NaN backward)
+    smallest = torch.where(mask, log_scales.min(dim=1).values, 0.0).exp()
+    return torch.where(mask, smallest, 0.0).sum() / mask.sum().clamp(min=1).to(log_scales.dtype)
 
 
 def depth_to_normal(depth: Tensor, K: Tensor) -> Tensor:
@@ -222,8 +239,9 @@ def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, vali
     where valid and both normals are defined. The paper writes a sum; the mean keeps λ_nc = 0.1
     independent of the image size (as in PGSR / RaDe-GS). By default the gradient flows into both
     the normals and the depth (2DGS / RaDe-GS / PGSR); ``detach_depth_normal`` stops it at N_depth.
-    On the CPU the fused C++ kernel of splat/losses_cpu.py computes it, on a GPU this code compiled
-    (splat/compiled.py); this code is their oracle (``fused=False``).
+    On the CPU the fused C++ kernel of splat/losses_cpu.py computes it, on a GPU the CUDA kernels of
+    splat/losses_cuda.py (or, where they did not build, this code compiled by splat/compiled.py); this
+    code is their oracle (``fused=False``).
     """
     _check_shape("normal", normal, (None, None, 3))
     _check_shape("depth", depth, tuple(normal.shape[:2]))
@@ -231,6 +249,8 @@ def depth_normal_consistency_loss(normal: Tensor, depth: Tensor, K: Tensor, vali
     fusable = fused and valid.dtype == torch.bool and normal.dtype == depth.dtype
     if fusable and fused_applies(normal, depth):
         return nc_loss(normal, depth, K, valid, detach_depth_normal)
+    if fusable and losses_cuda.applies(normal, depth, valid):
+        return losses_cuda.nc_loss(normal, depth, K, valid, detach_depth_normal)
     if fusable and compiled.applies(normal, depth, valid):
         return compiled.call(_nc_torch, normal, depth, K.to(depth), valid, bool(detach_depth_normal))
     return _nc_torch(normal, depth, K, valid, detach_depth_normal)
@@ -277,9 +297,10 @@ class LossConfig:
     """Weight of the D-SSIM part of L_rgb (3DGS)."""
     kernels: str = "fused"
     """L_rgb (with SSIM), L_n and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
-    splat/losses_cpu.py; on a GPU their torch code compiled into fused kernels, splat/compiled.py) or
-    "torch" (autograd through their torch code, eagerly); the same loss and gradient up to float
-    rounding (tests/test_losses_cpu.py, tests/test_compiled.py)."""
+    splat/losses_cpu.py; CUDA kernels on a GPU, splat/losses_cuda.py, or where those did not build
+    and `--compile` is on, their torch code compiled, splat/compiled.py) or "torch" (autograd through
+    their torch code, eagerly); the same loss and gradient up to float rounding
+    (tests/test_losses_cpu.py, tests/test_losses_cuda.py, tests/test_compiled.py)."""
     lambda_depth: float = 0.1
     """λ_d, weight of the patch-PCC depth-prior loss L_d."""
     lambda_normal: float = 0.5
@@ -414,7 +435,9 @@ def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params:
         terms["normal"] = (cfg.lambda_normal, normal_prior_loss(out["normal"], normal_prior, covered,
                                                                 cfg.kernels == "fused"))
     if cfg.use_flat:
-        mask = torch.isin(cue_type, torch.tensor(cfg.flat_types, dtype=cue_type.dtype, device=cue_type.device))
+        mask = torch.zeros_like(cue_type, dtype=torch.bool)  # (no host-to-device copy of the list)
+        for t in cfg.flat_types:
+            mask |= cue_type == t
         terms["flat"] = (cfg.lambda_flat, flatten_loss(params["scales"], mask))
     if cfg.use_nc and step >= cfg.nc_from_iter:
         terms["nc"] = (cfg.lambda_nc, depth_normal_consistency_loss(out["normal"], out["depth"], camera_K, covered,

@@ -41,6 +41,17 @@ REQUIRED_KEYS = ("means", "quats", "scales", "opacities")
 TYPE_NAMES = {int(t): t.name.lower() for t in CueType}  # 0 -> "sfm", 1 -> "line", 2 -> "plane"
 
 
+_HALF_SIZES: dict[tuple, Tensor] = {}
+
+
+def _half_size(width: int, height: int, device: torch.device) -> Tensor:
+    """[W / 2, H / 2] on ``device``, made once per size (a copy to a GPU waits for it each time)."""
+    key = (width, height, device)
+    if key not in _HALF_SIZES:
+        _HALF_SIZES[key] = torch.tensor([width / 2.0, height / 2.0], device=device)
+    return _HALF_SIZES[key]
+
+
 @dataclass
 class IndoorStrategyConfig:
     """Thresholds and schedule of the per-type density control (iterations for a 30k run)."""
@@ -247,7 +258,7 @@ class IndoorStrategy:
         # Dense updates masked by visibility (no boolean indexing: a gather and a scatter per state
         # tensor cost more than the whole pass); adding 0 leaves the invisible rows bit-identical.
         visible = info["radii"] > 0  # [N]
-        scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=means2d.device)
+        scale = _half_size(info["width"], info["height"], means2d.device)
         grad = (means2d.grad.detach().float() * scale).norm(dim=-1)  # [N] pixel units
         state["grad2d"] += torch.where(visible, grad, 0.0)
         means_grad = params["means"].grad

@@ -84,9 +84,14 @@ def means_lr(step: int, total: int, lr: LearningRates, scale: float) -> float:
     return scale * math.exp((1 - t) * math.log(lr.means) + t * math.log(lr.means_final))
 
 
+_BACKGROUNDS: dict[tuple, Tensor] = {}
+
+
 def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[str, Tensor]:
-    bg = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
-    return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=bg)
+    key = (tuple(cfg.background), view.rgb.device)  # made once: a copy to a GPU waits for it each time
+    if key not in _BACKGROUNDS:
+        _BACKGROUNDS[key] = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
+    return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=_BACKGROUNDS[key])
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:

@@ -120,6 +120,13 @@ class ViewSet:
             self._anchor.append(None if aligned is None else _compact(aligned))
             self._tight.append(None if tight is None or not tight.any() else torch.from_numpy(tight))
             self._anchor_p90.append(float("nan") if al is None else float(al.residual_p90_m))
+        # On a CUDA device the images and priors stay in pinned host memory: each step's copy to the
+        # GPU then runs asynchronously, where a copy from pageable memory waits for the GPU to finish
+        # everything queued before it (a stall per step; the copies are what a step needs, not a cache)
+        self._pinned = self.device.type == "cuda"
+        if self._pinned:
+            for maps in (self._rgb, self._depth, self._normal, self._anchor, self._tight):
+                maps[:] = [None if m is None else m.pin_memory() for m in maps]
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)
         n_anchor = sum(a is not None for a in self._anchor)
@@ -141,16 +148,19 @@ class ViewSet:
         """[V, 3] camera centres in world coordinates (float64)."""
         return np.stack([self.scene.cameras[i].center for i in self.indices]) if self.indices else np.zeros((0, 3))
 
+    def _dev(self, t: Tensor) -> Tensor:
+        """``t`` on the views' device; from pinned memory without waiting on a CUDA device (see __init__)."""
+        return t.to(self.device, non_blocking=self._pinned)
+
     def image(self, k: int) -> Tensor:
         """[H, W, 3] float32 RGB in [0, 1] of view k (without its priors)."""
-        return self._rgb[k].to(self.device).float() / 255.0
+        return self._dev(self._rgb[k]).float() / 255.0
 
     def __getitem__(self, k: int) -> View:
-        dev = self.device
-        d, n, a = self._depth[k], self._normal[k], self._anchor[k]
+        d, n, a, t = self._depth[k], self._normal[k], self._anchor[k], self._tight[k]
         return View(index=self.indices[k], name=self.scene.cameras[self.indices[k]].name, camera=self.cameras[k],
-                    rgb=self._rgb[k].to(dev).float() / 255.0,
-                    depth_prior=None if d is None else d.to(dev).float(),
-                    normal_prior=None if n is None else n.to(dev).float(),
-                    depth_anchor=None if a is None else a.to(dev).float(), anchor_p90=self._anchor_p90[k],
-                    anchor_tight=None if self._tight[k] is None else self._tight[k].to(dev))
+                    rgb=self._dev(self._rgb[k]).float() / 255.0,
+                    depth_prior=None if d is None else self._dev(d).float(),
+                    normal_prior=None if n is None else self._dev(n).float(),
+                    depth_anchor=None if a is None else self._dev(a).float(), anchor_p90=self._anchor_p90[k],
+                    anchor_tight=None if t is None else self._dev(t))
