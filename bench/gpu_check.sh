@@ -16,7 +16,7 @@ print("torch", torch.__version__, "cuda", torch.version.cuda, "device",
       torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
 PY
 tests_rc=0
-python3 -m pytest -q -p no:cacheprovider tests/test_composite_cuda.py tests/test_project_cuda.py tests/test_cuda.py tests/test_render_hard_cases.py \
+python3 -m pytest -q -p no:cacheprovider tests/test_composite_cuda.py tests/test_project_cuda.py tests/test_cuda.py tests/test_losses_cuda.py tests/test_render_hard_cases.py \
     tests/test_render.py tests/test_composite_torch.py tests/test_projection.py 2>&1 | tee "$out/pytest_cuda.log" \
     || tests_rc=$?
 python3 - "$out" <<'PY'

@@ -88,6 +88,7 @@ _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg"
                    "fuse_prior_dist")
 
 _WALL_FIELDS = ("walls", "wall_step", "wall_height")  # added after --floor.lines folders were made
+_WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel")  # added after --floor.walls folders were made
 
 
 def _key_config(cfg: ExtractConfig) -> dict:
@@ -97,7 +98,10 @@ def _key_config(cfg: ExtractConfig) -> dict:
     if not cfg.floor.lines:  # added later, like the surface fields: off = the key of older folders
         d.pop("floor")
     elif not cfg.floor.walls:
-        for k in _WALL_FIELDS:
+        for k in _WALL_FIELDS + _WALL_CHECK_FIELDS:
+            d["floor"].pop(k)
+    elif not cfg.floor.wall_check:
+        for k in _WALL_CHECK_FIELDS:
             d["floor"].pop(k)
     if not cfg.plane.fuse_surfaces:
         for k in _SURFACE_FIELDS:
@@ -341,15 +345,19 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     t0 = time.perf_counter()
     aligned: dict[int, np.ndarray] = {}
     first, *_ = plane_stage(scene, cfg, kind, anchors, plane_ok, lines, cache, {}, [],
-                             aligned if cfg.floor.prior_check else None, desc="planes (first pass: the floor)")
+                             aligned if cfg.floor.prior_check or cfg.floor.wall_check else None,
+                             desc="planes (first pass: the floor)")
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned, lines.segments if lines is not None else None)
     W, WL = np.zeros((0, 3)), np.zeros(0, np.int64)
     if cfg.floor.walls and len(P):
+        checked: dict = {}
         W, WL, top = wall_anchors(P, L, np.array(stats["floor"]["normal"]), stats["floor"]["height"],
-                                  first.xyz, scene.cameras, cfg.floor)
+                                  first.xyz, scene.cameras, cfg.floor, V, aligned, checked)
         stats["walls"] = {"samples": len(W), "top": round(top, 3)}
+        if cfg.floor.wall_check:
+            stats["walls"]["check"] = checked or {"note": "no aligned prior: nothing checked"}
     n_wall = len(W)
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:

@@ -79,9 +79,18 @@ class FloorLineConfig:
     wall_height: float = 0.0
     """How high they reach above the floor (metres); 0 = the higher of the first pass's plane cues
     (99th percentile) and the highest camera + 1 m. Anchors behind a view's aligned surface are dropped."""
+    wall_check: bool = False
+    """Raise a kept segment only as far as the aligned depth priors of the views that lifted it show a
+    surface there: its rows stop below the first two in a row that they contradict (a sofa's foot is
+    raised to the sofa's top, not to the ceiling), and a segment none of whose rows from 0.3 m up they
+    confirm is not raised (a texture line on the floor, whose raised rows float in front of what the
+    views see). Segments without prior evidence are raised as without the check. An extension; needs walls."""
+    wall_check_rel: float = 0.1
+    """That check's tolerance, a fraction of the depth (loose: the prior only says yes or no here)."""
 
     def validate(self) -> None:
-        for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step"):
+        for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step",
+                     "wall_check_rel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--floor.{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
         if self.min_views < 1:
@@ -94,6 +103,8 @@ class FloorLineConfig:
             raise ValueError(f"--floor.wall-height must be >= 0 (0 = automatic), got {self.wall_height}")
         if self.walls and not self.lines:
             raise ValueError("--floor.walls raises the floor lines: it needs --floor.lines")
+        if self.wall_check and not self.walls:
+            raise ValueError("--floor.wall-check checks the raised walls: it needs --floor.walls")
         if not 0 < self.horizontal_deg < 90:
             raise ValueError(f"--floor.horizontal-deg must be in (0, 90), got {self.horizontal_deg}")
 
@@ -371,13 +382,65 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
     return P, L, V, stats
 
 
+WALL_CHECK_MIN = 0.3  # metres above the floor: lower rows of a raised floor-texture line lie so close to
+# the floor the views see behind them that a loose tolerance cannot tell them from a wall
+
+
+def row_evidence(cameras, views: np.ndarray, priors: dict[int, np.ndarray], pts: np.ndarray, rel: float) -> int:
+    """+1 when the aligned priors of ``views`` agree (within ``rel`` of the depth) with the points ``pts``
+    [n, 3] of one raised row at half or more of the >= 3 pixels where they have depth, -1 when they
+    do not, 0 without such evidence (fewer than 3 pixels with prior depth)."""
+    n_valid = n_agree = 0
+    for v in views:
+        prior = priors.get(int(v))
+        if prior is None:
+            continue
+        cam = cameras[int(v)]
+        uv, z = cam.project(pts)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if not ok.any():
+            continue
+        rows = np.clip((uv[ok, 1] * prior.shape[0] / cam.height).astype(int), 0, prior.shape[0] - 1)
+        cols = np.clip((uv[ok, 0] * prior.shape[1] / cam.width).astype(int), 0, prior.shape[1] - 1)
+        p = prior[rows, cols].astype(np.float64)
+        has = (p > 0) & np.isfinite(p)
+        n_valid += int(has.sum())
+        n_agree += int((has & (np.abs(p - z[ok]) <= rel * z[ok])).sum())
+    if n_valid < 3:
+        return 0
+    return 1 if 2 * n_agree >= n_valid else -1
+
+
+def confirmed_rows(evidence: np.ndarray, heights: np.ndarray) -> int:
+    """How many of a segment's rows (bottom up, ``evidence`` [H] of :func:`row_evidence` at
+    ``heights`` [H]) to raise: those below the first two contradicted rows in a row, and none when
+    no row from :data:`WALL_CHECK_MIN` up among them is confirmed while one there has evidence, or
+    when they all lie below it (all rows when no row has evidence: the assumption unchecked)."""
+    n = len(heights)
+    for i in range(len(evidence) - 1):
+        if evidence[i] < 0 and evidence[i + 1] < 0:
+            n = i
+            break
+    high = evidence[:n][heights[:n] >= WALL_CHECK_MIN - 1e-9]
+    if not evidence.any():
+        return n
+    if not len(high) or (high.any() and not (high > 0).any()):
+        return 0
+    return n
+
+
 def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray, floor_height: float,
-                 plane_xyz: np.ndarray, cameras, cfg: FloorLineConfig) -> tuple[np.ndarray, np.ndarray, float]:
+                 plane_xyz: np.ndarray, cameras, cfg: FloorLineConfig, views: list[np.ndarray] | None = None,
+                 priors: dict[int, np.ndarray] | None = None, report: dict | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
     """The vertical-wall assumption (``--floor.walls``): each kept floor segment (its anchor samples
     ``points`` [P, 3], kept-segment index ``line`` [P]) raised every ``cfg.wall_step`` up to the wall
     top. Returns (points [Q, 3], row index [Q]: one horizontal row per segment and height, the
     height they reach above the floor). The top is ``cfg.wall_height``, or with 0 the higher of the
-    99th percentile of ``plane_xyz``'s heights and the highest camera + 1 m."""
+    99th percentile of ``plane_xyz``'s heights and the highest camera + 1 m. With ``cfg.wall_check``,
+    ``views`` (per kept segment, the views that lifted it) and ``priors`` (image index -> aligned prior
+    depth, any resolution), each segment is raised only as far as :func:`confirmed_rows` allows;
+    ``report`` then receives the counts of segments dropped, cut short and raised unchecked."""
     up = np.asarray(floor_normal, np.float64)
     top = cfg.wall_height
     if top <= 0:
@@ -385,14 +448,30 @@ def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray,
         cam_top = max(float(np.asarray(c.center) @ up) for c in cameras) - floor_height + 1.0
         top = max(float(np.percentile(h, 99)) if len(h) else 0.0, cam_top)
     heights = np.arange(cfg.wall_step, top + 1e-9, cfg.wall_step)  # [H]
+    check = cfg.wall_check and views is not None and bool(priors)
+    counts = {"dropped": 0, "cut": 0, "unchecked": 0}
     pts, row = [], []
+    n_rows = 0
     for k in np.unique(line):
         seg = points[line == k]
         p, q = seg[0], seg[-1]
         n = max(int(round(np.linalg.norm(q - p) / cfg.wall_step)) + 1, 2)
         along = p + np.linspace(0.0, 1.0, n)[:, None] * (q - p)  # [n, 3]
-        pts.append((along[None] + heights[:, None, None] * up).reshape(-1, 3))  # [H * n, 3]
-        row.append(np.repeat(len(row) * len(heights) + np.arange(len(heights)), n))
+        grid = along[None] + heights[:, None, None] * up  # [H, n, 3]
+        h = len(heights)
+        if check:
+            evidence = np.array([row_evidence(cameras, views[int(k)], priors, g, cfg.wall_check_rel) for g in grid])
+            h = confirmed_rows(evidence, heights)
+            counts["unchecked"] += int(not evidence.any())
+            counts["dropped"] += int(h == 0)
+            counts["cut"] += int(0 < h < len(heights))
+        if h == 0:
+            continue
+        pts.append(grid[:h].reshape(-1, 3))  # [h * n, 3]
+        row.append(np.repeat(n_rows + np.arange(h), n))
+        n_rows += h
+    if check and report is not None:
+        report.update(counts)
     if not pts:
         return np.zeros((0, 3)), np.zeros(0, np.int64), float(top)
     return np.concatenate(pts), np.concatenate(row), float(top)

@@ -145,6 +145,14 @@ class TestRun:
         assert any("--floor.walls" in n for n in rep["notes"])
         walls = _no_nan(out).of_type(CueType.PLANE)
         assert len(walls) >= len(plane) and np.mean(distance_to_surface(walls.xyz) < 0.03) > 0.95
+        assert "wall_check" not in ex._key_config(cfg)["floor"]  # off: the key of --floor.walls folders
+        cfg.floor.wall_check = True  # the aligned priors see the walls and box sides: raised, as accurate
+        rep = _report(out := ex.run(cfg, scenes["plain_floor"], tmp_path / "checked"))
+        check = rep["floor_lines"]["walls"]["check"]
+        assert check["unchecked"] < fl["kept"] and check["dropped"] < fl["kept"] and "wall_check" in ex._key_config(cfg)["floor"]
+        checked = _no_nan(out).of_type(CueType.PLANE)
+        assert len(checked) > len(plane) and np.mean(distance_to_surface(checked.xyz) < 0.03) > 0.95
+        cfg.floor.wall_check = False
         cfg.priors = False  # prior-free planes are fitted to cues only, never to the raised rows
         free_walls = _report(ex.run(cfg, scenes["plain_floor"], tmp_path / "free_walls"))
         cfg.floor.walls = False

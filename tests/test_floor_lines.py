@@ -321,3 +321,74 @@ def test_anchors_of_unknown_visibility_are_every_cameras_candidates():
     assert len(b) == 7 and list(b.group) == [0, 0, 1, 1, 2, 2, 3]
     assert list(b.candidates(0)) == [0, 1, 4, 5, 6] and list(b.candidates(1)) == [2, 3, 4, 5, 6]
     assert list(b.candidates(5)) == [4, 5, 6]
+
+
+def room_depth_map(cam: Camera, box: tuple | None = None, step: int = 4) -> np.ndarray:
+    """z-depth at every ``step``-th pixel of ``cam`` of the floor z = 0, the wall y = 3 of FOOT and,
+    with ``box`` ((x0, y0, z0), (x1, y1, z1)), a box standing in front of it (0 where nothing is hit)."""
+    rows, cols = np.mgrid[0:cam.height:step, 0:cam.width:step]
+    d = cam.rays_at(rows, cols) @ np.asarray(cam.R)  # world directions, camera z = 1: t is the z-depth
+    C = cam.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(d[..., 2] < 0, -C[2] / d[..., 2], np.inf)
+        t_wall = np.where(d[..., 1] > 0, (3.0 - C[1]) / d[..., 1], np.inf)
+        t = np.minimum(t_floor, t_wall)
+        if box is not None:
+            lo, hi = (np.asarray(b, float) for b in box)
+            t0, t1 = (lo - C) / d, (hi - C) / d
+            near, far = np.minimum(t0, t1).max(-1), np.maximum(t0, t1).min(-1)
+            t = np.where((near <= far) & (near > 0), np.minimum(t, near), t)
+    return np.where(np.isfinite(t) & (t > 0), t, 0.0).astype(np.float32)
+
+
+def _raised(cams, segments, priors, cfg):
+    """wall_anchors over ``segments`` (pairs of floor points), every camera a view of each; returns
+    (per segment the height of its highest raised row, 0 if none; the check's report)."""
+    from geocues.floor_lines import wall_anchors
+
+    P = np.concatenate([a + np.linspace(0, 1, 21)[:, None] * (b - a) for a, b in segments])
+    L = np.repeat(np.arange(len(segments)), 21)
+    views = [np.arange(len(cams))] * len(segments)
+    report: dict = {}
+    W, row, _ = wall_anchors(P, L, np.array([0.0, 0, 1]), 0.0, np.zeros((0, 3)), cams, cfg, views, priors, report)
+    tops = []
+    for a, b in segments:  # a segment's rows: its raised points above its own foot
+        mid = 0.5 * (a + b)
+        mine = np.linalg.norm(W[:, :2] - mid[:2], axis=1) <= 0.5 * np.linalg.norm(b - a) + 1e-6
+        mine &= np.abs((W[:, :2] - a[:2]) @ np.array([-(b - a)[1], (b - a)[0]])) < 1e-6
+        tops.append(float(W[mine, 2].max()) if mine.any() else 0.0)
+    return tops, report
+
+
+def test_wall_check_raises_a_wall_foot_and_drops_a_floor_texture_line(views):
+    """--floor.wall-check: the priors see the wall above its foot (raised to the top), and the floor and
+    the wall behind a texture line 1 m in front of it (not raised); without priors both are raised."""
+    cams, _ = views
+    texture = (np.array([1.0, 2.0, 0.0]), np.array([3.0, 2.0, 0.0]))
+    cfg = FloorLineConfig(lines=True, walls=True, wall_check=True, wall_height=2.0)
+    priors = {c.index: room_depth_map(c) for c in cams}
+    tops, report = _raised(cams, [FOOT, texture], priors, cfg)
+    assert tops == pytest.approx([2.0, 0.0])
+    assert report == {"dropped": 1, "cut": 0, "unchecked": 0}
+    tops, report = _raised(cams, [FOOT, texture], {}, cfg)  # no prior: the assumption as before
+    assert tops == pytest.approx([2.0, 2.0]) and report == {}
+    off = FloorLineConfig(lines=True, walls=True, wall_height=2.0)
+    assert _raised(cams, [FOOT, texture], priors, off)[0] == pytest.approx([2.0, 2.0])
+
+
+def test_wall_check_stops_a_sofas_front_at_its_top(views):
+    """A box 0.5 m high in front of the wall: its front foot is raised to about its top, not to the ceiling."""
+    cams, _ = views
+    box = ((1.2, 2.2, 0.0), (2.8, 2.7, 0.5))
+    front = (np.array([1.3, 2.2, 0.0]), np.array([2.7, 2.2, 0.0]))
+    cfg = FloorLineConfig(lines=True, walls=True, wall_check=True, wall_height=2.0)
+    tops, report = _raised(cams, [front], {c.index: room_depth_map(c, box) for c in cams}, cfg)
+    assert 0.45 <= tops[0] <= 0.8, tops
+    assert report["cut"] == 1
+
+
+def test_wall_check_needs_walls():
+    with pytest.raises(ValueError, match="--floor.wall-check .* needs --floor.walls"):
+        FloorLineConfig(lines=True, wall_check=True).validate()
+    with pytest.raises(ValueError, match="--floor.wall-check-rel"):
+        FloorLineConfig(lines=True, walls=True, wall_check=True, wall_check_rel=0).validate()
