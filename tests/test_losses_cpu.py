@@ -60,18 +60,24 @@ def test_float32_within_rounding_of_the_float64_oracle():
     assert rel < 1e-4
 
 
-@pytest.mark.parametrize("case", ["identical", "constant", "black", "saturated"])
-def test_hard_cases_stay_finite(case):
-    """Flat images (zero variance: B2 = C2 only), identical pairs (S = 1), all-black (B1 = C1)."""
+RGB_HARD = ["identical", "constant", "black", "saturated"]
+
+
+def rgb_hard_case(case: str):
+    """Flat images (zero variance: B2 = C2 only), identical pairs (S = 1), all-black (B1 = C1), saturated."""
     a, b = _pair(24, 24)
     if case == "identical":
-        b = a.clone()
-    elif case == "constant":
-        a, b = torch.full_like(a, 0.5), torch.full_like(a, 0.3)
-    elif case == "black":
-        a, b = torch.zeros_like(a), torch.zeros_like(a)
-    else:
-        a, b = torch.ones_like(a), torch.zeros_like(a)
+        return a, a.clone()
+    if case == "constant":
+        return torch.full_like(a, 0.5), torch.full_like(a, 0.3)
+    if case == "black":
+        return torch.zeros_like(a), torch.zeros_like(a)
+    return torch.ones_like(a), torch.zeros_like(a)
+
+
+@pytest.mark.parametrize("case", RGB_HARD)
+def test_hard_cases_stay_finite(case):
+    a, b = rgb_hard_case(case)
     want, want_grad = _oracle(a, b)
     x = a.clone().requires_grad_(True)
     got = ssim_mean(x, b)
@@ -159,8 +165,10 @@ def test_nc_float32_within_rounding_of_float64():
     assert max(fused) < 1e-4
 
 
-@pytest.mark.parametrize("case", ["no_valid", "zero_depth", "flat_fronto", "near_plane"])
-def test_nc_hard_cases_stay_finite(case):
+NC_HARD = ["no_valid", "zero_depth", "flat_fronto", "near_plane"]
+
+
+def nc_hard_case(case: str):
     """Nothing valid (0 and a zero gradient), all depth 0, a wall facing the camera, depths at 1e-6 m."""
     normal, depth, K, valid = _nc_case(16, 16, holes=False)
     if case == "no_valid":
@@ -171,6 +179,12 @@ def test_nc_hard_cases_stay_finite(case):
         depth = torch.full_like(depth, 1.5)
     else:
         depth = torch.full_like(depth, 1e-6)
+    return normal, depth, K, valid
+
+
+@pytest.mark.parametrize("case", NC_HARD)
+def test_nc_hard_cases_stay_finite(case):
+    normal, depth, K, valid = nc_hard_case(case)
     v0, gn0, gd0 = _nc_grads(False, normal, depth, K, valid)
     v1, gn1, gd1 = _nc_grads(True, normal, depth, K, valid)
     assert torch.isfinite(v1) and torch.isfinite(gn1).all() and torch.isfinite(gd1).all()
@@ -190,10 +204,9 @@ def _np_grads(fused, normal, prior, valid):
     return value.detach(), n.grad
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_normal_prior_matches_the_torch_oracle(dtype):
+def np_case(dtype):
     """Zero (undefined) rendered normals and priors, Inf / NaN prior pixels, masked pixels, and
-    components equal to the prior's (sign 0)."""
+    components equal to the prior's (sign 0): (normal, prior, valid)."""
     g = torch.Generator().manual_seed(1)
     normal = torch.nn.functional.normalize(torch.randn(30, 40, 3, generator=g, dtype=torch.float64), dim=-1)
     prior = torch.nn.functional.normalize(torch.randn(30, 40, 3, generator=g, dtype=torch.float64), dim=-1)
@@ -203,7 +216,12 @@ def test_normal_prior_matches_the_torch_oracle(dtype):
     prior[9, 4, 0] = float("nan")
     prior[10, :, 2] = normal[10, :, 2]
     valid = torch.rand(30, 40, generator=g) > 0.3
-    normal, prior = normal.to(dtype), prior.to(dtype)
+    return normal.to(dtype), prior.to(dtype), valid
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_normal_prior_matches_the_torch_oracle(dtype):
+    normal, prior, valid = np_case(dtype)
     v0, g0 = _np_grads(False, normal, prior, valid)
     v1, g1 = _np_grads(True, normal, prior, valid)
     tol = 1e-12 if dtype == torch.float64 else 1e-5

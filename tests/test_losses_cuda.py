@@ -10,7 +10,8 @@ machine (bench/gpu_check.sh, bench/gpu_session.sh). On a GPU machine a failed bu
 
 import pytest
 import torch
-from test_losses_cpu import _nc_case, _pair
+from test_losses_cpu import (NC_HARD, RGB_HARD, _nc_case, _nc_grads, _np_grads, _pair, nc_hard_case, np_case,
+                             rgb_hard_case)
 
 from splat import losses_cuda
 from splat.losses import (_flatten_masked, _rgb_loss_torch, depth_normal_consistency_loss, flatten_loss,
@@ -73,29 +74,13 @@ def test_rgb_float32_within_rounding_of_the_float64_oracle():
 
 
 @needs_cuda
-@pytest.mark.parametrize("case", ["identical", "constant", "black", "saturated"])
+@pytest.mark.parametrize("case", RGB_HARD)
 def test_rgb_hard_cases_stay_finite(case):
-    a, b = _pair(24, 24)
-    if case == "identical":
-        b = a.clone()
-    elif case == "constant":
-        a, b = torch.full_like(a, 0.5), torch.full_like(a, 0.3)
-    elif case == "black":
-        a, b = torch.zeros_like(a), torch.zeros_like(a)
-    else:
-        a, b = torch.ones_like(a), torch.zeros_like(a)
+    a, b = rgb_hard_case(case)
     v0, g0 = _rgb(False, a.to(DEV), b.to(DEV))
     v1, g1 = _rgb(True, a.to(DEV), b.to(DEV))
     assert torch.isfinite(v1) and torch.isfinite(g1).all()
     assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(g1, g0, atol=1e-12)
-
-
-def _nc(fused, normal, depth, K, valid, detach=False):
-    n = normal.clone().requires_grad_(True)
-    d = depth.clone().requires_grad_(True)
-    value = depth_normal_consistency_loss(n, d, K, valid, detach, fused=fused)
-    value.backward()
-    return value.detach(), n.grad, d.grad
 
 
 def _on(case, dtype=None):
@@ -107,8 +92,8 @@ def _on(case, dtype=None):
 @pytest.mark.parametrize("size", [(23, 31), (3, 3), (2, 9), (40, 17)])
 def test_nc_matches_the_torch_oracle_in_float64(size, detach):
     case = _on(_nc_case(*size))
-    v0, gn0, gd0 = _nc(False, *case, detach=detach)
-    v1, gn1, gd1 = _nc(True, *case, detach=detach)
+    v0, gn0, gd0 = _nc_grads(False, *case, detach=detach)
+    v1, gn1, gd1 = _nc_grads(True, *case, detach=detach)
     assert torch.allclose(v1, v0, rtol=1e-12, atol=1e-14)
     assert torch.allclose(gn1, gn0, rtol=1e-10, atol=1e-14)
     if detach:
@@ -120,10 +105,10 @@ def test_nc_matches_the_torch_oracle_in_float64(size, detach):
 @needs_cuda
 def test_nc_float32_within_rounding_of_float64():
     case = _nc_case(120, 160, holes=True, seed=4)
-    ref = _nc(False, *_on(case))
+    ref = _nc_grads(False, *_on(case))
 
     def errors(fused):
-        got = _nc(fused, *_on(case, torch.float32))
+        got = _nc_grads(fused, *_on(case, torch.float32))
         return [float((g.double() - r).abs().max() / max(float(r.abs().max()), 1e-30)) for g, r in zip(got, ref)]
 
     fused, torch32 = errors(True), errors(False)
@@ -132,47 +117,22 @@ def test_nc_float32_within_rounding_of_float64():
 
 
 @needs_cuda
-@pytest.mark.parametrize("case", ["no_valid", "zero_depth", "flat_fronto", "near_plane"])
+@pytest.mark.parametrize("case", NC_HARD)
 def test_nc_hard_cases_stay_finite(case):
-    normal, depth, K, valid = _nc_case(16, 16, holes=False)
-    if case == "no_valid":
-        valid = torch.zeros_like(valid)
-    elif case == "zero_depth":
-        depth = torch.zeros_like(depth)
-    elif case == "flat_fronto":
-        depth = torch.full_like(depth, 1.5)
-    else:
-        depth = torch.full_like(depth, 1e-6)
-    args = _on((normal, depth, K, valid))
-    v0, gn0, gd0 = _nc(False, *args)
-    v1, gn1, gd1 = _nc(True, *args)
+    args = _on(nc_hard_case(case))
+    v0, gn0, gd0 = _nc_grads(False, *args)
+    v1, gn1, gd1 = _nc_grads(True, *args)
     assert torch.isfinite(v1) and torch.isfinite(gn1).all() and torch.isfinite(gd1).all()
     assert torch.allclose(v1, v0, atol=1e-12) and torch.allclose(gn1, gn0, atol=1e-12)
     assert torch.allclose(gd1, gd0, rtol=1e-9, atol=1e-9 * max(1.0, float(gd0.abs().max())))
 
 
-def _np(fused, normal, prior, valid):
-    n = normal.clone().requires_grad_(True)
-    value = normal_prior_loss(n, prior, valid, fused=fused)
-    value.backward()
-    return value.detach(), n.grad
-
-
 @needs_cuda
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_normal_prior_matches_the_torch_oracle(dtype):
-    g = torch.Generator().manual_seed(1)
-    normal = torch.nn.functional.normalize(torch.randn(30, 40, 3, generator=g, dtype=torch.float64), dim=-1)
-    prior = torch.nn.functional.normalize(torch.randn(30, 40, 3, generator=g, dtype=torch.float64), dim=-1)
-    normal[:3] = 0.0
-    prior[5:7] = 0.0
-    prior[8, 3, 1] = float("inf")
-    prior[9, 4, 0] = float("nan")
-    prior[10, :, 2] = normal[10, :, 2]
-    valid = (torch.rand(30, 40, generator=g) > 0.3).to(DEV)
-    normal, prior = normal.to(DEV, dtype), prior.to(DEV, dtype)
-    v0, g0 = _np(False, normal, prior, valid)
-    v1, g1 = _np(True, normal, prior, valid)
+    normal, prior, valid = (t.to(DEV) for t in np_case(dtype))
+    v0, g0 = _np_grads(False, normal, prior, valid)
+    v1, g1 = _np_grads(True, normal, prior, valid)
     tol = 1e-12 if dtype == torch.float64 else 1e-5
     assert torch.isfinite(v1) and torch.isfinite(g1).all()
     assert abs(float(v1) - float(v0)) < tol
@@ -182,7 +142,7 @@ def test_normal_prior_matches_the_torch_oracle(dtype):
 @needs_cuda
 def test_normal_prior_with_nothing_valid_is_zero_with_zero_gradient():
     normal = torch.nn.functional.normalize(torch.randn(8, 8, 3, dtype=torch.float64), dim=-1).to(DEV)
-    v, grad = _np(True, normal, normal.flip(0), torch.zeros(8, 8, dtype=torch.bool, device=DEV))
+    v, grad = _np_grads(True, normal, normal.flip(0), torch.zeros(8, 8, dtype=torch.bool, device=DEV))
     assert float(v) == 0.0 and not grad.abs().any()
 
 
