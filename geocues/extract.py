@@ -88,7 +88,7 @@ _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg"
                    "fuse_prior_dist")
 
 _WALL_FIELDS = ("walls", "wall_step", "wall_height")  # added after --floor.lines folders were made
-_WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel")  # added after --floor.walls folders were made
+_WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel", "wall_front_gap")  # added after --floor.walls folders
 
 
 def _key_config(cfg: ExtractConfig) -> dict:
@@ -103,6 +103,8 @@ def _key_config(cfg: ExtractConfig) -> dict:
     elif not cfg.floor.wall_check:
         for k in _WALL_CHECK_FIELDS:
             d["floor"].pop(k)
+    elif not cfg.floor.wall_front_gap:  # added after --floor.wall-check folders were made
+        d["floor"].pop("wall_front_gap")
     if not cfg.plane.fuse_surfaces:
         for k in _SURFACE_FIELDS:
             d["plane"].pop(k)

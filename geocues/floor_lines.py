@@ -87,6 +87,11 @@ class FloorLineConfig:
     views see). Segments without prior evidence are raised as without the check. An extension; needs walls."""
     wall_check_rel: float = 0.1
     """That check's tolerance, a fraction of the depth (loose: the prior only says yes or no here)."""
+    wall_front_gap: float = 0.0
+    """With wall_check, > 0: a raised segment whose foot lies less than this (metres) in front of a
+    parallel raised segment (as seen from the cameras' centroid) that overlaps half its length and
+    reaches as high is not raised: a floor line near a wall, closer than the priors' tolerance tells
+    apart. 0 = off. An extension."""
 
     def validate(self) -> None:
         for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step",
@@ -105,6 +110,8 @@ class FloorLineConfig:
             raise ValueError("--floor.walls raises the floor lines: it needs --floor.lines")
         if self.wall_check and not self.walls:
             raise ValueError("--floor.wall-check checks the raised walls: it needs --floor.walls")
+        if self.wall_front_gap < 0 or (self.wall_front_gap > 0 and not self.wall_check):
+            raise ValueError("--floor.wall-front-gap must be >= 0 and, when > 0, needs --floor.wall-check")
         if not 0 < self.horizontal_deg < 90:
             raise ValueError(f"--floor.horizontal-deg must be in (0, 90), got {self.horizontal_deg}")
 
@@ -429,6 +436,46 @@ def confirmed_rows(evidence: np.ndarray, heights: np.ndarray) -> int:
     return n
 
 
+SAME_LINE = 0.05  # metres: raised segments closer than this across are one line lifted twice (no front / back)
+
+
+def in_front_of_walls(feet: list[tuple[np.ndarray, np.ndarray]], raised: np.ndarray, up: np.ndarray,
+                      centre: np.ndarray, gap: float, max_angle_deg: float = 5.0) -> np.ndarray:
+    """[S] bool: segments (``feet``: end points on the floor; ``raised``: rows raised) that lie less
+    than ``gap`` (and :data:`SAME_LINE` or more) in front of another raised segment, seen from
+    ``centre``: parallel within ``max_angle_deg``, overlapping half the segment's length, raised at
+    least as high."""
+    out = np.zeros(len(feet), bool)
+    flat = [(p - (p @ up) * up, q - (q @ up) * up) for p, q in feet]
+    c = centre - (centre @ up) * up
+    cos_max = np.cos(np.radians(max_angle_deg))
+    for a, (p, q) in enumerate(flat):
+        if raised[a] == 0:
+            continue
+        da = q - p
+        la = np.linalg.norm(da)
+        if la < 1e-9:
+            continue
+        da = da / la
+        na = np.cross(up, da)  # in-floor normal of a's line
+        side_c = (c - p) @ na
+        for b, (r, s) in enumerate(flat):
+            if b == a or raised[b] < raised[a]:
+                continue
+            db = s - r
+            lb = np.linalg.norm(db)
+            if lb < 1e-9 or abs(db @ da) / lb < cos_max:
+                continue
+            off = 0.5 * ((r - p) + (s - p)) @ na  # b's offset from a's line, across it
+            if not (SAME_LINE <= abs(off) < gap) or np.sign(off) == np.sign(side_c):
+                continue  # the same line lifted twice, b not within gap, or b on the cameras' side of a
+            t = sorted([(r - p) @ da, (s - p) @ da])
+            if min(t[1], la) - max(t[0], 0.0) >= 0.5 * la:
+                out[a] = True
+                break
+    return out
+
+
 def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray, floor_height: float,
                  plane_xyz: np.ndarray, cameras, cfg: FloorLineConfig, views: list[np.ndarray] | None = None,
                  priors: dict[int, np.ndarray] | None = None, report: dict | None = None
@@ -450,25 +497,35 @@ def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray,
     heights = np.arange(cfg.wall_step, top + 1e-9, cfg.wall_step)  # [H]
     check = cfg.wall_check and views is not None and bool(priors)
     counts = {"dropped": 0, "cut": 0, "unchecked": 0}
-    pts, row = [], []
-    n_rows = 0
+    feet, grids, raised = [], [], []
     for k in np.unique(line):
         seg = points[line == k]
         p, q = seg[0], seg[-1]
         n = max(int(round(np.linalg.norm(q - p) / cfg.wall_step)) + 1, 2)
         along = p + np.linspace(0.0, 1.0, n)[:, None] * (q - p)  # [n, 3]
-        grid = along[None] + heights[:, None, None] * up  # [H, n, 3]
+        grids.append(along[None] + heights[:, None, None] * up)  # [H, n, 3]
+        feet.append((p, q))
         h = len(heights)
         if check:
-            evidence = np.array([row_evidence(cameras, views[int(k)], priors, g, cfg.wall_check_rel) for g in grid])
+            evidence = np.array([row_evidence(cameras, views[int(k)], priors, g, cfg.wall_check_rel)
+                                 for g in grids[-1]])
             h = confirmed_rows(evidence, heights)
             counts["unchecked"] += int(not evidence.any())
             counts["dropped"] += int(h == 0)
             counts["cut"] += int(0 < h < len(heights))
+        raised.append(h)
+    if check and cfg.wall_front_gap > 0:
+        centre = np.mean([np.asarray(c.center) for c in cameras], axis=0)
+        behind = in_front_of_walls(feet, np.array(raised), up, centre, cfg.wall_front_gap)
+        counts["in_front"] = int((behind & (np.array(raised) > 0)).sum())
+        raised = [0 if b else h for b, h in zip(behind, raised)]
+    pts, row = [], []
+    n_rows = 0
+    for grid, h in zip(grids, raised):
         if h == 0:
             continue
         pts.append(grid[:h].reshape(-1, 3))  # [h * n, 3]
-        row.append(np.repeat(n_rows + np.arange(h), n))
+        row.append(np.repeat(n_rows + np.arange(h), grid.shape[1]))
         n_rows += h
     if check and report is not None:
         report.update(counts)

@@ -392,3 +392,19 @@ def test_wall_check_needs_walls():
         FloorLineConfig(lines=True, wall_check=True).validate()
     with pytest.raises(ValueError, match="--floor.wall-check-rel"):
         FloorLineConfig(lines=True, walls=True, wall_check=True, wall_check_rel=0).validate()
+
+
+def test_wall_front_gap_drops_a_floor_line_just_in_front_of_a_wall(views):
+    """A floor line 12 cm in front of the wall passes a loose check (within 20 % of the depth); with
+    --floor.wall-front-gap 0.3 it is not raised and the wall is."""
+    cams, _ = views
+    near = (np.array([1.0, 2.88, 0.0]), np.array([3.0, 2.88, 0.0]))
+    cfg = FloorLineConfig(lines=True, walls=True, wall_check=True, wall_check_rel=0.2, wall_height=2.0)
+    priors = {c.index: room_depth_map(c) for c in cams}
+    tops, report = _raised(cams, [FOOT, near], priors, cfg)
+    assert tops[0] == pytest.approx(2.0) and tops[1] > 0.5 and "in_front" not in report
+    cfg.wall_front_gap = 0.3
+    tops, report = _raised(cams, [FOOT, near], priors, cfg)
+    assert tops == pytest.approx([2.0, 0.0]) and report["in_front"] == 1
+    with pytest.raises(ValueError, match="--floor.wall-front-gap"):
+        FloorLineConfig(lines=True, walls=True, wall_front_gap=0.3).validate()
