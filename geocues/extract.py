@@ -34,7 +34,7 @@ from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
-from geocues.floor_lines import FloorLineConfig, floor_line_anchors, wall_anchors
+from geocues.floor_lines import FloorLineConfig, floor_line_anchors
 from geocues.depth_align import DepthAlignConfig, write_alignments
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
@@ -44,6 +44,7 @@ from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
 from geocues.texture import TextureConfig, config_key, file_stamp, tree_stamp
 from geocues.types import CueType
+from geocues.walls import wall_anchors
 
 log = logging.getLogger(__name__)
 

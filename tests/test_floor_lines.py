@@ -194,7 +194,7 @@ def test_wall_anchors_raise_each_segment_vertically_in_a_rotated_world(views):
     automatic top (the higher of the plane cues' 99th percentile and the highest camera + 1 m)."""
     from scipy.spatial.transform import Rotation
 
-    from geocues.floor_lines import wall_anchors
+    from geocues.walls import wall_anchors
 
     Q = Rotation.from_euler("xyz", [30, -50, 10], degrees=True).as_matrix()
     up = Q[:, 2]
@@ -234,7 +234,7 @@ def test_raised_foot_places_a_wall_the_foot_alone_does_not():
     (5 % too near at the top, 5 % too far at the bottom) and whose only anchors are its foot: the
     foot line leaves the plane free to turn about it, so only a band above the foot is cut; raised by
     --floor.walls, the same foot places the whole wall to a millimetre."""
-    from geocues.floor_lines import wall_anchors
+    from geocues.walls import wall_anchors
     from geocues.planes import PlaneConfig, plane_cues_with_prior
 
     cam = camera(0, (0.0, 1.0, 1.5), (3.0, 1.0, 1.2))
@@ -290,7 +290,7 @@ def test_a_raised_floor_texture_line_crossing_the_wall_counts_only_whole(whole):
     """The raised rows of a floor texture line that runs toward the wall at 16 degrees cross the wall's
     plane near its foot: counted point by point they tilt the plane 3 cm off; counted only as whole
     rows (``whole_lines``, what `geocues extract --floor.walls` passes) the wall stays within 1 cm."""
-    from geocues.floor_lines import wall_anchors
+    from geocues.walls import wall_anchors
     from geocues.planes import PlaneConfig, plane_cues_with_prior
 
     cam = camera(0, (0.0, 1.0, 1.5), (3.0, 1.0, 1.2))
@@ -344,7 +344,7 @@ def room_depth_map(cam: Camera, box: tuple | None = None, step: int = 4) -> np.n
 def _raised(cams, segments, priors, cfg):
     """wall_anchors over ``segments`` (pairs of floor points), every camera a view of each; returns
     (per segment the height of its highest raised row, 0 if none; the check's report)."""
-    from geocues.floor_lines import wall_anchors
+    from geocues.walls import wall_anchors
 
     P = np.concatenate([a + np.linspace(0, 1, 21)[:, None] * (b - a) for a, b in segments])
     L = np.repeat(np.arange(len(segments)), 21)

@@ -1,0 +1,165 @@
+"""Walls raised from their floor-contact lines (an extension; `geocues extract --floor.walls`).
+
+``walls`` (:func:`wall_anchors`) raises every kept floor segment (geocues.floor_lines) straight up
+into rows of anchors for the plane checks of the second plane pass (not for the prior alignment): a
+foot line alone leaves a wall's plane free to turn about it, so only a band above the foot was cut;
+with the vertical-wall assumption the foot places the whole wall. Rows that stand in free space (a
+floor texture line's) agree with no region's prior plane and are not used; rows behind a view's
+aligned surface are left out of its checks.
+
+``wall_check`` asks the aligned depth priors of the views that lifted a segment whether its rows lie
+on a surface (:func:`row_evidence`, :func:`confirmed_rows`): rows stop below two contradicted rows,
+and a segment with no confirmed row from :data:`WALL_CHECK_MIN` up is not raised. ``wall_front_gap``
+also leaves out a segment just in front of a parallel raised one (:func:`in_front_of_walls`): a floor
+line near a wall, closer than the priors' tolerance tells apart.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geocues.floor_lines import FloorLineConfig
+
+WALL_CHECK_MIN = 0.3  # metres above the floor: lower rows of a raised floor-texture line lie so close to
+# the floor the views see behind them that a loose tolerance cannot tell them from a wall
+
+
+def row_evidence(cameras, views: np.ndarray, priors: dict[int, np.ndarray], pts: np.ndarray, rel: float) -> int:
+    """+1 when the aligned priors of ``views`` agree (within ``rel`` of the depth) with the points ``pts``
+    [n, 3] of one raised row at half or more of the >= 3 pixels where they have depth, -1 when they
+    do not, 0 without such evidence (fewer than 3 pixels with prior depth)."""
+    n_valid = n_agree = 0
+    for v in views:
+        prior = priors.get(int(v))
+        if prior is None:
+            continue
+        cam = cameras[int(v)]
+        uv, z = cam.project(pts)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        if not ok.any():
+            continue
+        rows = np.clip((uv[ok, 1] * prior.shape[0] / cam.height).astype(int), 0, prior.shape[0] - 1)
+        cols = np.clip((uv[ok, 0] * prior.shape[1] / cam.width).astype(int), 0, prior.shape[1] - 1)
+        p = prior[rows, cols].astype(np.float64)
+        has = (p > 0) & np.isfinite(p)
+        n_valid += int(has.sum())
+        n_agree += int((has & (np.abs(p - z[ok]) <= rel * z[ok])).sum())
+    if n_valid < 3:
+        return 0
+    return 1 if 2 * n_agree >= n_valid else -1
+
+
+def confirmed_rows(evidence: np.ndarray, heights: np.ndarray) -> int:
+    """How many of a segment's rows (bottom up, ``evidence`` [H] of :func:`row_evidence` at
+    ``heights`` [H]) to raise: those below the first two contradicted rows in a row, and none when
+    no row from :data:`WALL_CHECK_MIN` up among them is confirmed while one there has evidence, or
+    when they all lie below it (all rows when no row has evidence: the assumption unchecked)."""
+    n = len(heights)
+    for i in range(len(evidence) - 1):
+        if evidence[i] < 0 and evidence[i + 1] < 0:
+            n = i
+            break
+    high = evidence[:n][heights[:n] >= WALL_CHECK_MIN - 1e-9]
+    if not evidence.any():
+        return n
+    if not len(high) or (high.any() and not (high > 0).any()):
+        return 0
+    return n
+
+
+SAME_LINE = 0.05  # metres: raised segments closer than this across are one line lifted twice (no front / back)
+
+
+def in_front_of_walls(feet: list[tuple[np.ndarray, np.ndarray]], raised: np.ndarray, up: np.ndarray,
+                      centre: np.ndarray, gap: float, max_angle_deg: float = 5.0) -> np.ndarray:
+    """[S] bool: segments (``feet``: end points on the floor; ``raised``: rows raised) that lie less
+    than ``gap`` (and :data:`SAME_LINE` or more) in front of another raised segment, seen from
+    ``centre``: parallel within ``max_angle_deg``, overlapping half the segment's length, raised at
+    least as high."""
+    out = np.zeros(len(feet), bool)
+    flat = [(p - (p @ up) * up, q - (q @ up) * up) for p, q in feet]
+    c = centre - (centre @ up) * up
+    cos_max = np.cos(np.radians(max_angle_deg))
+    for a, (p, q) in enumerate(flat):
+        if raised[a] == 0:
+            continue
+        da = q - p
+        la = np.linalg.norm(da)
+        if la < 1e-9:
+            continue
+        da = da / la
+        na = np.cross(up, da)  # in-floor normal of a's line
+        side_c = (c - p) @ na
+        for b, (r, s) in enumerate(flat):
+            if b == a or raised[b] < raised[a]:
+                continue
+            db = s - r
+            lb = np.linalg.norm(db)
+            if lb < 1e-9 or abs(db @ da) / lb < cos_max:
+                continue
+            off = 0.5 * ((r - p) + (s - p)) @ na  # b's offset from a's line, across it
+            if not (SAME_LINE <= abs(off) < gap) or np.sign(off) == np.sign(side_c):
+                continue  # the same line lifted twice, b not within gap, or b on the cameras' side of a
+            t = sorted([(r - p) @ da, (s - p) @ da])
+            if min(t[1], la) - max(t[0], 0.0) >= 0.5 * la:
+                out[a] = True
+                break
+    return out
+
+
+def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray, floor_height: float,
+                 plane_xyz: np.ndarray, cameras, cfg: FloorLineConfig, views: list[np.ndarray] | None = None,
+                 priors: dict[int, np.ndarray] | None = None, report: dict | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The vertical-wall assumption (``--floor.walls``): each kept floor segment (its anchor samples
+    ``points`` [P, 3], kept-segment index ``line`` [P]) raised every ``cfg.wall_step`` up to the wall
+    top. Returns (points [Q, 3], row index [Q]: one horizontal row per segment and height, the
+    height they reach above the floor). The top is ``cfg.wall_height``, or with 0 the higher of the
+    99th percentile of ``plane_xyz``'s heights and the highest camera + 1 m. With ``cfg.wall_check``,
+    ``views`` (per kept segment, the views that lifted it) and ``priors`` (image index -> aligned prior
+    depth, any resolution), each segment is raised only as far as :func:`confirmed_rows` allows;
+    ``report`` then receives the counts of segments dropped, cut short and raised unchecked."""
+    up = np.asarray(floor_normal, np.float64)
+    top = cfg.wall_height
+    if top <= 0:
+        h = np.asarray(plane_xyz, np.float64).reshape(-1, 3) @ up - floor_height
+        cam_top = max(float(np.asarray(c.center) @ up) for c in cameras) - floor_height + 1.0
+        top = max(float(np.percentile(h, 99)) if len(h) else 0.0, cam_top)
+    heights = np.arange(cfg.wall_step, top + 1e-9, cfg.wall_step)  # [H]
+    check = cfg.wall_check and views is not None and bool(priors)
+    counts = {"dropped": 0, "cut": 0, "unchecked": 0}
+    feet, grids, raised = [], [], []
+    for k in np.unique(line):
+        seg = points[line == k]
+        p, q = seg[0], seg[-1]
+        n = max(int(round(np.linalg.norm(q - p) / cfg.wall_step)) + 1, 2)
+        along = p + np.linspace(0.0, 1.0, n)[:, None] * (q - p)  # [n, 3]
+        grids.append(along[None] + heights[:, None, None] * up)  # [H, n, 3]
+        feet.append((p, q))
+        h = len(heights)
+        if check:
+            evidence = np.array([row_evidence(cameras, views[int(k)], priors, g, cfg.wall_check_rel)
+                                 for g in grids[-1]])
+            h = confirmed_rows(evidence, heights)
+            counts["unchecked"] += int(not evidence.any())
+            counts["dropped"] += int(h == 0)
+            counts["cut"] += int(0 < h < len(heights))
+        raised.append(h)
+    if check and cfg.wall_front_gap > 0:
+        centre = np.mean([np.asarray(c.center) for c in cameras], axis=0)
+        behind = in_front_of_walls(feet, np.array(raised), up, centre, cfg.wall_front_gap)
+        counts["in_front"] = int((behind & (np.array(raised) > 0)).sum())
+        raised = [0 if b else h for b, h in zip(behind, raised)]
+    pts, row = [], []
+    n_rows = 0
+    for grid, h in zip(grids, raised):
+        if h == 0:
+            continue
+        pts.append(grid[:h].reshape(-1, 3))  # [h * n, 3]
+        row.append(np.repeat(n_rows + np.arange(h), grid.shape[1]))
+        n_rows += h
+    if check and report is not None:
+        report.update(counts)
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), float(top)
+    return np.concatenate(pts), np.concatenate(row), float(top)
