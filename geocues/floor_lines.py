@@ -205,6 +205,20 @@ def snap_to_lines(floor: Floor, segments: np.ndarray, band: float = 0.03, min_le
     return Floor(normal, height, floor.n_points), int(best.sum())
 
 
+def snap_iterated(floor: Floor, segments: np.ndarray, rounds: int = 3, max_tilt_deg: float = 2.0) -> tuple[Floor, int]:
+    """:func:`snap_to_lines` again from its own result while each round holds more lines: a floor that
+    its plane cues tilted leaves its far lines outside the first round's band (a benchmark room's bare
+    floor came tilted 1.15°: one round left 0.235°, which put a wall 5 m away 4 cm in front of itself).
+    Never tilted more than ``max_tilt_deg`` from ``floor``. Returns (floor, lines used)."""
+    best, n = snap_to_lines(floor, segments, max_tilt_deg=max_tilt_deg)
+    for _ in range(rounds - 1):
+        nxt, m = snap_to_lines(best, segments, max_tilt_deg=max_tilt_deg)
+        if m <= n or np.degrees(np.arccos(min(1.0, float(nxt.normal @ floor.normal)))) > max_tilt_deg:
+            break
+        best, n = nxt, m
+    return best, n
+
+
 def _plane_through(pts: np.ndarray, up: np.ndarray, min_spread: float = 0.0) -> tuple[np.ndarray | None, float]:
     """(normal on ``up``'s side, height) of the least-squares plane through ``pts`` [N, 3]; (None, 0)
     when they spread less than ``min_spread`` across their main direction (or lie on one line)."""
@@ -367,7 +381,7 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
         return np.zeros((0, 3)), np.zeros(0, np.int64), [], {"floor": None, "note": f"no floor found: {why}"}
     n_snap = 0
     if cfg.line_snap and line_segments is not None and len(line_segments):
-        floor, n_snap = snap_to_lines(floor, line_segments)
+        floor, n_snap = snap_iterated(floor, line_segments)
     lifted = lift_segments(cameras, segments, floor, cfg)
     centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
     keep = kept_segments(lifted, centres_uv, cfg)

@@ -408,3 +408,25 @@ def test_wall_front_gap_drops_a_floor_line_just_in_front_of_a_wall(views):
     assert tops == pytest.approx([2.0, 0.0]) and report["in_front"] == 1
     with pytest.raises(ValueError, match="--floor.wall-front-gap"):
         FloorLineConfig(lines=True, walls=True, wall_front_gap=0.3).validate()
+
+
+def test_snap_iterated_levels_a_floor_its_plane_cues_tilted():
+    """A level floor whose plane cues came tilted 1°: the far lines lie outside the first snap's band,
+    so one round fits the near lines alone (2 mm up on one side, down on the other: it tilts); rounds
+    from its own result take the far lines in and level it."""
+    from geocues.floor_lines import snap_iterated, snap_to_lines
+
+    near = [np.array([[0.1 + 0.8 * (k % 2), 0.5 + 0.6 * k, 0.0], [0.4 + 0.8 * (k % 2), 0.5 + 0.6 * k, 0.0]])
+            + [0.0, 0.0, 0.002 - 0.004 * (k % 2)] for k in range(6)]  # x 0.1-1.2 m, y 0.5-3.5 m, 2 mm off
+    far = [np.array([[4.2, 0.5 + 1.2 * k, 0.0], [4.8, 0.5 + 1.2 * k, 0.0]]) for k in range(3)]  # x 4.2-4.8 m
+    seg = np.array(near + far)
+    t = np.radians(1.0)
+    tilted = Floor(np.array([-np.sin(t), 0.0, np.cos(t)]), 0.0, 100)
+    tilt = lambda f: np.degrees(np.arccos(min(1.0, f.normal[2])))  # noqa: E731
+    one, n1 = snap_to_lines(tilted, seg)
+    many, n = snap_iterated(tilted, seg)
+    assert n1 == 6 and n == 9
+    assert tilt(one) > 0.2 and tilt(many) < 0.05 and abs(many.height) < 0.002
+    level = Floor(np.array([0.0, 0.0, 1.0]), 0.0, 100)  # every line in the first band: one round, the same floor
+    a, b = snap_to_lines(level, seg), snap_iterated(level, seg)
+    assert a[1] == b[1] == 9 and np.array_equal(a[0].normal, b[0].normal) and a[0].height == b[0].height
