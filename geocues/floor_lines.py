@@ -205,17 +205,27 @@ def snap_to_lines(floor: Floor, segments: np.ndarray, band: float = 0.03, min_le
     return Floor(normal, height, floor.n_points), int(best.sum())
 
 
-def snap_iterated(floor: Floor, segments: np.ndarray, rounds: int = 3, max_tilt_deg: float = 2.0) -> tuple[Floor, int]:
-    """:func:`snap_to_lines` again from its own result while each round holds more lines: a floor that
-    its plane cues tilted leaves its far lines outside the first round's band (a benchmark room's bare
-    floor came tilted 1.15°: one round left 0.235°, which put a wall 5 m away 4 cm in front of itself).
-    Never tilted more than ``max_tilt_deg`` from ``floor``. Returns (floor, lines used)."""
+def _turn_deg(a: Floor, b: Floor) -> float:
+    return float(np.degrees(np.arccos(min(1.0, float(a.normal @ b.normal)))))
+
+
+def snap_iterated(floor: Floor, segments: np.ndarray, rounds: int = 3, max_tilt_deg: float = 2.0,
+                  min_turn_deg: float = 0.3) -> tuple[Floor, int]:
+    """:func:`snap_to_lines` again from its own result while the last round turned the floor by more
+    than ``min_turn_deg`` and the next holds more lines: a floor that its plane cues tilted leaves its
+    far lines outside the first round's band (a benchmark room's bare floor came tilted 1.15°: one
+    round left 0.235°, which put a wall 5 m away 4 cm in front of itself). A round that turns it by
+    less already had its band (3 cm, about 0.34° at 5 m) where the lines are. Never tilted more than
+    ``max_tilt_deg`` from ``floor``. Returns (floor, lines used)."""
     best, n = snap_to_lines(floor, segments, max_tilt_deg=max_tilt_deg)
+    prev = floor
     for _ in range(rounds - 1):
-        nxt, m = snap_to_lines(best, segments, max_tilt_deg=max_tilt_deg)
-        if m <= n or np.degrees(np.arccos(min(1.0, float(nxt.normal @ floor.normal)))) > max_tilt_deg:
+        if _turn_deg(best, prev) <= min_turn_deg:
             break
-        best, n = nxt, m
+        nxt, m = snap_to_lines(best, segments, max_tilt_deg=max_tilt_deg)
+        if m <= n or _turn_deg(nxt, floor) > max_tilt_deg:
+            break
+        prev, best, n = best, nxt, m
     return best, n
 
 
