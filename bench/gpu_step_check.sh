@@ -7,10 +7,13 @@
 #   3. bench/train_step_bench.py at 640x480 with 100k and 300k Gaussians: the step with torch's loss
 #      code ("fused-adam") beside the CUDA loss kernels ("fused-loss", the default), syncs per step
 #   4. the CUDA rasterizer tests in the time that is left
-# Usage: bash bench/gpu_step_check.sh OUT [NAME]   (writes OUT/pytest_*.log, OUT/train_step_NAME.json)
+# Usage: bash bench/gpu_step_check.sh OUT [NAME]   (writes OUT/pytest_*.log, OUT/train_step_NAME.json;
+# NAME defaults to cuda_<card>_fused_loss)
 set -uo pipefail
 cd "$(dirname "$0")/.."
-out="${1:?usage: bench/gpu_step_check.sh OUT [NAME]}" name="${2:-cuda_h100_fused_loss}" budget="${BUDGET_S:-330}"
+out="${1:?usage: bench/gpu_step_check.sh OUT [NAME]}" budget="${BUDGET_S:-330}"
+gpu=$(python3 -c "import torch; print(torch.cuda.get_device_name(0).split()[1].lower() if torch.cuda.is_available() else 'cpu')" 2>/dev/null)
+name="${2:-cuda_${gpu:-gpu}_fused_loss}"  # e.g. cuda_h200_fused_loss: the card in the result's name
 mkdir -p "$out"
 export INDOORGS_CACHE="${INDOORGS_CACHE:-$PWD/.cache}" PYTHONUNBUFFERED=1
 left() { echo $(( budget - SECONDS )); }
