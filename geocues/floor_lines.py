@@ -296,9 +296,15 @@ def depth_along(cam, seg: np.ndarray, floor: Floor, depth: np.ndarray, n: int = 
     """(the floor's z-depth [n], ``depth``'s value [n]) at ``n`` points from 10 to 90 % along the 2D
     segment ``seg`` [4] of ``cam``; ``depth`` may have any resolution (nearest pixel)."""
     px = seg[:2] + np.linspace(0.1, 0.9, n)[:, None] * (seg[2:] - seg[:2])  # [n, 2] COLMAP pixels
+    return floor_depth(cam, px, floor)[0], sample_nearest(depth, cam, px)
+
+
+def sample_nearest(depth: np.ndarray, cam, px: np.ndarray) -> np.ndarray:
+    """``depth`` (any resolution of ``cam``'s image: every 4th pixel in `geocues extract`) at COLMAP
+    pixels ``px`` [M, 2] of ``cam``, nearest pixel, float64 [M]."""
     rows = np.clip((px[:, 1] * depth.shape[0] / cam.height).astype(int), 0, depth.shape[0] - 1)
     cols = np.clip((px[:, 0] * depth.shape[1] / cam.width).astype(int), 0, depth.shape[1] - 1)
-    return floor_depth(cam, px, floor)[0], depth[rows, cols].astype(np.float64)
+    return depth[rows, cols].astype(np.float64)
 
 
 def lift_segments(cameras, segments: list[np.ndarray], floor: Floor, cfg: FloorLineConfig) -> Lifted:

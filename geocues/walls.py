@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geocues.floor_lines import FloorLineConfig
+from geocues.floor_lines import FloorLineConfig, sample_nearest
 
 WALL_CHECK_MIN = 0.3  # metres above the floor: lower rows of a raised floor-texture line lie so close to
 # the floor the views see behind them that a loose tolerance cannot tell them from a wall
@@ -38,9 +38,7 @@ def row_evidence(cameras, views: np.ndarray, priors: dict[int, np.ndarray], pts:
         ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         if not ok.any():
             continue
-        rows = np.clip((uv[ok, 1] * prior.shape[0] / cam.height).astype(int), 0, prior.shape[0] - 1)
-        cols = np.clip((uv[ok, 0] * prior.shape[1] / cam.width).astype(int), 0, prior.shape[1] - 1)
-        p = prior[rows, cols].astype(np.float64)
+        p = sample_nearest(prior, cam, uv[ok])
         has = (p > 0) & np.isfinite(p)
         n_valid += int(has.sum())
         n_agree += int((has & (np.abs(p - z[ok]) <= rel * z[ok])).sum())
