@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -34,7 +34,8 @@ from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
-from geocues.floor_lines import FloorLineConfig, floor_line_anchors
+from geocues.ceiling import ceiling_anchors, ceiling_edges, ceiling_height
+from geocues.floor_lines import Floor, FloorLineConfig, floor_line_anchors
 from geocues.depth_align import DepthAlignConfig, write_alignments
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
@@ -90,12 +91,18 @@ _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg"
 
 _WALL_FIELDS = ("walls", "wall_step", "wall_height")  # added after --floor.lines folders were made
 _WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel", "wall_front_gap")  # added after --floor.walls folders
+_CEILING_FIELDS = ("ceiling", "ceiling_margin", "ceiling_min_views")  # added after --floor.wall-front-gap folders
 
 
 def _key_config(cfg: ExtractConfig) -> dict:
     """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` and ``floor`` left out
     while off)."""
     d = asdict(cfg)
+    if cfg.floor.lines:  # added after --floor.wall-front-gap folders were made: out of the key while off
+        for k in _CEILING_FIELDS if not cfg.floor.ceiling else ():
+            d["floor"].pop(k)
+        if not cfg.floor.floor_grid:
+            d["floor"].pop("floor_grid")
     if not cfg.floor.lines:  # added later, like the surface fields: off = the key of older folders
         d.pop("floor")
     elif not cfg.floor.walls:
@@ -255,7 +262,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
-    floor_stats, assumed = None, None
+    floor_stats, assumed, cuts = None, None, None
     if cfg.planes and cfg.floor.lines:
         extra, walls, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
@@ -265,6 +272,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             plane_ok = np.concatenate([plane_ok, np.ones(len(extra[0]) + len(walls[0]), bool)])  # they come last
             assumed = np.zeros(len(anchors), bool)
             assumed[len(anchors) - len(walls[0]):] = True  # the raised walls (last) are assumptions, not cues
+            cuts = walls[2]
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
@@ -272,7 +280,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     if cfg.planes:
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
                                                                            lines, cache, timings, notes,
-                                                                           assumed=assumed)
+                                                                           assumed=assumed, cuts=cuts)
         rejections.update(pr)
 
     # ---- merge and write
@@ -339,10 +347,10 @@ def _anchors(scene: Scene, sfm: SfmCues | None, lines: LineCues | None,
 
 def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path, timings: dict[str, float], notes: list[str]
-                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], tuple[np.ndarray, np.ndarray], dict]:
+                 ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], tuple[np.ndarray, ...], dict]:
     """A first plane pass for the floor, then the floor-contact lines (geocues.floor_lines): returns
-    ((points, line index, views per line), (--floor.walls' raised points, their row index), statistics
-    for the report)."""
+    ((points, line index, views per line), (--floor.walls' raised points, their row index, the edges
+    that cut the regions: --floor.ceiling's), statistics for the report)."""
     from geocues.lines.detect import detect_all
 
     t0 = time.perf_counter()
@@ -353,14 +361,29 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned, lines.segments if lines is not None else None)
-    W, WL = np.zeros((0, 3)), np.zeros(0, np.int64)
+    W, WL, cuts = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2, 3))
     if cfg.floor.walls and len(P):
         checked: dict = {}
-        W, WL, top = wall_anchors(P, L, np.array(stats["floor"]["normal"]), stats["floor"]["height"],
-                                  first.xyz, scene.cameras, cfg.floor, V, aligned, checked)
+        up, floor_h = np.array(stats["floor"]["normal"]), stats["floor"]["height"]
+        wall_cfg, ceiling = cfg.floor, None
+        if cfg.floor.ceiling:
+            ceiling, stats["ceiling"] = ceiling_height(scene.cameras, aligned, up, floor_h, cfg.floor.ceiling_margin,
+                                                       cfg.floor.ceiling_min_views)
+            if ceiling is not None:
+                wall_cfg = replace(cfg.floor, wall_height=ceiling)
+        W, WL, top = wall_anchors(P, L, up, floor_h, first.xyz, scene.cameras, wall_cfg, V, aligned, checked)
         stats["walls"] = {"samples": len(W), "top": round(top, 3)}
         if cfg.floor.wall_check:
             stats["walls"]["check"] = checked or {"note": "no aligned prior: nothing checked"}
+        if ceiling is not None and len(W):
+            C, CL = ceiling_anchors(W, up, Floor(up, floor_h, 0).basis(), floor_h, ceiling, cfg.floor.wall_step)
+            stats["ceiling"]["samples"] = len(C)
+            W, WL = np.concatenate([W, C]), np.concatenate([WL, CL + int(WL.max()) + 1])
+            cuts = ceiling_edges(W, up, Floor(up, floor_h, 0).basis(), floor_h, ceiling)
+        if cfg.floor.floor_grid and len(W):
+            G, GL = ceiling_anchors(W, up, Floor(up, floor_h, 0).basis(), floor_h, 0.0, cfg.floor.wall_step)
+            stats["floor_grid"] = {"samples": len(G)}
+            W, WL = np.concatenate([W, G]), np.concatenate([WL, GL + int(WL.max()) + 1])
     n_wall = len(W)
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:
@@ -368,8 +391,13 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     else:
         notes.append(f"floor lines: floor found in {stats['floor']['n_points']} plane cues; {stats['kept']} of "
                      f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors"
-                     + (f", {n_wall} raised up to {stats['walls']['top']:.2f} m (--floor.walls)" if n_wall else ""))
-    return (P, L, V), (W, WL), stats
+                     + (f", {n_wall} raised up to {stats['walls']['top']:.2f} m (--floor.walls)" if n_wall else "")
+                     + (f", a ceiling grid of {stats['ceiling']['samples']} at {stats['ceiling']['height']:.3f} m "
+                        f"(--floor.ceiling; {stats['ceiling']['views']} views)" if "samples" in stats.get("ceiling", {})
+                        else ""))
+        if "note" in stats.get("ceiling", {}):
+            notes.append(f"--floor.ceiling: no ceiling placed: {stats['ceiling']['note']}")
+    return (P, L, V), (W, WL, cuts), stats
 
 
 def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:

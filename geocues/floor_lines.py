@@ -88,6 +88,20 @@ class FloorLineConfig:
     reaches as high is not raised: a floor line near a wall, closer than the priors' tolerance tells
     apart. 0 = off. An extension."""
 
+    ceiling: bool = False
+    """Also place the ceiling (geocues.ceiling): a level plane at the median over the views of the
+    height their aligned priors give the horizontal surfaces above the cameras, anchored by a grid
+    over the raised walls' footprint; the walls are raised up to it. An extension; needs
+    wall_check (its aligned priors)."""
+    floor_grid: bool = False
+    """Also lay a grid of assumed anchors on the floor plane over the raised walls' footprint (an
+    extension; needs walls): a floor region whose anchors are one wall's foot line leaves its plane
+    free to turn about it, and only a band along the foot was kept."""
+    ceiling_margin: float = 0.3
+    """Only surfaces more than this (metres) above the highest camera count as the ceiling."""
+    ceiling_min_views: int = 3
+    """Views that must see such a surface; with fewer no ceiling is placed."""
+
     def validate(self) -> None:
         for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step",
                      "wall_check_rel"):
@@ -107,6 +121,12 @@ class FloorLineConfig:
             raise ValueError("--floor.wall-check checks the raised walls: it needs --floor.walls")
         if self.wall_front_gap < 0 or (self.wall_front_gap > 0 and not self.wall_check):
             raise ValueError("--floor.wall-front-gap must be >= 0 and, when > 0, needs --floor.wall-check")
+        if self.ceiling and not self.wall_check:
+            raise ValueError("--floor.ceiling reads the aligned priors of --floor.wall-check: it needs it")
+        if self.floor_grid and not self.walls:
+            raise ValueError("--floor.floor-grid spans the raised walls' footprint: it needs --floor.walls")
+        if self.ceiling_margin < 0 or self.ceiling_min_views < 1:
+            raise ValueError("--floor.ceiling-margin must be >= 0 and --floor.ceiling-min-views >= 1")
         if not 0 < self.horizontal_deg < 90:
             raise ValueError(f"--floor.horizontal-deg must be in (0, 90), got {self.horizontal_deg}")
 

@@ -33,14 +33,15 @@ log = logging.getLogger(__name__)
 def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
-                 desc: str = "planes", assumed: np.ndarray | None = None
+                 desc: str = "planes", assumed: np.ndarray | None = None, cuts: np.ndarray | None = None
                  ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
     ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel;
     ``assumed`` [P]: anchors that are assumptions, not cues (`--floor.walls`' raised rows): left out of
     the depth alignment and of prior-free planes (which they would place on their own), and a prior
-    plane counts their lines only whole (geocues.planes)."""
+    plane counts their lines only whole (geocues.planes). ``cuts`` [M, 2, 3]: assumed edges (the
+    ceiling's, geocues.ceiling) that cut every image's regions like the 3D lines it sees."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -95,8 +96,11 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         regions = wt.regions
         pc = cand[plane_ok[cand]]  # the planes' anchors
         pf = pc if assumed is None else pc[~assumed[pc]]  # the prior-free planes': cues only
-        if lines is not None and cfg.plane.cut_px > 0 and lines_of.get(i):
-            regions = split_regions_by_lines(cam, regions, lines.segments[lines_of[i]],
+        cut = lines.segments[lines_of[i]] if lines is not None and lines_of.get(i) else np.zeros((0, 2, 3))
+        if cuts is not None and len(cuts):
+            cut = np.concatenate([cut, cuts])
+        if cfg.plane.cut_px > 0 and len(cut):
+            regions = split_regions_by_lines(cam, regions, cut,
                                              cfg.plane.cut_px * cam.width / 640.0,
                                              int(cfg.texture.min_region_frac * cam.width * cam.height))
         n_regions = int(regions.max(initial=-1)) + 1

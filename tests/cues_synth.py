@@ -166,13 +166,15 @@ def fake_line_cues(cams: list, step: float = 0.05, drop: tuple[int, ...] = ()):
 def make_room_scene(root: Path, n_views: int = 6, w: int = 160, h: int = 120,
                     priors: str = "all", n_sfm: int = 300, n_outliers: int = 30,
                     prior_scale: float = 0.5, prior_shift: float = 0.3, seed: int = 0,
-                    plain_floor: bool = False) -> Path:
+                    plain_floor: bool = False, pitch: tuple[float, ...] = (-0.35,)) -> Path:
     """Write the synthetic room scene to ``root`` and return it.
 
     priors: "all", "none" or "some" (every other image) -- simulated depth priors
     prior = prior_scale * z + prior_shift (+ 2 mm noise), labelled simulated in scene.json.
     n_sfm: SfM points on the textured floor and box (3 mm noise) plus ``n_outliers`` in the air.
     plain_floor: an untextured floor (it gets plane cues, as in the bare rooms).
+    pitch: view k looks along (cos yaw, sin yaw, pitch[k % len(pitch)]) (the default looks down at
+    the floor; a positive one sees the ceiling).
     """
     import json
 
@@ -186,7 +188,7 @@ def make_room_scene(root: Path, n_views: int = 6, w: int = 160, h: int = 120,
     for k in range(n_views):
         yaw = 2 * np.pi * k / n_views
         c = np.array([2.0, 1.5, 1.4]) + 0.3 * np.array([np.cos(yaw + 1), np.sin(yaw + 1), 0])
-        target = c + np.array([np.cos(yaw), np.sin(yaw), -0.35])
+        target = c + np.array([np.cos(yaw), np.sin(yaw), pitch[k % len(pitch)]])
         R, t = look_at(c, target)
         rgb, depth, _ = render(K, R, t, w, h, plain_floor)
         name = f"{k:05d}.png"

@@ -16,7 +16,7 @@ import geocues.extract as ex
 from geocues.cue_io import read_cues_ply, read_lines_npz
 from geocues.types import CueType
 
-from cues_synth import distance_to_surface, fake_line_cues, make_room_scene
+from cues_synth import ROOM, distance_to_surface, fake_line_cues, make_room_scene
 from test_planes import _wall_normals_ok
 
 
@@ -153,6 +153,12 @@ class TestRun:
         assert "wall_check" in ex._key_config(cfg)["floor"]
         checked = _no_nan(out).of_type(CueType.PLANE)
         assert len(checked) > len(plane) and np.mean(distance_to_surface(checked.xyz) < 0.03) > 0.95
+        assert "ceiling" not in ex._key_config(cfg)["floor"] and "floor_grid" not in ex._key_config(cfg)["floor"]
+        cfg.floor.ceiling = cfg.floor.floor_grid = True  # the ceiling: no view looks up, none placed, a note
+        rep = _report(ex.run(cfg, scenes["plain_floor"], tmp_path / "no_ceiling"))
+        assert "height" not in rep["floor_lines"]["ceiling"] and rep["floor_lines"]["floor_grid"]["samples"] > 0
+        assert any("no ceiling placed" in n for n in rep["notes"])
+        cfg.floor.ceiling = cfg.floor.floor_grid = False
         cfg.floor.wall_check = False
         cfg.priors = False  # prior-free planes are fitted to cues only, never to the raised rows
         free_walls = _report(ex.run(cfg, scenes["plain_floor"], tmp_path / "free_walls"))
@@ -165,6 +171,26 @@ class TestRun:
         assert any("no floor found" in n and "horizontal plane cues" in n for n in rep["notes"])
         plain = _report(ex.run(None, scenes["all"], tmp_path / "plain_run"))
         assert rep["counts"] == plain["counts"]
+
+    def test_ceiling_and_floor_grid_run(self, tmp_path):
+        """--floor.ceiling --floor.floor-grid end to end on the plain-floor room seen by views that
+        alternately look down and up: the ceiling's height from the aligned priors, the walls raised
+        up to it, more plane cues on the ceiling and the floor, as accurate, no NaN; off, the key of
+        the --floor.wall-check folders."""
+        scene = make_room_scene(tmp_path / "up", n_views=24, priors="all", plain_floor=True, pitch=(-0.35, 0.3))
+        cfg = ex.ExtractConfig()
+        cfg.floor.lines = cfg.floor.walls = cfg.floor.wall_check = True
+        checked = _no_nan(ex.run(cfg, scene, tmp_path / "checked")).of_type(CueType.PLANE)
+        assert "ceiling" not in ex._key_config(cfg)["floor"] and "floor_grid" not in ex._key_config(cfg)["floor"]
+        cfg.floor.ceiling = cfg.floor.floor_grid = True
+        rep = _report(out := ex.run(cfg, scene, tmp_path / "ceiling"))
+        fl = rep["floor_lines"]
+        assert fl["ceiling"]["height"] == pytest.approx(ROOM[2], abs=0.02) and fl["ceiling"]["samples"] > 0
+        assert fl["walls"]["top"] == pytest.approx(fl["ceiling"]["height"], abs=1e-3) and fl["floor_grid"]["samples"] > 0
+        assert {"ceiling", "floor_grid"} <= set(ex._key_config(cfg)["floor"])
+        roof = _no_nan(out).of_type(CueType.PLANE)
+        assert len(roof) > len(checked) and np.mean(distance_to_surface(roof.xyz) < 0.03) > 0.95
+        assert (roof.xyz[:, 2] > ROOM[2] - 0.03).sum() > (checked.xyz[:, 2] > ROOM[2] - 0.03).sum()
 
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
         out = ex.run(ex.ExtractConfig(priors=False), scenes["all"], tmp_path / "free")

@@ -1,0 +1,139 @@
+"""The ceiling as a level plane (geocues.ceiling, `geocues extract --floor.ceiling`): its height from the
+views' aligned priors, the anchor grid over the walls' footprint, and the plane check it enables."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geocues.ceiling import ceiling_anchors, ceiling_edges, ceiling_height, view_ceiling_height
+from geocues.floor_lines import Floor, FloorLineConfig
+
+from test_floor_lines import H, W, camera
+
+LO, HI = np.array([0.0, 0.0, 0.0]), np.array([4.0, 3.6, 2.5])  # the room box; floor z = 0, ceiling z = 2.5
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def box_depth(cam, step: int = 4) -> np.ndarray:
+    """z-depth of the room box's inside at every ``step``-th pixel of ``cam`` (inside the box)."""
+    rows, cols = np.mgrid[0:cam.height:step, 0:cam.width:step]
+    d = cam.rays_at(rows, cols) @ np.asarray(cam.R)  # world directions, camera z = 1
+    C = cam.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d > 0, (HI - C) / d, np.where(d < 0, (LO - C) / d, np.inf)).min(-1)
+    return t.astype(np.float64)
+
+
+def upward_views(n: int = 5):
+    """Views 1.5 m up in the room, looking 15 degrees up towards its walls in every direction."""
+    out = []
+    for k, a in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False)):
+        c = np.array([2.0, 1.8, 1.5]) + 0.4 * np.array([np.cos(a), np.sin(a), 0.0])
+        out.append(camera(k, c, c + np.array([np.cos(a), np.sin(a), np.tan(np.radians(15))])))
+    return out
+
+
+def test_one_view_reads_the_ceiling_height_from_an_exact_prior():
+    cam = upward_views(1)[0]
+    h = view_ceiling_height(cam, box_depth(cam), UP, 0.0, above=2.0)
+    assert h == pytest.approx(2.5, abs=1e-6)
+
+
+def test_walls_above_the_cameras_are_not_the_ceiling_and_a_view_looking_down_sees_none():
+    cam = upward_views(1)[0]
+    depth = box_depth(cam)
+    X = cam.center + (cam.rays_at(*np.mgrid[0:H:4, 0:W:4]) @ np.asarray(cam.R)) * depth[..., None]
+    walls_only = np.where(X[..., 2] < 2.5 - 1e-6, depth, np.nan)  # the ceiling's pixels have no prior
+    assert view_ceiling_height(cam, walls_only, UP, 0.0, above=1.8) is None
+    down = camera(0, (2.0, 1.8, 1.5), (3.5, 1.8, 0.5))
+    assert view_ceiling_height(down, box_depth(down), UP, 0.0, above=1.8) is None
+
+
+def test_height_is_the_median_of_the_views_and_one_warped_view_does_not_move_it():
+    cams = upward_views(5)
+    scale = [1.0, 1.01, 0.99, 1.0, 1.25]  # the last prior 25 % too far: its ceiling 25 % too high
+    priors = {c.index: box_depth(c) * s for c, s in zip(cams, scale)}
+    h, stats = ceiling_height(cams, priors, UP, 0.0, margin=0.3, min_views=3)
+    assert stats["views"] == 5
+    assert h == pytest.approx(2.5, abs=0.02)  # the median of 2.5, 2.51, 2.49, 2.5 and ~2.75
+    per_view = [view_ceiling_height(c, priors[c.index], UP, 0.0, above=1.8) for c in cams]
+    assert abs(np.mean(per_view) - 2.5) > 0.04  # a mean would have followed it
+
+
+def test_too_few_views_place_no_ceiling_and_say_why():
+    cams = upward_views(2)
+    h, stats = ceiling_height(cams, {c.index: box_depth(c) for c in cams}, UP, 0.0, margin=0.3, min_views=3)
+    assert h is None and "2 views" in stats["note"]
+
+
+def test_grid_covers_the_walls_footprint_at_the_ceiling():
+    feet = np.array([[0, 0, 0], [4, 0, 0], [4, 3.6, 0], [0, 3.6, 0], [2, 0, 0], [4, 1.8, 0]], float)
+    basis = Floor(UP, 0.0, 0).basis()
+    pts, row = ceiling_anchors(feet, UP, basis, 0.0, 2.5, 0.1)
+    assert len(pts) == pytest.approx(40 * 36, rel=0.05)
+    assert np.allclose(pts[:, 2], 2.5)
+    assert (pts[:, :2] > -1e-9).all() and (pts[:, 0] < 4.0).all() and (pts[:, 1] < 3.6).all()
+    for r in np.unique(row):  # each row is a straight line along basis[0]
+        q = pts[row == r] @ basis.T
+        assert np.ptp(q[:, 1]) < 1e-9
+    empty, _ = ceiling_anchors(feet[:2], UP, basis, 0.0, 2.5, 0.1)  # feet on one line: no footprint
+    assert len(empty) == 0
+
+
+def test_edges_are_the_walls_tops_and_cut_a_region_holding_a_wall_and_the_ceiling_strip():
+    """The hull's edges at the ceiling are the four wall tops; a view's one weak region over the far
+    wall and the strip of ceiling above it (about 10 % of it: below the plane stage's 20 % per plane) is
+    cut in two along them."""
+    from geocues.plane_regions import split_regions_by_lines
+
+    feet = np.array([[0, 0, 0], [4, 0, 0], [4, 3.6, 0], [0, 3.6, 0], [2, 0, 0], [4, 1.8, 0]], float)
+    edges = ceiling_edges(feet, UP, Floor(UP, 0.0, 0).basis(), 0.0, 2.5)
+    assert edges.shape == (4, 2, 3) and np.allclose(edges[..., 2], 2.5)
+    lengths = sorted(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1))
+    assert np.allclose(lengths, [3.6, 3.6, 4.0, 4.0])
+    cam = camera(0, (1.0, 1.8, 1.5), (4.0, 1.8, 1.4))
+    rows, cols = np.mgrid[0:H, 0:W]
+    X = cam.center + (cam.rays_at(rows, cols) @ np.asarray(cam.R)) * box_depth(cam, step=1)[..., None]
+    ceiling = X[..., 2] > 2.5 - 1e-6
+    region = np.where((X[..., 0] > 4.0 - 1e-6) | ceiling, 0, -1).astype(np.int32)  # far wall + ceiling
+    assert 0.05 < ceiling[region == 0].mean() < 0.2
+    cut = split_regions_by_lines(cam, region, edges, 3.0, 100)
+    ids = [np.bincount(cut[m & (cut >= 0)]).argmax() for m in (ceiling & (region == 0), ~ceiling & (region == 0))]
+    assert ids[0] != ids[1]
+    assert (cut[ceiling & (cut >= 0)] == ids[0]).mean() > 0.99
+
+
+def test_ceiling_needs_the_wall_check():
+    with pytest.raises(ValueError, match="--floor.ceiling"):
+        FloorLineConfig(lines=True, walls=True, ceiling=True).validate()
+    FloorLineConfig(lines=True, walls=True, wall_check=True, ceiling=True).validate()
+
+
+def test_the_grid_places_a_ceiling_no_cue_reaches():
+    """A view of the bare ceiling whose aligned prior is tilted (5 % too near at the top, 5 % too far
+    at the bottom) and whose only anchors are the walls' tops: the region's plane is not confirmed
+    (or only near the walls); with the grid at the estimated height the whole ceiling is cut onto
+    it to a millimetre."""
+    from geocues.planes import PlaneConfig, plane_cues_with_prior
+
+    cam = camera(0, (2.0, 1.8, 1.5), (3.0, 1.8, 2.3))
+    rows, cols = np.mgrid[0:H, 0:W]
+    depth = box_depth(cam, step=1)
+    X = cam.center + (cam.rays_at(rows, cols) @ np.asarray(cam.R)) * depth[..., None]
+    ceil = X[..., 2] > 2.5 - 1e-6
+    prior = np.where(ceil, depth * (1 + 0.1 * (rows / H - 0.5)), 0.0).astype(np.float32)
+    regions = np.where(ceil, 0, -1).astype(np.int32)
+    image = np.full((H, W, 3), 0.9, np.float32)
+    tops = np.c_[np.full(41, 4.0), np.linspace(0.0, 3.6, 41), np.full(41, 2.5)]  # the far wall's top edge
+    cfg = PlaneConfig()
+    alone = plane_cues_with_prior(cam, image, regions, prior, tops, cfg, anchors_group=np.zeros(41, np.int64))
+    grid, row = ceiling_anchors(np.array([[0, 0, 0], [4, 0, 0], [4, 3.6, 0], [0, 3.6, 0.0]]), UP,
+                                Floor(UP, 0.0, 0).basis(), 0.0, 2.5, 0.1)
+    placed = plane_cues_with_prior(cam, image, regions, prior, np.r_[tops, grid], cfg,
+                                   anchors_group=np.r_[np.zeros(41, np.int64), row + 1],
+                                   whole_lines=np.r_[np.zeros(41, bool), np.ones(len(grid), bool)])
+    assert len(placed.xyz) > 0
+    assert np.abs(placed.xyz[:, 2] - 2.5).max() < 0.002
+    assert len(placed.xyz) > 0.5 * (regions == 0)[::2, ::2].sum()  # most of the ceiling (every 2nd pixel)
+    assert len(placed.xyz) > 2 * len(alone.xyz)
