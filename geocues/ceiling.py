@@ -108,10 +108,13 @@ def ceiling_edges(feet: np.ndarray, up: np.ndarray, basis: np.ndarray, floor_hei
 
 
 def ceiling_anchors(feet: np.ndarray, up: np.ndarray, basis: np.ndarray, floor_height: float, height: float,
-                    step: float) -> tuple[np.ndarray, np.ndarray]:
+                    step: float, piece: int = 5) -> tuple[np.ndarray, np.ndarray]:
     """A grid (spacing ``step``) at ``height`` above the floor (``up`` . X = floor_height, in-plane
     axes ``basis`` [2, 3]) over the convex hull of ``feet`` [F, 3] (the raised walls' foot points).
-    Returns (points [Q, 3], row index [Q]: one row per grid line along basis[0])."""
+    Returns (points [Q, 3], row index [Q]: pieces of ``piece`` points along basis[0]). The plane
+    stage counts an assumed row only whole, where all of its points near a region lie on the
+    region's prior plane: a row across the whole room would fail on every view whose prior tilts the
+    ceiling by its warp, short pieces hold where the prior is near."""
     uv, hull = _footprint(feet, basis)
     if hull is None:  # fewer than 3 feet, or all on one line: no footprint
         return np.zeros((0, 3)), np.zeros(0, np.int64)
@@ -120,7 +123,7 @@ def ceiling_anchors(feet: np.ndarray, up: np.ndarray, basis: np.ndarray, floor_h
     b = np.arange(lo[1] + step / 2, hi[1], step)
     A, B = np.meshgrid(a, b)  # rows: B constant
     grid = np.stack([A.ravel(), B.ravel()], -1)
-    row = np.repeat(np.arange(len(b)), len(a))
+    row = np.repeat(np.arange(len(b)), len(a)) * (len(a) // piece + 1) + np.tile(np.arange(len(a)) // piece, len(b))
     inside = hull.find_simplex(grid) >= 0
     grid, row = grid[inside], row[inside]
     _, row = np.unique(row, return_inverse=True)
