@@ -1,0 +1,85 @@
+"""A recipe's `full` rows against an earlier recipe's, per room, with the floor and issue 12's targets.
+
+Reads ``bench/results/ablation_<name>/ablation.json`` (written by ``bench/ablation_summary.py
+--collect``) and writes a markdown table between ``<!-- MARKER -->`` markers of a doc:
+
+    python bench/recipe_table.py --doc docs/training.md --marker ceiling-table \
+        --room "bare s5" bare_s5_floorwalls_check_gap_planefirst bare_s5_ceiling_grid ...
+
+Each ``--room LABEL BEFORE AFTER`` adds a row: the `full` row (mean over its seeds) of both folders,
+C-L1 cm / F / NC / test PSNR dB, the floor of AFTER, and which of the targets AFTER meets
+(C-L1 <= 1.3 x floor, F >= floor - 0.05, NC >= floor - 0.04).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results"
+
+
+def full_row(name: str) -> tuple[dict, dict, int]:
+    """(mean metrics of the `full` row, the floor's final metrics, seeds) of ablation_<name>."""
+    path = RESULTS / f"ablation_{name}" / "ablation.json"
+    if not path.is_file():
+        raise SystemExit(f"recipe_table: no {path}")
+    data = json.loads(path.read_text())
+    rows = [r for r in data["rows"] if r["row"] == "full" and r.get("status") == "done"]
+    if not rows:
+        raise SystemExit(f"recipe_table: {path} has no finished `full` row")
+    return rows[0]["mean"], (data.get("floor") or {}).get("final") or {}, int(rows[0]["n_seeds"])
+
+
+def _cell(m: dict, bold: bool = False) -> str:
+    s = f"{100 * m['chamfer_l1']:.2f} / {m['f_score']:.3f} / {m['normal_consistency']:.3f} / {m['psnr']:.1f}"
+    return f"**{s}**" if bold else s
+
+
+def targets(m: dict, floor: dict) -> str:
+    ratio = m["chamfer_l1"] / floor["chamfer_l1"]
+    met = [n for n, ok in (("C-L1", ratio <= 1.3), ("F", m["f_score"] >= floor["f_score"] - 0.05),
+                           ("NC", m["normal_consistency"] >= floor["normal_consistency"] - 0.04)) if ok]
+    miss = []
+    if ratio > 1.3:
+        miss.append(f"C-L1 {ratio:.2f}×")
+    if m["f_score"] < floor["f_score"] - 0.05:
+        miss.append(f"F {m['f_score'] - floor['f_score']:+.3f}")
+    text = "all" if len(met) == 3 else (", ".join(met) or "none")
+    return f"{text} (C-L1 {ratio:.2f}×)" if len(met) == 3 else f"{text}; misses {', '.join(miss)}"
+
+
+def table(rooms: list[tuple[str, str, str]], before: str, after: str) -> str:
+    lines = [f"| room | {before} | {after} | floor | targets ({after}) |", "|---|---|---|---|---|"]
+    for label, a, b in rooms:
+        ma, _, na = full_row(a)
+        mb, floor, nb = full_row(b)
+        seeds = lambda n: f" ({n} seeds)" if n > 1 else ""  # noqa: E731
+        fl = f"{100 * floor['chamfer_l1']:.2f} / {floor['f_score']:.3f} / {floor['normal_consistency']:.3f}"
+        lines.append(f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, True)}{seeds(nb)} | {fl} | {targets(mb, floor)} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--doc", type=Path, required=True)
+    ap.add_argument("--marker", required=True)
+    ap.add_argument("--before", default="before")
+    ap.add_argument("--after", default="after")
+    ap.add_argument("--room", nargs=3, action="append", required=True, metavar=("LABEL", "BEFORE", "AFTER"))
+    args = ap.parse_args()
+    text = table([tuple(r) for r in args.room], args.before, args.after)
+    doc = args.doc.read_text()
+    start, end = f"<!-- {args.marker} -->", f"<!-- /{args.marker} -->"
+    if start not in doc or end not in doc:
+        raise SystemExit(f"recipe_table: {args.doc} has no {start} ... {end} markers")
+    head, rest = doc.split(start, 1)
+    _, tail = rest.split(end, 1)
+    args.doc.write_text(f"{head}{start}\n{text}\n{end}{tail}")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
