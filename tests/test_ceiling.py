@@ -137,3 +137,21 @@ def test_the_grid_places_a_ceiling_no_cue_reaches():
     assert np.abs(placed.xyz[:, 2] - 2.5).max() < 0.002
     assert len(placed.xyz) > 0.5 * (regions == 0)[::2, ::2].sum()  # most of the ceiling (every 2nd pixel)
     assert len(placed.xyz) > 2 * len(alone.xyz)
+
+
+@pytest.mark.parametrize("fill", [0.0, np.nan, np.inf, -1.0, 1e-6])
+def test_degenerate_priors_give_no_ceiling_and_no_warning(fill):
+    """Priors with no usable depth (zeros, NaN, Inf, negative, a micrometre everywhere), a map
+    smaller than the normals' baseline, and no feet: nothing placed, no NaN, no warning."""
+    import warnings
+
+    cams = upward_views(3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        h, stats = ceiling_height(cams, {c.index: np.full((60, 80), fill) for c in cams}, UP, 0.0,
+                                  margin=0.3, min_views=1)
+        assert h is None and stats["views"] == 0
+        assert view_ceiling_height(cams[0], np.ones((3, 3)), UP, 0.0, above=0.0) is None
+        pts, row = ceiling_anchors(np.zeros((0, 3)), UP, Floor(UP, 0.0, 0).basis(), 0.0, 2.5, 0.1)
+        assert pts.shape == (0, 3) and row.shape == (0,)
+        assert ceiling_edges(np.zeros((2, 3)), UP, Floor(UP, 0.0, 0).basis(), 0.0, 2.5).shape == (0, 2, 3)
