@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from geocues.floor_lines import Floor
+
 HORIZONTAL_COS = np.cos(np.radians(20.0))  # a surface within 20 degrees of level is horizontal
 MIN_PIXELS = 100  # prior pixels (on the every-4th-pixel grid) a view needs on such a surface
 
@@ -129,3 +131,25 @@ def ceiling_anchors(feet: np.ndarray, up: np.ndarray, basis: np.ndarray, floor_h
     _, row = np.unique(row, return_inverse=True)
     pts = grid @ basis + (floor_height + height) * np.asarray(up, np.float64)
     return pts, row.astype(np.int64)
+
+
+def add_level_grids(W: np.ndarray, WL: np.ndarray, up: np.ndarray, floor_height: float, ceiling: float | None,
+                    floor_grid: bool, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The raised walls' points ``W`` [Q, 3] and row index ``WL`` [Q] with the ceiling's grid (at
+    ``ceiling`` above the floor, when not None) and the floor's (``floor_grid``) appended as further
+    rows, and the ceiling's edges [E, 2, 3] that cut the regions. Returns (points, rows, edges,
+    {"ceiling_samples", "floor_samples"} for the report)."""
+    cuts, stats = np.zeros((0, 2, 3)), {}
+    if not len(W):
+        return W, WL, cuts, stats
+    basis = Floor(np.asarray(up, np.float64), floor_height, 0).basis()
+    feet = W
+    for name, height in (("ceiling", ceiling), ("floor", 0.0 if floor_grid else None)):
+        if height is None:
+            continue
+        G, GL = ceiling_anchors(feet, up, basis, floor_height, height, step)
+        stats[f"{name}_samples"] = len(G)
+        W, WL = np.concatenate([W, G]), np.concatenate([WL, GL + int(WL.max()) + 1])
+    if ceiling is not None:
+        cuts = ceiling_edges(feet, up, basis, floor_height, ceiling)
+    return W, WL, cuts, stats

@@ -34,8 +34,8 @@ from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
-from geocues.ceiling import ceiling_anchors, ceiling_edges, ceiling_height
-from geocues.floor_lines import Floor, FloorLineConfig, floor_line_anchors
+from geocues.ceiling import add_level_grids, ceiling_height
+from geocues.floor_lines import FloorLineConfig, floor_line_anchors
 from geocues.depth_align import DepthAlignConfig, write_alignments
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
@@ -375,15 +375,11 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         stats["walls"] = {"samples": len(W), "top": round(top, 3)}
         if cfg.floor.wall_check:
             stats["walls"]["check"] = checked or {"note": "no aligned prior: nothing checked"}
-        if ceiling is not None and len(W):
-            C, CL = ceiling_anchors(W, up, Floor(up, floor_h, 0).basis(), floor_h, ceiling, cfg.floor.wall_step)
-            stats["ceiling"]["samples"] = len(C)
-            W, WL = np.concatenate([W, C]), np.concatenate([WL, CL + int(WL.max()) + 1])
-            cuts = ceiling_edges(W, up, Floor(up, floor_h, 0).basis(), floor_h, ceiling)
-        if cfg.floor.floor_grid and len(W):
-            G, GL = ceiling_anchors(W, up, Floor(up, floor_h, 0).basis(), floor_h, 0.0, cfg.floor.wall_step)
-            stats["floor_grid"] = {"samples": len(G)}
-            W, WL = np.concatenate([W, G]), np.concatenate([WL, GL + int(WL.max()) + 1])
+        W, WL, cuts, grids = add_level_grids(W, WL, up, floor_h, ceiling, cfg.floor.floor_grid, cfg.floor.wall_step)
+        if "ceiling_samples" in grids:
+            stats["ceiling"]["samples"] = grids["ceiling_samples"]
+        if "floor_samples" in grids:
+            stats["floor_grid"] = {"samples": grids["floor_samples"]}
     n_wall = len(W)
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:
