@@ -7,7 +7,7 @@ Reads ``bench/results/ablation_<name>/ablation.json`` (written by ``bench/ablati
         --room "bare s5" bare_s5_floorwalls_check_gap_planefirst bare_s5_ceiling_grid ...
 
 Each ``--room LABEL BEFORE AFTER`` adds a row: the `full` row (mean over its seeds) of both folders,
-C-L1 cm / F / NC / test PSNR dB, the floor of AFTER, and which of the targets AFTER meets
+C-L1 cm / F / NC / test PSNR dB (AFTER in bold where its C-L1 is lower), the floor of AFTER, and which of the targets AFTER meets
 (C-L1 <= 1.3 x floor, F >= floor - 0.05, NC >= floor - 0.04).
 """
 
@@ -58,7 +58,7 @@ def table(rooms: list[tuple[str, str, str]], before: str, after: str) -> str:
         mb, floor, nb = full_row(b)
         seeds = lambda n: f" ({n} seeds)" if n > 1 else ""  # noqa: E731
         fl = f"{100 * floor['chamfer_l1']:.2f} / {floor['f_score']:.3f} / {floor['normal_consistency']:.3f}"
-        lines.append(f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, True)}{seeds(nb)} | {fl} | {targets(mb, floor)} |")
+        lines.append(f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, mb['chamfer_l1'] < ma['chamfer_l1'])}{seeds(nb)} | {fl} | {targets(mb, floor)} |")
     return "\n".join(lines)
 
 
