@@ -27,11 +27,8 @@ def _world_points(cam, depth: np.ndarray) -> np.ndarray:
     """[h, w, 3] world points of a z-depth map of ``cam`` at any resolution (every s-th pixel of
     the image from pixel 0, s = width / w: `geocues extract` keeps every 4th)."""
     h, w = depth.shape
-    s = cam.width / w
-    v, u = np.mgrid[0:h, 0:w]
-    px = np.stack([u * s + 0.5, v * s + 0.5, np.ones((h, w))], -1)  # COLMAP pixel centres
-    rays = px @ np.linalg.inv(cam.K).T  # camera frame, z = 1
-    Xc = rays * depth[..., None]
+    v, u = np.mgrid[0:h, 0:w] * (cam.width / w)
+    Xc = cam.rays_at(v, u) * depth[..., None]  # camera frame
     return (Xc - np.asarray(cam.t)) @ np.asarray(cam.R)  # R^T (Xc - t), row form
 
 
