@@ -68,11 +68,11 @@ class GroundTruth:
 
 def coverage(points: np.ndarray, gt_samples: np.ndarray, dist: float) -> float:
     """Share of GT samples with a point within ``dist`` (0 when there are no points)."""
-    from scipy.spatial import cKDTree
+    from evaluation.mesh_metrics import nearest_sample_distances
 
     if len(points) == 0:
         return 0.0
-    return float(np.mean(cKDTree(points).query(gt_samples, k=1, workers=1)[0] <= dist))
+    return float(np.mean(nearest_sample_distances(gt_samples, np.asarray(points, np.float64))[0] <= dist))
 
 
 def cue_accuracy(cues: CueCloud, gt: GroundTruth, cfg: CueMetricsConfig) -> dict:
