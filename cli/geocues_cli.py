@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
 from cli._dispatch import dispatch
 from geocues.extract import ExtractConfig
 from geocues.mvs import MvsConfig
+from geocues.presets import EXTRACT_PRESETS, extract_preset_config
 from geocues.rescale import RescaleConfig
 from geocues.sfm import SfmConfig
 from geocues.undistort import UndistortConfig
@@ -104,25 +105,54 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     return 0
 
 
-def extract(scene: tyro.conf.Positional[Path],
-            out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
-            overwrite: bool = False,
-            cfg: Annotated[ExtractConfig, tyro.conf.arg(name="")] = ExtractConfig()) -> int:
-    """Extract line, SfM and plane-like cues of SCENE into OUT (cues.ply, lines3d.npz, report.json).
+ExtractPresetName = Literal[tuple(EXTRACT_PRESETS)]  # type: ignore[valid-type]
 
-    Args:
-        scene: scene folder (images/, sparse/0, optional priors/; or a nerfstudio transforms.json).
-        out: output folder CUES/ (its cache/ is reused by later runs).
-        overwrite: replace cues already in OUT (the per-image cache is still reused).
-        cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off;
-            --prior-kind disparity reads the depth priors as inverse depth (Depth-Anything, MiDaS).
-    """
-    from geocues.extract import run
 
-    out_dir = run(cfg, scene, out, overwrite=overwrite)
-    report = json.loads((out_dir / "report.json").read_text())
-    print(json.dumps({k: report[k] for k in ("counts", "seconds", "notes")}, indent=2))
-    return 0
+def _extract_command(preset_name: str = "paper"):
+    """`geocues extract` with the defaults of preset ``preset_name`` (options on the command line win)."""
+
+    def extract(scene: tyro.conf.Positional[Path],
+                out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+                preset: ExtractPresetName = preset_name,
+                overwrite: bool = False,
+                cfg: Annotated[ExtractConfig, tyro.conf.arg(name="")] = extract_preset_config(preset_name)) -> int:
+        """Extract line, SfM and plane-like cues of SCENE into OUT (cues.ply, lines3d.npz, report.json).
+
+        Args:
+            scene: scene folder (images/, sparse/0, optional priors/; or a nerfstudio transforms.json).
+            out: output folder CUES/ (its cache/ is reused by later runs).
+            preset: start from these options (geocues/presets.py): `paper` the paper's cues (§4.1);
+                `room` adds floor lines, walls, ceiling and floor grids for a room with a level floor and
+                ceiling and vertical walls, seen with depth priors (train with `splat train --preset
+                room`). Options given on the command line override it.
+            overwrite: replace cues already in OUT (the per-image cache is still reused).
+            cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off;
+                --prior-kind disparity reads the depth priors as inverse depth (Depth-Anything, MiDaS).
+        """
+        from geocues.extract import run
+
+        out_dir = run(cfg, scene, out, overwrite=overwrite)
+        report = json.loads((out_dir / "report.json").read_text())
+        print(json.dumps({k: report[k] for k in ("counts", "seconds", "notes")}, indent=2))
+        return 0
+
+    return extract
+
+
+def _extract_from_argv(argv: list[str]):
+    name = "paper"
+    for k, a in enumerate(argv):
+        if a == "--preset" and k + 1 < len(argv):
+            name = argv[k + 1]
+        elif a.startswith("--preset="):
+            name = a.split("=", 1)[1]
+    if name not in EXTRACT_PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {', '.join(EXTRACT_PRESETS)}")
+    return _extract_command(name)
+
+
+extract = _extract_command()
+extract.from_argv = _extract_from_argv  # dispatch picks the preset's defaults before parsing
 
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).

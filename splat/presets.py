@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from geocues.presets import apply_overrides
+
 # The paper's ScanNet++ ablation (Tab. 3): Chamfer-L1 (m), F-score at 5 cm, normal consistency.
 PAPER_TAB3 = {
     "no-cues": (0.055, 0.681, 0.859), "sfm-cues-only": (0.051, 0.717, 0.789),
@@ -98,6 +100,9 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
            extension=True),
     Preset("flat-all", "+ L_s flattens every Gaussian, not only LINE's (PGSR / 2DGS-like thin Gaussians)",
            {"loss.flat_types": (0, 1, 2)}, extension=True),
+    Preset("room", "+ plane cues first, thinned PLANE seeds (train `geocues extract --preset room` cues)",
+           {"loss.plane_anchor": True, "loss.plane_first": True, "loss.plane_views": "all", "init.plane_share": 0.9},
+           needs=("plane_anchors",), extension=True),
     Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
            {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}
@@ -109,21 +114,6 @@ def get_preset(name: str) -> Preset:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
     return PRESETS[name]
-
-
-def _set(obj: Any, path: list[str], value: Any) -> Any:
-    if not dataclasses.is_dataclass(obj) or not hasattr(obj, path[0]):
-        raise ValueError(f"preset override: {type(obj).__name__} has no field {path[0]!r}")
-    if len(path) == 1:
-        return dataclasses.replace(obj, **{path[0]: value})
-    return dataclasses.replace(obj, **{path[0]: _set(getattr(obj, path[0]), path[1:], value)})
-
-
-def apply_overrides(cfg: Any, overrides: dict[str, Any]) -> Any:
-    """A copy of the dataclass ``cfg`` with each dotted field path set to its value."""
-    for key, value in overrides.items():
-        cfg = _set(cfg, key.split("."), value)
-    return cfg
 
 
 def preset_config(name: str, base: Any = None) -> Any:

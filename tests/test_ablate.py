@@ -322,6 +322,23 @@ def test_splat_train_preset_flag_and_later_options_win(tmp_path, monkeypatch):
     assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "nope"]) == 1
 
 
+def test_room_preset_is_the_measured_recipe(tmp_path, monkeypatch):
+    """`splat train --preset room` is what docs/training.md measured on `geocues extract --preset room`
+    cues: the plane-first L_a over every view and PLANE seeds thinned to 90 % of the budget."""
+    import splat.train
+    from cli.splat_cli import main
+    from splat.presets import PRESETS, preset_config
+
+    cfg = preset_config("room")
+    assert cfg.loss.plane_anchor and cfg.loss.plane_first and cfg.loss.plane_views == "all"
+    assert cfg.init.plane_share == 0.9 and "plane_anchors" in PRESETS["room"].needs
+    assert preset_config("full").init.plane_share == 0.0 and not preset_config("full").loss.plane_first
+    seen = []
+    monkeypatch.setattr(splat.train, "run", lambda cfg, *a, **kw: seen.append(cfg))
+    assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "room", "--init.plane-share", "0.8"]) == 0
+    assert seen[0].loss.plane_first and seen[0].init.plane_share == 0.8  # later options win
+
+
 def test_unknown_row_is_a_clear_error(tiny, capsys):
     from cli.splat_cli import main
 

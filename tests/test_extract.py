@@ -280,3 +280,27 @@ class TestCli:
 
         assert main(["extract", str(tmp_path / "nope"), "-o", str(tmp_path / "o")]) == 1
         assert "nope" in capsys.readouterr().err
+
+    def test_room_preset_and_later_options_win(self, tmp_path, monkeypatch, capsys):
+        """`--preset room` is the measured room recipe (docs/training.md); options after it win; a
+        wrong name is one line naming the choices."""
+        from cli.geocues_cli import main
+        from geocues.presets import extract_preset_config
+
+        seen = []
+
+        def fake_run(cfg, scene, out, overwrite=False):
+            seen.append(cfg)
+            out.mkdir()
+            (out / "report.json").write_text(json.dumps({"counts": {}, "seconds": {}, "notes": []}))
+            return out
+
+        monkeypatch.setattr(ex, "run", fake_run)
+        assert main(["extract", "S", "-o", str(tmp_path / "c"), "--preset", "room", "--floor.no-ceiling"]) == 0
+        f = seen[0].floor
+        assert f.lines and f.walls and f.wall_check and f.wall_front_gap == 0.3 and f.floor_grid
+        assert not f.ceiling  # given after the preset
+        assert extract_preset_config("room").floor.ceiling
+        assert extract_preset_config("paper") == ex.ExtractConfig()  # the default is the paper's cues
+        assert main(["extract", "S", "-o", str(tmp_path / "c"), "--preset", "rooms"]) == 1
+        assert "unknown preset 'rooms'; choose from paper, room" in capsys.readouterr().err
