@@ -6,9 +6,11 @@ Reads ``bench/results/ablation_<name>/ablation.json`` (written by ``bench/ablati
     python bench/recipe_table.py --doc docs/training.md --marker ceiling-table \
         --room "bare s5" bare_s5_floorwalls_check_gap_planefirst bare_s5_ceiling_grid ...
 
-Each ``--room LABEL BEFORE AFTER`` adds a row: the `full` row (mean over its seeds) of both folders,
-C-L1 cm / F / NC / test PSNR dB (AFTER in bold where its C-L1 is lower), the floor of AFTER, and which of the targets AFTER meets
-(C-L1 <= 1.3 x floor, F >= floor - 0.05, NC >= floor - 0.04).
+Each ``--room LABEL BEFORE AFTER [NOCUES]`` adds a row: the `full` row (mean over its seeds) of both
+folders, C-L1 cm / F / NC / test PSNR dB (AFTER in bold where its C-L1 is lower), the floor of AFTER,
+and which of the targets AFTER meets (C-L1 <= 1.3 x floor, F >= floor - 0.05, NC >= floor - 0.04).
+With NOCUES on every room, the `no-cues` row of ablation_<NOCUES> is added, with whether AFTER beats
+it by the paper's own margins (C-L1 -27 %, F +0.10, NC +0.02), and both recipes' training seconds.
 """
 
 from __future__ import annotations
@@ -21,16 +23,20 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 
 
-def full_row(name: str) -> tuple[dict, dict, int]:
-    """(mean metrics of the `full` row, the floor's final metrics, seeds) of ablation_<name>."""
+def full_row(name: str, row: str = "full") -> tuple[dict, dict, int]:
+    """(mean metrics of the ``row`` row, the floor's final metrics, seeds) of ablation_<name>; the
+    metrics also hold ``psnr_300``, the held-out PSNR at the first checkpoint (mean over seeds)."""
     path = RESULTS / f"ablation_{name}" / "ablation.json"
     if not path.is_file():
         raise SystemExit(f"recipe_table: no {path}")
     data = json.loads(path.read_text())
-    rows = [r for r in data["rows"] if r["row"] == "full" and r.get("status") == "done"]
+    rows = [r for r in data["rows"] if r["row"] == row and r.get("status") == "done"]
     if not rows:
-        raise SystemExit(f"recipe_table: {path} has no finished `full` row")
-    return rows[0]["mean"], (data.get("floor") or {}).get("final") or {}, int(rows[0]["n_seeds"])
+        raise SystemExit(f"recipe_table: {path} has no finished `{row}` row")
+    first = [run["curve"][0] for run in rows[0]["runs"] if run.get("curve")]
+    mean = dict(rows[0]["mean"], psnr_300=sum(c["psnr"] for c in first) / max(len(first), 1),
+                step_300=first[0]["step"] if first else None)
+    return mean, (data.get("floor") or {}).get("final") or {}, int(rows[0]["n_seeds"])
 
 
 def _cell(m: dict, bold: bool = False) -> str:
@@ -51,14 +57,32 @@ def targets(m: dict, floor: dict) -> str:
     return f"{text} (C-L1 {ratio:.2f}×)" if len(met) == 3 else f"{text}; misses {', '.join(miss)}"
 
 
-def table(rooms: list[tuple[str, str, str]], before: str, after: str) -> str:
-    lines = [f"| room | {before} | {after} | floor | targets ({after}) |", "|---|---|---|---|---|"]
-    for label, a, b in rooms:
+def beats_no_cues(m: dict, base: dict) -> str:
+    """Whether ``m`` beats the no-cue row by the paper's margins (C-L1 -27 %, F +0.10, NC +0.02)."""
+    d_c = m["chamfer_l1"] / base["chamfer_l1"] - 1.0
+    d_f, d_n = m["f_score"] - base["f_score"], m["normal_consistency"] - base["normal_consistency"]
+    ok = d_c <= -0.27 and d_f >= 0.10 and d_n >= 0.02
+    return f"{'yes' if ok else 'no'} ({100 * d_c:+.0f} %, {d_f:+.2f}, {d_n:+.3f})"
+
+
+def table(rooms: list[tuple[str, ...]], before: str, after: str) -> str:
+    with_base = all(len(r) == 4 for r in rooms)
+    head = f"| room | {before} | {after} | floor | targets ({after}) |"
+    if with_base:
+        head += (" `no-cues` | beats `no-cues` by the paper's margins | test PSNR at the first checkpoint"
+                 " (before → after) | train s (before → after) |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for label, a, b, *base in rooms:
         ma, _, na = full_row(a)
         mb, floor, nb = full_row(b)
         seeds = lambda n: f" ({n} seeds)" if n > 1 else ""  # noqa: E731
         fl = f"{100 * floor['chamfer_l1']:.2f} / {floor['f_score']:.3f} / {floor['normal_consistency']:.3f}"
-        lines.append(f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, mb['chamfer_l1'] < ma['chamfer_l1'])}{seeds(nb)} | {fl} | {targets(mb, floor)} |")
+        line = f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, mb['chamfer_l1'] < ma['chamfer_l1'])}{seeds(nb)} | {fl} | {targets(mb, floor)} |"
+        if with_base:
+            mc, _, _ = full_row(base[0], "no-cues")
+            line += (f" {_cell(mc)} | {beats_no_cues(mb, mc)} | {ma['psnr_300']:.1f} → {mb['psnr_300']:.1f}"
+                     f" (step {mb['step_300']}) | {ma['train_s']:.0f} → {mb['train_s']:.0f} |")
+        lines.append(line)
     return "\n".join(lines)
 
 
@@ -68,8 +92,12 @@ def main() -> None:
     ap.add_argument("--marker", required=True)
     ap.add_argument("--before", default="before")
     ap.add_argument("--after", default="after")
-    ap.add_argument("--room", nargs=3, action="append", required=True, metavar=("LABEL", "BEFORE", "AFTER"))
+    ap.add_argument("--room", nargs="+", action="append", required=True,
+                    help="LABEL BEFORE AFTER [NOCUES]: ablation_* folder names")
     args = ap.parse_args()
+    bad = [r for r in args.room if len(r) not in (3, 4)]
+    if bad:
+        ap.error(f"--room takes LABEL BEFORE AFTER [NOCUES], got {bad[0]}")
     text = table([tuple(r) for r in args.room], args.before, args.after)
     doc = args.doc.read_text()
     start, end = f"<!-- {args.marker} -->", f"<!-- /{args.marker} -->"

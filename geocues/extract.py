@@ -103,6 +103,9 @@ def _key_config(cfg: ExtractConfig) -> dict:
             d["floor"].pop(k)
         if not cfg.floor.floor_grid:
             d["floor"].pop("floor_grid")
+        if not cfg.floor.level_snap:  # added after --floor.ceiling folders were made
+            for k in ("level_snap", "level_rel"):
+                d["floor"].pop(k)
     if not cfg.floor.lines:  # added later, like the surface fields: off = the key of older folders
         d.pop("floor")
     elif not cfg.floor.walls:
@@ -262,7 +265,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
-    floor_stats, assumed, cuts = None, None, None
+    floor_stats, assumed, cuts, levels = None, None, None, None
     if cfg.planes and cfg.floor.lines:
         extra, walls, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
@@ -273,6 +276,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             assumed = np.zeros(len(anchors), bool)
             assumed[len(anchors) - len(walls[0]):] = True  # the raised walls (last) are assumptions, not cues
             cuts = walls[2]
+            levels = walls[3] if cfg.floor.level_snap and len(walls[3]) else None
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
@@ -280,7 +284,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     if cfg.planes:
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
                                                                            lines, cache, timings, notes,
-                                                                           assumed=assumed, cuts=cuts)
+                                                                           assumed=assumed, cuts=cuts,
+                                                                           levels=levels)
         rejections.update(pr)
 
     # ---- merge and write
@@ -350,7 +355,8 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                  ) -> tuple[tuple[np.ndarray, np.ndarray, list[np.ndarray]], tuple[np.ndarray, ...], dict]:
     """A first plane pass for the floor, then the floor-contact lines (geocues.floor_lines): returns
     ((points, line index, views per line), (--floor.walls' raised points, their row index, the edges
-    that cut the regions: --floor.ceiling's), statistics for the report)."""
+    that cut the regions: --floor.ceiling's, the level planes [L, 4] of the ceiling and the floor
+    grid: n . X + d = 0), statistics for the report)."""
     from geocues.lines.detect import detect_all
 
     t0 = time.perf_counter()
@@ -361,7 +367,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned, lines.segments if lines is not None else None)
-    W, WL, cuts = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2, 3))
+    W, WL, cuts, levels = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros((0, 4))
     if cfg.floor.walls and len(P):
         checked: dict = {}
         up, floor_h = np.array(stats["floor"]["normal"]), stats["floor"]["height"]
@@ -378,6 +384,9 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         W, WL, cuts, grids = add_level_grids(W, WL, up, floor_h, ceiling, cfg.floor.floor_grid, cfg.floor.wall_step)
         if "ceiling_samples" in grids:
             stats["ceiling"]["samples"] = grids["ceiling_samples"]
+            levels = np.concatenate([levels, [np.r_[up, -(floor_h + ceiling)]]])
+        if "floor_samples" in grids:
+            levels = np.concatenate([levels, [np.r_[up, -floor_h]]])
         if "floor_samples" in grids:
             stats["floor_grid"] = {"samples": grids["floor_samples"]}
     n_wall = len(W)
@@ -393,7 +402,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                         else ""))
         if "note" in stats.get("ceiling", {}):
             notes.append(f"--floor.ceiling: no ceiling placed: {stats['ceiling']['note']}")
-    return (P, L, V), (W, WL, cuts), stats
+    return (P, L, V), (W, WL, cuts, levels), stats
 
 
 def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:

@@ -97,6 +97,14 @@ class FloorLineConfig:
     """Also lay a grid of assumed anchors on the floor plane over the raised walls' footprint (an
     extension; needs walls): a floor region whose anchors are one wall's foot line leaves its plane
     free to turn about it, and only a band along the foot was kept."""
+    level_snap: bool = False
+    """With ceiling or floor_grid: a weak region whose aligned prior lies on the ceiling's (or the
+    floor's) level plane -- 80 % of its pixels' prior points within level_rel of their depth from it,
+    along its normal -- is cut onto that plane (those pixels), instead of passing the anchors' check
+    of its own prior plane, which a warped prior fails on a ceiling seen in a strip at the top of a
+    few views. An extension; an assumption like the grids."""
+    level_rel: float = 0.05
+    """That test's tolerance, a fraction of the depth (the warp an aligned monocular prior keeps)."""
     ceiling_margin: float = 0.3
     """Only surfaces more than this (metres) above the highest camera count as the ceiling."""
     ceiling_min_views: int = 3
@@ -104,7 +112,7 @@ class FloorLineConfig:
 
     def validate(self) -> None:
         for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step",
-                     "wall_check_rel"):
+                     "wall_check_rel", "level_rel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--floor.{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
         if self.min_views < 1:
@@ -125,6 +133,9 @@ class FloorLineConfig:
             raise ValueError("--floor.ceiling reads the aligned priors of --floor.wall-check: it needs it")
         if self.floor_grid and not self.walls:
             raise ValueError("--floor.floor-grid spans the raised walls' footprint: it needs --floor.walls")
+        if self.level_snap and not (self.ceiling or self.floor_grid):
+            raise ValueError("--floor.level-snap cuts regions onto the ceiling's or the floor's level plane: "
+                             "it needs --floor.ceiling or --floor.floor-grid")
         if self.ceiling_margin < 0 or self.ceiling_min_views < 1:
             raise ValueError("--floor.ceiling-margin must be >= 0 and --floor.ceiling-min-views >= 1")
         if not 0 < self.horizontal_deg < 90:

@@ -33,7 +33,8 @@ log = logging.getLogger(__name__)
 def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors, plane_ok: np.ndarray,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
-                 desc: str = "planes", assumed: np.ndarray | None = None, cuts: np.ndarray | None = None
+                 desc: str = "planes", assumed: np.ndarray | None = None, cuts: np.ndarray | None = None,
+                 levels: np.ndarray | None = None
                  ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
@@ -41,7 +42,9 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
     ``assumed`` [P]: anchors that are assumptions, not cues (`--floor.walls`' raised rows): left out of
     the depth alignment and of prior-free planes (which they would place on their own), and a prior
     plane counts their lines only whole (geocues.planes). ``cuts`` [M, 2, 3]: assumed edges (the
-    ceiling's, geocues.ceiling) that cut every image's regions like the 3D lines it sees."""
+    ceiling's, geocues.ceiling) that cut every image's regions like the 3D lines it sees. ``levels``
+    [L, 4]: level planes (n . X + d = 0; `--floor.level-snap`) a region whose prior lies on one is
+    cut onto (geocues.planes)."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -113,7 +116,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
             pp = plane_cues_with_prior(cam, image, regions, aligned, anchors.xyz[pc], cfg.plane,
                                        seed=cfg.seed + i, inside_only=strict[pc],
                                        anchors_group=anchors.group[pc], anchor_ids=pc,
-                                       whole_lines=None if assumed is None else assumed[pc])
+                                       whole_lines=None if assumed is None else assumed[pc],
+                                       levels=levels, level_rel=cfg.floor.level_rel)
             candidates += pp.candidates
             row["plane_mode"] = "prior"
             if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in

@@ -155,3 +155,40 @@ def test_degenerate_priors_give_no_ceiling_and_no_warning(fill):
         pts, row = ceiling_anchors(np.zeros((0, 3)), UP, Floor(UP, 0.0, 0).basis(), 0.0, 2.5, 0.1)
         assert pts.shape == (0, 3) and row.shape == (0,)
         assert ceiling_edges(np.zeros((2, 3)), UP, Floor(UP, 0.0, 0).basis(), 0.0, 2.5).shape == (0, 2, 3)
+
+
+def _ceiling_and_wall_pixels(cam, step: int = 4):
+    """Rays [m, 3] and exact z-depth [m] of ``cam``'s ceiling pixels and of its wall pixels."""
+    rows, cols = np.mgrid[0:cam.height:step, 0:cam.width:step]
+    depth = box_depth(cam, step)
+    rays = cam.rays_at(rows, cols)
+    X = cam.center + (rays @ np.asarray(cam.R)) * depth[..., None]
+    ceil = X[..., 2] > HI[2] - 1e-6
+    wall = (X[..., 2] < HI[2] - 0.3) & (X[..., 2] > 0.3)
+    return (rays[ceil], depth[ceil]), (rays[wall], depth[wall])
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 4.0])
+def test_level_snap_cuts_a_warped_ceiling_region_onto_the_level_plane(tilt_deg):
+    """`--floor.level-snap` (geocues.planes.level_plane_points): a ceiling region whose prior is 4 %
+    too far and tilted lands exactly on the level plane; a wall region, or a ceiling whose prior
+    puts it 40 cm too high, does not."""
+    from geocues.planes import level_plane_points
+
+    cam = upward_views(1)[0]
+    (r_c, z_c), (r_w, z_w) = _ceiling_and_wall_pixels(cam)
+    assert len(z_c) > 200 and len(z_w) > 200
+    warp = 1.04 * (1 + np.tan(np.radians(tilt_deg)) * (r_c[:, 0] - r_c[:, 0].mean()) * 0.2)
+    levels = np.array([[0.0, 0.0, 1.0, -0.0], [0.0, 0.0, 1.0, -HI[2]]])  # the floor first: not this region's
+    got = level_plane_points(cam, r_c, z_c * warp, levels, rel=0.05)
+    assert got is not None
+    keep, Xc, n_c = got
+    assert len(keep) >= 0.8 * len(z_c)
+    Xw = (Xc - np.asarray(cam.t)) @ np.asarray(cam.R)
+    np.testing.assert_allclose(Xw[:, 2], HI[2], atol=1e-9)  # on the plane ...
+    np.testing.assert_allclose(Xc[:, 2], z_c[keep], rtol=1e-9)  # ... where the true ceiling is
+    np.testing.assert_allclose(np.abs(np.asarray(cam.R).T @ n_c), [0, 0, 1], atol=1e-12)
+    assert level_plane_points(cam, r_w, z_w, levels, rel=0.05) is None
+    rise = (HI[2] + 0.4 - cam.center[2]) / (HI[2] - cam.center[2])  # every ceiling point 40 cm higher
+    assert level_plane_points(cam, r_c, z_c * rise, levels, rel=0.05) is None
+    assert level_plane_points(cam, r_c[:0], z_c[:0], levels, rel=0.05) is None  # no pixels
