@@ -191,6 +191,14 @@ class TestRun:
         roof = _no_nan(out).of_type(CueType.PLANE)
         assert len(roof) > len(checked) and np.mean(distance_to_surface(roof.xyz) < 0.03) > 0.95
         assert (roof.xyz[:, 2] > ROOM[2] - 0.03).sum() > (checked.xyz[:, 2] > ROOM[2] - 0.03).sum()
+        assert "level_snap" not in ex._key_config(cfg)["floor"]  # off: the key of the folders before it
+        cfg.floor.level_snap = True  # weak regions on the ceiling's / floor's level plane cut onto it
+        rep = _report(out := ex.run(cfg, scene, tmp_path / "snap"))
+        assert rep["rejections"]["planes"]["on_a_level_plane"] > 0 and "level_snap" in ex._key_config(cfg)["floor"]
+        snap = _no_nan(out).of_type(CueType.PLANE)
+        on = lambda c, z: np.abs(c.xyz[:, 2] - z) < 0.03  # noqa: E731
+        assert on(snap, ROOM[2]).sum() > 1.5 * on(roof, ROOM[2]).sum() and on(snap, 0.0).sum() > on(roof, 0.0).sum()  # 2x, 3x
+        assert np.mean(distance_to_surface(snap.xyz) < 0.03) > 0.95
 
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
         out = ex.run(ex.ExtractConfig(priors=False), scenes["all"], tmp_path / "free")

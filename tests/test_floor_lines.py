@@ -392,6 +392,11 @@ def test_wall_check_needs_walls():
         FloorLineConfig(lines=True, wall_check=True).validate()
     with pytest.raises(ValueError, match="--floor.wall-check-rel"):
         FloorLineConfig(lines=True, walls=True, wall_check=True, wall_check_rel=0).validate()
+    with pytest.raises(ValueError, match="--floor.level-snap .* needs --floor.ceiling or --floor.floor-grid"):
+        FloorLineConfig(lines=True, walls=True, wall_check=True, level_snap=True).validate()
+    with pytest.raises(ValueError, match="--floor.level-rel"):
+        FloorLineConfig(lines=True, walls=True, floor_grid=True, level_snap=True, level_rel=0).validate()
+    FloorLineConfig(lines=True, walls=True, floor_grid=True, level_snap=True).validate()
 
 
 def test_wall_front_gap_drops_a_floor_line_just_in_front_of_a_wall(views):
