@@ -10,7 +10,9 @@ the views do not share; a few centimetres remain). :func:`ceiling_anchors` then 
 assumed anchors at that height over the room's footprint (the convex hull of the raised walls'
 feet), like the raised walls' rows (geocues.walls): each view's prior plane of a ceiling region is
 snapped to them, the regions are cut along the hull's edges at that height (:func:`ceiling_edges`),
-and the raised walls stop at the ceiling.
+and the raised walls stop at the ceiling. With `--floor.level-snap`, :func:`level_plane_points` cuts
+a weak region whose prior lies on the ceiling's (or the floor grid's) level plane onto it directly:
+a warped prior's plane of a ceiling strip at the top of a few views fails the anchors' check.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from geocues.floor_lines import Floor
+from geocues.plane_fit import ray_plane_depth
 
 HORIZONTAL_COS = np.cos(np.radians(20.0))  # a surface within 20 degrees of level is horizontal
 MIN_PIXELS = 100  # prior pixels (on the every-4th-pixel grid) a view needs on such a surface
@@ -150,3 +153,28 @@ def add_level_grids(W: np.ndarray, WL: np.ndarray, up: np.ndarray, floor_height:
     if ceiling is not None:
         cuts = ceiling_edges(feet, up, basis, floor_height, ceiling)
     return W, WL, cuts, stats
+
+
+def level_plane_points(cam, rays: np.ndarray, z: np.ndarray, levels: np.ndarray, rel: float,
+                       min_share: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A region's pixels cut onto the first level plane its prior lies on, or None.
+
+    ``rays`` [m, 3] (camera frame, z = 1) and prior depths ``z`` [m] of the region's pixels;
+    ``levels`` [L, 4] world planes n . X + d = 0. The region lies on a plane when the prior's points
+    of at least ``min_share`` of its pixels are within ``rel`` x depth of it (measured along its
+    normal: a ceiling seen at a grazing angle moves far along the rays for a small error in height)
+    and their rays meet it in front of the camera. Returns (indices of those pixels, their
+    camera-frame points on the plane [k, 3], the plane's camera-frame normal [3])."""
+    if len(z) == 0:
+        return None
+    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    Xp = rays * z[:, None]  # [m, 3] the prior's points
+    for plane in np.asarray(levels, np.float64).reshape(-1, 4):
+        n_c = R @ plane[:3]  # n . X + d = 0 with X = R^T (Xc - t): (R n) . Xc + d - (R n) . t = 0
+        d_c = float(plane[3] - n_c @ t)
+        zk = ray_plane_depth(rays, n_c, d_c)  # [m]
+        ok = np.isfinite(zk) & (zk > 0) & (np.abs(Xp @ n_c + d_c) <= rel * z)
+        if ok.mean() >= min_share:
+            keep = np.flatnonzero(ok)
+            return keep, rays[keep] * zk[keep, None], n_c
+    return None

@@ -29,6 +29,7 @@ import numpy as np
 from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights,
                                loo_group_residuals, ray_plane_depth, weighted_median)
 from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids, on_occluder, region_pixels
+from geocues.ceiling import level_plane_points
 from geocues.scene import Camera
 
 log = logging.getLogger(__name__)
@@ -230,7 +231,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     With ``fuse_surfaces`` nothing is cut here: every plane becomes a SurfaceCandidate (in the
     result's ``candidates``, its agreeing anchors named by ``anchor_ids`` [P], default 0..P-1) for
     geocues.plane_surfaces. ``levels`` [L, 4] (world n . X + d = 0, `--floor.level-snap`): a region
-    whose prior lies on one of these assumed planes (:func:`level_plane_points`) is cut onto it
+    whose prior lies on one of these assumed planes (geocues.ceiling.level_plane_points) is cut onto it
     without the anchors' check."""
     h, w = cam.height, cam.width
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
@@ -339,31 +340,6 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     res.no_depth_regions = no_depth
     res.candidates = candidates
     return res
-
-
-def level_plane_points(cam: Camera, rays: np.ndarray, z: np.ndarray, levels: np.ndarray, rel: float,
-                       min_share: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """A region's pixels cut onto the first level plane its prior lies on, or None.
-
-    ``rays`` [m, 3] (camera frame, z = 1) and prior depths ``z`` [m] of the region's pixels;
-    ``levels`` [L, 4] world planes n . X + d = 0. The region lies on a plane when the prior's points
-    of at least ``min_share`` of its pixels are within ``rel`` x depth of it (measured along its
-    normal: a ceiling seen at a grazing angle moves far along the rays for a small error in height)
-    and their rays meet it in front of the camera. Returns (indices of those pixels, their
-    camera-frame points on the plane [k, 3], the plane's camera-frame normal [3])."""
-    if len(z) == 0:
-        return None
-    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
-    Xp = rays * z[:, None]  # [m, 3] the prior's points
-    for plane in np.asarray(levels, np.float64).reshape(-1, 4):
-        n_c = R @ plane[:3]  # n . X + d = 0 with X = R^T (Xc - t): (R n) . Xc + d - (R n) . t = 0
-        d_c = float(plane[3] - n_c @ t)
-        zk = ray_plane_depth(rays, n_c, d_c)  # [m]
-        ok = np.isfinite(zk) & (zk > 0) & (np.abs(Xp @ n_c + d_c) <= rel * z)
-        if ok.mean() >= min_share:
-            keep = np.flatnonzero(ok)
-            return keep, rays[keep] * zk[keep, None], n_c
-    return None
 
 
 def _candidate(cam: Camera, image: np.ndarray, n_c: np.ndarray, d_c: float, rows: np.ndarray, cols: np.ndarray,

@@ -173,7 +173,7 @@ def test_level_snap_cuts_a_warped_ceiling_region_onto_the_level_plane(tilt_deg):
     """`--floor.level-snap` (geocues.planes.level_plane_points): a ceiling region whose prior is 4 %
     too far and tilted lands exactly on the level plane; a wall region, or a ceiling whose prior
     puts it 40 cm too high, does not."""
-    from geocues.planes import level_plane_points
+    from geocues.ceiling import level_plane_points
 
     cam = upward_views(1)[0]
     (r_c, z_c), (r_w, z_w) = _ceiling_and_wall_pixels(cam)
