@@ -122,7 +122,7 @@ def _extract_command(preset_name: str = "paper"):
             scene: scene folder (images/, sparse/0, optional priors/; or a nerfstudio transforms.json).
             out: output folder CUES/ (its cache/ is reused by later runs).
             preset: start from these options (geocues/presets.py): `paper` the paper's cues (§4.1);
-                `room` adds floor lines, walls, ceiling and floor grids for a room with a level floor and
+                `room` adds floor lines, walls, ceiling, floor grids and level snap for a room with a level floor and
                 ceiling and vertical walls, seen with depth priors (train with `splat train --preset
                 room`). Options given on the command line override it.
             overwrite: replace cues already in OUT (the per-image cache is still reused).
