@@ -166,3 +166,14 @@ def _run(fn: Callable, rest: list[str], sub_prog: str, verbose: bool) -> int:
               "redo the rest", file=sys.stderr)
         return 130
     return int(result) if isinstance(result, int) else 0
+
+
+def option_from_argv(argv: list[str], name: str) -> str | None:
+    """The value of option ``name`` in ``argv`` (``NAME VALUE`` or ``NAME=VALUE``; the first), or None:
+    for commands whose defaults depend on an option (``--preset``) before tyro parses."""
+    for k, a in enumerate(argv):
+        if a == name and k + 1 < len(argv):
+            return argv[k + 1]
+        if a.startswith(name + "="):
+            return a.split("=", 1)[1]
+    return None

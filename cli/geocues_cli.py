@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from cli._dispatch import dispatch
+from cli._dispatch import dispatch, option_from_argv
 from geocues.extract import ExtractConfig
 from geocues.mvs import MvsConfig
 from geocues.presets import EXTRACT_PRESETS, extract_preset_config
@@ -140,12 +140,7 @@ def _extract_command(preset_name: str = "paper"):
 
 
 def _extract_from_argv(argv: list[str]):
-    name = "paper"
-    for k, a in enumerate(argv):
-        if a == "--preset" and k + 1 < len(argv):
-            name = argv[k + 1]
-        elif a.startswith("--preset="):
-            name = a.split("=", 1)[1]
+    name = option_from_argv(argv, "--preset") or "paper"
     if name not in EXTRACT_PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {', '.join(EXTRACT_PRESETS)}")
     return _extract_command(name)

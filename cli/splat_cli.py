@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from cli._dispatch import dispatch
+from cli._dispatch import dispatch, option_from_argv
 from splat.ablate import AblateConfig
 from splat.bench import BenchConfig
 from splat.presets import PRESETS, load_config_file, preset_config
@@ -81,21 +81,12 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None):
     return train
 
 
-def _option_from_argv(argv: list[str], name: str) -> str | None:
-    for k, a in enumerate(argv):
-        if a == name and k + 1 < len(argv):
-            return argv[k + 1]
-        if a.startswith(name + "="):
-            return a.split("=", 1)[1]
-    return None
-
-
 def train_command(argv: list[str]):
-    name = _option_from_argv(argv, "--preset") or "full"
+    name = option_from_argv(argv, "--preset") or "full"
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
-    config = _option_from_argv(argv, "--load-config")
-    if config is not None and _option_from_argv(argv, "--preset") is not None:
+    config = option_from_argv(argv, "--load-config")
+    if config is not None and option_from_argv(argv, "--preset") is not None:
         raise ValueError("give --preset or --load-config, not both")
     return _train_command(name, Path(config) if config else None)
 

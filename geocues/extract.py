@@ -387,7 +387,6 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
             levels = np.concatenate([levels, [np.r_[up, -(floor_h + ceiling)]]])
         if "floor_samples" in grids:
             levels = np.concatenate([levels, [np.r_[up, -floor_h]]])
-        if "floor_samples" in grids:
             stats["floor_grid"] = {"samples": grids["floor_samples"]}
     n_wall = len(W)
     timings["floor_lines"] = time.perf_counter() - t0

@@ -26,10 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geocues.ceiling import level_plane_points
 from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights,
                                loo_group_residuals, ray_plane_depth, weighted_median)
 from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids, on_occluder, region_pixels
-from geocues.ceiling import level_plane_points
 from geocues.scene import Camera
 
 log = logging.getLogger(__name__)
