@@ -45,7 +45,7 @@ from geocues.scene import Scene
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
 from geocues.texture import TextureConfig, config_key, file_stamp, tree_stamp
 from geocues.types import CueType
-from geocues.walls import wall_anchors
+from geocues.walls import refit_wall_planes, wall_anchors, wall_planes
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,9 @@ def _key_config(cfg: ExtractConfig) -> dict:
             d["floor"].pop("floor_grid")
         if not cfg.floor.level_snap:  # added after --floor.ceiling folders were made
             for k in ("level_snap", "level_rel"):
+                d["floor"].pop(k)
+        if not cfg.floor.wall_snap:  # added after --floor.level-snap folders were made
+            for k in ("wall_snap", "wall_snap_height"):
                 d["floor"].pop(k)
     if not cfg.floor.lines:  # added later, like the surface fields: off = the key of older folders
         d.pop("floor")
@@ -377,8 +380,16 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                                                        cfg.floor.ceiling_min_views)
             if ceiling is not None:
                 wall_cfg = replace(cfg.floor, wall_height=ceiling)
-        W, WL, top = wall_anchors(P, L, up, floor_h, first.xyz, scene.cameras, wall_cfg, V, aligned, checked)
+        raised: list = []
+        W, WL, top = wall_anchors(P, L, up, floor_h, first.xyz, scene.cameras, wall_cfg, V, aligned, checked,
+                                  raised)
         stats["walls"] = {"samples": len(W), "top": round(top, 3)}
+        if cfg.floor.wall_snap:
+            feet = wall_planes(raised, up, top, cfg.floor.wall_snap_height)
+            planes = refit_wall_planes(feet, first.xyz, first.normal, up)
+            levels = np.concatenate([levels, planes])
+            stats["walls"]["snap_planes"] = {"from_feet": len(feet), "confirmed_by_cues": len(planes),
+                                             "planes": np.round(planes, 4).tolist()}
         if cfg.floor.wall_check:
             stats["walls"]["check"] = checked or {"note": "no aligned prior: nothing checked"}
         W, WL, cuts, grids = add_level_grids(W, WL, up, floor_h, ceiling, cfg.floor.floor_grid, cfg.floor.wall_step)

@@ -105,6 +105,16 @@ class FloorLineConfig:
     few views. An extension; an assumption like the grids."""
     level_rel: float = 0.05
     """That test's tolerance, a fraction of the depth (the warp an aligned monocular prior keeps)."""
+    wall_snap: bool = False
+    """With level_snap and wall_check: the walls' vertical planes join the level planes -- each run of
+    collinear kept segments raised to wall_snap_height of the walls' top or higher -- and the test also
+    runs on each RANSAC plane of a region's prior, not only on the whole region, choosing the plane
+    that holds most of its pixels. Cuts the part of a wall that no cue reaches (no foot line, no
+    anchor) onto the plane its cued part fixed; a region only partly on a wall keeps its other
+    planes. An extension; an assumption like the grids."""
+    wall_snap_height: float = 0.6
+    """A raised segment defines a wall plane for wall_snap when its rows reach this share of the top
+    (a cabinet's or a sofa's foot, stopped by the wall check lower, does not)."""
     ceiling_margin: float = 0.3
     """Only surfaces more than this (metres) above the highest camera count as the ceiling."""
     ceiling_min_views: int = 3
@@ -112,7 +122,7 @@ class FloorLineConfig:
 
     def validate(self) -> None:
         for name in ("angle_deg", "dist", "step", "max_range", "min_length", "prior_rel", "wall_step",
-                     "wall_check_rel", "level_rel"):
+                     "wall_check_rel", "level_rel", "wall_snap_height"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--floor.{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
         if self.min_views < 1:
@@ -136,6 +146,12 @@ class FloorLineConfig:
         if self.level_snap and not (self.ceiling or self.floor_grid):
             raise ValueError("--floor.level-snap cuts regions onto the ceiling's or the floor's level plane: "
                              "it needs --floor.ceiling or --floor.floor-grid")
+        if self.wall_snap and not (self.level_snap and self.wall_check):
+            raise ValueError("--floor.wall-snap adds the checked walls' planes to --floor.level-snap: it needs "
+                             "--floor.level-snap and --floor.wall-check")
+        if self.wall_snap_height > 1:
+            raise ValueError(f"--floor.wall-snap-height is a share of the walls' top, in (0, 1]; got "
+                             f"{self.wall_snap_height}")
         if self.ceiling_margin < 0 or self.ceiling_min_views < 1:
             raise ValueError("--floor.ceiling-margin must be >= 0 and --floor.ceiling-min-views >= 1")
         if not 0 < self.horizontal_deg < 90:

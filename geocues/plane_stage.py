@@ -117,7 +117,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
                                        seed=cfg.seed + i, inside_only=strict[pc],
                                        anchors_group=anchors.group[pc], anchor_ids=pc,
                                        whole_lines=None if assumed is None else assumed[pc],
-                                       levels=levels, level_rel=cfg.floor.level_rel)
+                                       levels=levels, level_rel=cfg.floor.level_rel,
+                                       level_each_plane=cfg.floor.wall_snap)
             candidates += pp.candidates
             row["plane_mode"] = "prior"
             if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in

@@ -217,7 +217,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           seed: int = 0, inside_only: np.ndarray | None = None,
                           anchors_group: np.ndarray | None = None, anchor_ids: np.ndarray | None = None,
                           whole_lines: np.ndarray | None = None, levels: np.ndarray | None = None,
-                          level_rel: float = 0.05) -> PlanePoints:
+                          level_rel: float = 0.05, level_each_plane: bool = False) -> PlanePoints:
     """Plane-like points of one image from its aligned depth prior [H, W] (metres, 0 = invalid).
 
     ``anchors_xyz`` [P, 3]: line / SfM cue points that may be visible in the image; those flagged
@@ -232,7 +232,8 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     result's ``candidates``, its agreeing anchors named by ``anchor_ids`` [P], default 0..P-1) for
     geocues.plane_surfaces. ``levels`` [L, 4] (world n . X + d = 0, `--floor.level-snap`): a region
     whose prior lies on one of these assumed planes (geocues.ceiling.level_plane_points) is cut onto it
-    without the anchors' check."""
+    without the anchors' check; with ``level_each_plane`` (`--floor.wall-snap`) each RANSAC plane of a
+    region that does not is tested the same way before its anchors' check."""
     h, w = cam.height, cam.width
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
         raise ValueError(f"{cam.name}: regions {regions.shape}, depth {aligned_depth.shape} and "
@@ -262,9 +263,19 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             if cfg.fill_holes and in_k.sum() >= cfg.min_region_points:
                 no_depth.append(k)
             continue
+        zmed = float(np.median(z[sel]))
+        a_ids = near[k]  # anchors near the region, not hidden behind the aligned surface
+        if cfg.occluder_jump > 0 and len(a_ids):
+            a_ids = a_ids[~on_occluder(cam, regions, k, aligned_depth, anchors_xyz[a_ids], groups[a_ids],
+                                        cfg.occluder_jump, max(2, int(round(cfg.occluder_step_px * s))))]
+        a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
+        a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
+        cue = np.ones(len(a_ids), bool) if whole_lines is None else ~whole_lines[a_ids]  # not assumed
         if levels is not None and len(levels) and not cfg.fuse_surfaces:
             snapped = level_plane_points(cam, rays[sel], z[sel], levels, level_rel)
-            if snapped is not None:
+            if snapped is not None and level_each_plane and _cues_contradict(snapped, a_c[cue], a_w[cue], zmed, cfg):
+                _bump(rej, "level_plane_contradicted")
+            elif snapped is not None:
                 keep, Xk, n_c = snapped
                 out.add(sel[keep], Xk, n_c)
                 accepted += 1
@@ -273,14 +284,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
         holes = np.flatnonzero(in_k & ~has_depth) if cfg.fill_holes else sel[:0]
         found = []  # (pixel indices, camera-frame points, normal, anchored plane or None) per plane
         Xc = rays[sel] * z[sel, None]  # [m, 3] camera frame
-        zmed = float(np.median(z[sel]))
         tau = max(cfg.ransac_dist, cfg.ransac_rel * zmed)  # the prior's error grows with depth
-        a_ids = near[k]  # anchors near the region, not hidden behind the aligned surface
-        if cfg.occluder_jump > 0 and len(a_ids):
-            a_ids = a_ids[~on_occluder(cam, regions, k, aligned_depth, anchors_xyz[a_ids], groups[a_ids],
-                                        cfg.occluder_jump, max(2, int(round(cfg.occluder_step_px * s))))]
-        a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
-        a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
         remaining = np.arange(len(sel))
         got_any = False
         for p in range(cfg.max_planes):
@@ -292,6 +296,15 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                 break
             keep = remaining[inl]
             remaining = remaining[~inl]
+            if level_each_plane and levels is not None and len(levels) and not cfg.fuse_surfaces:
+                snapped = level_plane_points(cam, rays[sel[keep]], z[sel[keep]], levels, level_rel)
+                if snapped is not None and _cues_contradict(snapped, a_c[cue], a_w[cue], zmed, cfg):
+                    _bump(rej, "level_plane_contradicted")
+                elif snapped is not None:  # this part of the region lies on a wall (or a level plane)
+                    kk, X_l, n_l = snapped
+                    found.append((sel[keep[kk]], X_l, n_l, None, a_c[:0]))
+                    _bump(rej, "plane_on_a_level_plane")
+                    continue
             # agreement with the nearby cues (paper: keep points close to the 3D line samples)
             near_plane = np.abs(a_c @ n_c + d_c) < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
             if whole_lines is not None and len(a_ids):  # a raised row crossing the plane is not on it
@@ -340,6 +353,19 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     res.no_depth_regions = no_depth
     res.candidates = candidates
     return res
+
+
+def _cues_contradict(snapped: tuple, a_c: np.ndarray, a_w: np.ndarray, zmed: float, cfg: PlaneConfig) -> bool:
+    """Whether the cue anchors near a region (camera frame a_c [a, 3], weights a_w [a]; the assumed
+    raised rows and grids excluded) put the surface off the assumed plane it was cut onto: at least
+    ``min_agree_anchors`` of them within the search band of that plane and their weighted median
+    distance from it ``agree_dist`` or more (a wall plane from feet and first-pass cues can be a
+    few centimetres off or turned where the cues see the wall itself)."""
+    _, X, n = snapped
+    d = -float(X[0] @ n)
+    r = np.abs(a_c @ n + d)
+    band = r < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
+    return bool(band.sum() >= cfg.min_agree_anchors and weighted_median(r[band], a_w[band]) >= cfg.agree_dist)
 
 
 def _candidate(cam: Camera, image: np.ndarray, n_c: np.ndarray, d_c: float, rows: np.ndarray, cols: np.ndarray,

@@ -107,8 +107,8 @@ def in_front_of_walls(feet: list[tuple[np.ndarray, np.ndarray]], raised: np.ndar
 
 def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray, floor_height: float,
                  plane_xyz: np.ndarray, cameras, cfg: FloorLineConfig, views: list[np.ndarray] | None = None,
-                 priors: dict[int, np.ndarray] | None = None, report: dict | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, float]:
+                 priors: dict[int, np.ndarray] | None = None, report: dict | None = None,
+                 raised_out: list | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """The vertical-wall assumption (``--floor.walls``): each kept floor segment (its anchor samples
     ``points`` [P, 3], kept-segment index ``line`` [P]) raised every ``cfg.wall_step`` up to the wall
     top. Returns (points [Q, 3], row index [Q]: one horizontal row per segment and height, the
@@ -116,7 +116,8 @@ def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray,
     99th percentile of ``plane_xyz``'s heights and the highest camera + 1 m. With ``cfg.wall_check``,
     ``views`` (per kept segment, the views that lifted it) and ``priors`` (image index -> aligned prior
     depth, any resolution), each segment is raised only as far as :func:`confirmed_rows` allows;
-    ``report`` then receives the counts of segments dropped, cut short and raised unchecked."""
+    ``report`` then receives the counts of segments dropped, cut short and raised unchecked.
+    ``raised_out`` receives (foot start [3], foot end [3], height reached in metres) per raised segment."""
     up = np.asarray(floor_normal, np.float64)
     top = cfg.wall_height
     if top <= 0:
@@ -150,9 +151,11 @@ def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray,
         raised = [0 if b else h for b, h in zip(behind, raised)]
     pts, row = [], []
     n_rows = 0
-    for grid, h in zip(grids, raised):
+    for grid, h, (p, q) in zip(grids, raised, feet):
         if h == 0:
             continue
+        if raised_out is not None:
+            raised_out.append((p, q, float(heights[h - 1])))
         pts.append(grid[:h].reshape(-1, 3))  # [h * n, 3]
         row.append(np.repeat(n_rows + np.arange(h), grid.shape[1]))
         n_rows += h
@@ -161,3 +164,84 @@ def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray,
     if not pts:
         return np.zeros((0, 3)), np.zeros(0, np.int64), float(top)
     return np.concatenate(pts), np.concatenate(row), float(top)
+
+
+def wall_planes(raised: list, up: np.ndarray, top: float, min_share: float, angle_deg: float = 3.0,
+                dist: float = 0.03, min_length: float = 0.5) -> np.ndarray:
+    """The vertical planes of the raised walls (``--floor.wall-snap``): [K, 4] world planes n . X + d = 0.
+
+    ``raised``: (foot start, foot end, height reached) per raised segment (:func:`wall_anchors`);
+    only segments reaching ``min_share`` x ``top`` count (a cabinet's foot stops lower). Segments
+    whose vertical planes agree -- normals within ``angle_deg``, each one's foot midpoint within
+    ``dist`` of the other's plane -- are one wall, longest first; its plane is the length-weighted
+    mean, and a wall shorter than ``min_length`` in all is dropped."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    segs = []
+    for p, q, h in raised:
+        p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
+        length = float(np.linalg.norm(q - p))
+        if h < min_share * top or length < 1e-6:
+            continue
+        n = np.cross(up, (q - p) / length)
+        n /= np.linalg.norm(n)
+        segs.append((length, n, 0.5 * (p + q)))
+    segs.sort(key=lambda s: -s[0])
+    cos_max = np.cos(np.radians(angle_deg))
+    walls: list[list] = []  # per wall, its members (length, normal, foot midpoint); the first is the longest
+    for length, n, mid in segs:
+        for w in walls:
+            n0, m0 = w[0][1], w[0][2]
+            s = 1.0 if n @ n0 >= 0 else -1.0
+            if s * (n @ n0) >= cos_max and abs((mid - m0) @ n0) <= dist and abs((m0 - mid) @ n) <= dist:
+                w.append((length, s * n, mid))
+                break
+        else:
+            walls.append([(length, n, mid)])
+    out = []
+    for w in walls:
+        lengths = np.array([m[0] for m in w])
+        if lengths.sum() < min_length:
+            continue
+        n = (lengths[:, None] * np.array([m[1] for m in w])).sum(axis=0)
+        n /= np.linalg.norm(n)
+        d = -float(lengths @ (np.array([m[2] for m in w]) @ n)) / lengths.sum()
+        out.append(np.r_[n, d])
+    return np.array(out).reshape(-1, 4)
+
+
+def refit_wall_planes(planes: np.ndarray, xyz: np.ndarray, normal: np.ndarray, up: np.ndarray,
+                      dist: float = 0.1, angle_deg: float = 10.0, min_points: int = 200,
+                      inlier: float = 0.02) -> np.ndarray:
+    """Each wall plane [K, 4] refitted to the plane cues ``xyz`` [P, 3] (normals [P, 3]) that lie on it:
+    a foot lifted onto the floor is a few centimetres off, its plane as much (measured: 4-7 cm on a
+    benchmark room's walls), while the walls' plane cues are within millimetres. Points within
+    ``dist`` of a plane whose normal is within ``angle_deg`` of it are fitted (least squares, kept
+    vertical: the normal in the floor's plane), then again with those within ``inlier`` of that fit;
+    a plane with fewer than ``min_points`` such points (no cue confirms it) is dropped, and so is one
+    that lands on a plane already refitted."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    xyz, normal = np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(normal, np.float64).reshape(-1, 3)
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    basis = np.stack([e1, np.cross(up, e1)])  # [2, 3] the floor's plane
+    out = []
+    for plane in np.asarray(planes, np.float64).reshape(-1, 4):
+        n, d = plane[:3], plane[3]
+        sel = (np.abs(xyz @ n + d) <= dist) & (np.abs(normal @ n) >= np.cos(np.radians(angle_deg)))
+        for _ in range(2):
+            if sel.sum() < min_points:
+                break
+            P = xyz[sel]
+            c = P.mean(axis=0)
+            Q = (P - c) @ basis.T  # [p, 2] in the floor's plane: a vertical plane is a line there
+            _, _, vt = np.linalg.svd(Q, full_matrices=False)
+            m = vt[-1] @ basis  # the direction of least spread is the normal
+            n = m / np.linalg.norm(m) * (1.0 if m @ plane[:3] >= 0 else -1.0)
+            d = -float(c @ n)
+            sel = (np.abs(xyz @ n + d) <= inlier) & (np.abs(normal @ n) >= np.cos(np.radians(angle_deg)))
+        else:
+            same = [o for o in out if abs(o[:3] @ n) >= np.cos(np.radians(1.0))
+                    and abs(o[3] * np.sign(o[:3] @ n) - d) <= inlier / 2]  # two feet refitted onto one wall
+            if sel.sum() >= min_points and not same:
+                out.append(np.r_[n, d])
+    return np.array(out).reshape(-1, 4)

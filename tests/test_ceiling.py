@@ -192,3 +192,110 @@ def test_level_snap_cuts_a_warped_ceiling_region_onto_the_level_plane(tilt_deg):
     rise = (HI[2] + 0.4 - cam.center[2]) / (HI[2] - cam.center[2])  # every ceiling point 40 cm higher
     assert level_plane_points(cam, r_c, z_c * rise, levels, rel=0.05) is None
     assert level_plane_points(cam, r_c[:0], z_c[:0], levels, rel=0.05) is None  # no pixels
+
+
+def test_wall_planes_merge_collinear_feet_and_skip_low_or_short_ones():
+    """`--floor.wall-snap` (geocues.walls.wall_planes): two pieces of one wall's foot (one drawn the other
+    way round, 0.5 deg apart) are one plane through both; a cabinet's foot 8 cm in front of it, raised
+    only 0.8 m, and a 0.3 m stub give none; a perpendicular wall is its own plane."""
+    from geocues.walls import wall_planes
+
+    tilt = np.radians(0.5)
+    raised = [
+        (np.array([0.0, 3.6, 0.0]), np.array([1.5, 3.6, 0.0]), 2.4),  # the north wall, left piece
+        (np.array([3.9, 3.6 + 2.0 * np.tan(tilt), 0.0]), np.array([1.9, 3.6, 0.0]), 2.5),  # right piece, reversed
+        (np.array([1.0, 3.52, 0.0]), np.array([2.0, 3.52, 0.0]), 0.8),  # a cabinet's front: stops low
+        (np.array([4.0, 0.2, 0.0]), np.array([4.0, 3.0, 0.0]), 2.5),  # the east wall
+        (np.array([0.0, 0.5, 0.0]), np.array([0.0, 0.8, 0.0]), 2.5),  # a 0.3 m stub of the west wall
+    ]
+    planes = wall_planes(raised, UP, top=2.5, min_share=0.6)
+    assert planes.shape == (2, 4)
+    north = planes[np.argmax(np.abs(planes[:, 1]))]
+    north = north * np.sign(north[1])
+    np.testing.assert_allclose(north[:3], [0, 1, 0], atol=np.radians(0.3))
+    for p in (np.array([0.75, 3.6, 0.0]), np.array([2.9, 3.6 + np.tan(tilt), 0.0])):  # both pieces on it
+        assert abs(north[:3] @ p + north[3]) < 0.01
+    east = planes[np.argmax(np.abs(planes[:, 0]))]
+    assert abs(abs(east[0]) - 1) < 1e-12 and abs(east[:3] @ [4.0, 1.0, 0.0] + east[3]) < 1e-12
+    assert wall_planes([], UP, 2.5, 0.6).shape == (0, 4)
+    assert wall_planes(raised[2:3], UP, 2.5, 0.6).shape == (0, 4)
+
+
+def test_wall_snap_cuts_the_wall_part_of_a_region_no_cue_reaches():
+    """A region holding a wall and the floor below it, whose aligned prior is 4 % too far, no anchor
+    near: the region-level snap fails (neither plane holds 80 %) and the anchors' check gives nothing;
+    with the wall's plane tested on each RANSAC plane of the prior (`level_each_plane`) the wall's part
+    is cut exactly onto it, and the floor's part (not a level plane here) stays out."""
+    from geocues.planes import PlaneConfig, plane_cues_with_prior
+
+    cam = camera(0, (2.0, 1.0, 1.2), (2.0, 3.6, 0.6))
+    rows, cols = np.mgrid[0:H, 0:W]
+    depth = box_depth(cam, step=1)
+    X = cam.center + (cam.rays_at(rows, cols) @ np.asarray(cam.R)) * depth[..., None]
+    wall = X[..., 1] > HI[1] - 1e-6
+    floor = X[..., 2] < 1e-6
+    assert wall.mean() > 0.3 and floor.mean() > 0.2
+    region = wall | floor
+    prior = np.where(region, 1.04 * depth, 0.0).astype(np.float32)
+    regions = np.where(region, 0, -1).astype(np.int32)
+    image = np.full((H, W, 3), 0.8, np.float32)
+    cfg, none = PlaneConfig(), np.zeros((0, 3))
+    north = np.array([[0.0, 1.0, 0.0, -HI[1]]])
+    plain = plane_cues_with_prior(cam, image, regions, prior, none, cfg, levels=north, level_rel=0.05)
+    assert len(plain.xyz) == 0
+    snapped = plane_cues_with_prior(cam, image, regions, prior, none, cfg, levels=north, level_rel=0.05,
+                                    level_each_plane=True)
+    assert np.isfinite(snapped.xyz).all()
+    assert len(snapped.xyz) > 0.8 * wall[::2, ::2].sum()
+    np.testing.assert_allclose(snapped.xyz[:, 1], HI[1], atol=1e-6)
+
+
+def test_wall_planes_refit_to_the_wall_cues_and_dropped_without_them():
+    """A foot-lifted wall plane 5 cm in front of the wall and turned 1.5 deg is moved onto the wall's
+    plane cues (2 mm noise; the perpendicular wall's and a cabinet 12 cm in front are not used); a
+    second foot of the same wall lands on it and is not repeated; a plane no cue lies on is dropped."""
+    from geocues.walls import refit_wall_planes
+
+    rng = np.random.default_rng(0)
+    wall = np.c_[rng.uniform(0, 4, 3000), 3.6 + rng.normal(0, 0.002, 3000), rng.uniform(0, 2.5, 3000)]
+    side = np.c_[4.0 + rng.normal(0, 0.002, 2000), rng.uniform(0, 3.6, 2000), rng.uniform(0, 2.5, 2000)]
+    cabinet = np.c_[rng.uniform(1, 2, 500), np.full(500, 3.48), rng.uniform(0, 0.8, 500)]
+    xyz = np.r_[wall, side, cabinet]
+    normal = np.r_[np.tile([0, -1.0, 0], (3000, 1)), np.tile([1.0, 0, 0], (2000, 1)), np.tile([0, 1.0, 0], (500, 1))]
+    a = np.radians(1.5)
+    n = np.array([np.sin(a), np.cos(a), 0.0])
+    foot = np.r_[n, -(n @ [2.0, 3.55, 0.0])]
+    nowhere = np.array([0.0, 1.0, 0.0, -1.5])
+    other_piece = -np.r_[n, -(n @ [2.0, 3.57, 0.0])]  # a second foot of that wall, normal the other way
+    got = refit_wall_planes(np.array([foot, nowhere, other_piece]), xyz, normal, UP)
+    assert got.shape == (1, 4)
+    assert abs(got[0, 1]) > np.cos(np.radians(0.1)) and abs(got[0, 2]) < 1e-12
+    assert np.abs(wall @ got[0, :3] + got[0, 3]).max() < 0.01
+    assert abs(np.array([2.0, 3.6, 1.0]) @ got[0, :3] + got[0, 3]) < 0.002
+    assert refit_wall_planes(np.zeros((0, 4)), xyz, normal, UP).shape == (0, 4)
+
+
+def test_wall_snap_is_vetoed_by_cues_that_put_the_wall_elsewhere():
+    """A wall region whose prior lies within level_rel of a wall plane 6 cm in front of the true wall:
+    a cue line on the true wall (5 of its samples or more in the plane's band, 6 cm off) vetoes the
+    cut, and the region's plane falls back to the anchors' check, which puts it on the line's wall;
+    with the line on the assumed plane the cut stands."""
+    from geocues.planes import PlaneConfig, plane_cues_with_prior
+
+    cam = camera(0, (2.0, 1.0, 1.2), (2.0, 3.6, 0.6))
+    rows, cols = np.mgrid[0:H, 0:W]
+    depth = box_depth(cam, step=1)
+    X = cam.center + (cam.rays_at(rows, cols) @ np.asarray(cam.R)) * depth[..., None]
+    wall = X[..., 1] > HI[1] - 1e-6
+    prior = np.where(wall, depth, 0.0).astype(np.float32)  # within level_rel of both planes
+    regions = np.where(wall, 0, -1).astype(np.int32)
+    image = np.full((H, W, 3), 0.8, np.float32)
+    cfg = PlaneConfig()
+    off = np.array([[0.0, 1.0, 0.0, -(HI[1] - 0.06)]])  # assumed 6 cm in front
+    for y, snapped in ((HI[1], False), (HI[1] - 0.06, True)):
+        line = np.c_[np.linspace(1.5, 2.5, 41), np.full(41, y), np.full(41, 1.0)]  # a horizontal cue line
+        out = plane_cues_with_prior(cam, image, regions, prior, line, cfg, anchors_group=np.zeros(41, np.int64),
+                                    levels=off, level_rel=0.05, level_each_plane=True)
+        assert len(out.xyz) > 0 and np.isfinite(out.xyz).all()
+        assert ("level_plane_contradicted" in out.rejected) != snapped, out.rejected
+        np.testing.assert_allclose(np.median(out.xyz[:, 1]), y, atol=0.01)

@@ -397,6 +397,13 @@ def test_wall_check_needs_walls():
     with pytest.raises(ValueError, match="--floor.level-rel"):
         FloorLineConfig(lines=True, walls=True, floor_grid=True, level_snap=True, level_rel=0).validate()
     FloorLineConfig(lines=True, walls=True, floor_grid=True, level_snap=True).validate()
+    with pytest.raises(ValueError, match="--floor.wall-snap .* needs --floor.level-snap and --floor.wall-check"):
+        FloorLineConfig(lines=True, walls=True, floor_grid=True, level_snap=True, wall_snap=True).validate()
+    snap = dict(lines=True, walls=True, wall_check=True, floor_grid=True, level_snap=True, wall_snap=True)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="--floor.wall-snap-height"):
+            FloorLineConfig(**snap, wall_snap_height=bad).validate()
+    FloorLineConfig(**snap).validate()
 
 
 def test_wall_front_gap_drops_a_floor_line_just_in_front_of_a_wall(views):
