@@ -268,7 +268,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
-    floor_stats, assumed, cuts, levels = None, None, None, None
+    floor_stats, assumed, cuts, levels, snap_walls = None, None, None, None, None
     if cfg.planes and cfg.floor.lines:
         extra, walls, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
@@ -280,6 +280,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             assumed[len(anchors) - len(walls[0]):] = True  # the raised walls (last) are assumptions, not cues
             cuts = walls[2]
             levels = walls[3] if cfg.floor.level_snap and len(walls[3]) else None
+            snap_walls = walls[4] if len(walls[4]) else None
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
@@ -288,7 +289,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
                                                                            lines, cache, timings, notes,
                                                                            assumed=assumed, cuts=cuts,
-                                                                           levels=levels)
+                                                                           levels=levels, walls=snap_walls)
         rejections.update(pr)
 
     # ---- merge and write
@@ -359,7 +360,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     """A first plane pass for the floor, then the floor-contact lines (geocues.floor_lines): returns
     ((points, line index, views per line), (--floor.walls' raised points, their row index, the edges
     that cut the regions: --floor.ceiling's, the level planes [L, 4] of the ceiling and the floor
-    grid: n . X + d = 0), statistics for the report)."""
+    grid: n . X + d = 0, the wall planes [K, 4] of --floor.wall-snap), statistics for the report)."""
     from geocues.lines.detect import detect_all
 
     t0 = time.perf_counter()
@@ -371,6 +372,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned, lines.segments if lines is not None else None)
     W, WL, cuts, levels = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros((0, 4))
+    snap_walls = np.zeros((0, 4))
     if cfg.floor.walls and len(P):
         checked: dict = {}
         up, floor_h = np.array(stats["floor"]["normal"]), stats["floor"]["height"]
@@ -387,7 +389,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         if cfg.floor.wall_snap:
             feet = wall_planes(raised, up, top, cfg.floor.wall_snap_height)
             planes = refit_wall_planes(feet, first.xyz, first.normal, up)
-            levels = np.concatenate([levels, planes])
+            snap_walls = planes
             stats["walls"]["snap_planes"] = {"from_feet": len(feet), "confirmed_by_cues": len(planes),
                                              "planes": np.round(planes, 4).tolist()}
         if cfg.floor.wall_check:
@@ -412,7 +414,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                         else ""))
         if "note" in stats.get("ceiling", {}):
             notes.append(f"--floor.ceiling: no ceiling placed: {stats['ceiling']['note']}")
-    return (P, L, V), (W, WL, cuts, levels), stats
+    return (P, L, V), (W, WL, cuts, levels, snap_walls), stats
 
 
 def _prior_kind(cfg: ExtractConfig, scene: Scene) -> str:

@@ -106,12 +106,12 @@ class FloorLineConfig:
     level_rel: float = 0.05
     """That test's tolerance, a fraction of the depth (the warp an aligned monocular prior keeps)."""
     wall_snap: bool = False
-    """With level_snap and wall_check: the walls' vertical planes join the level planes -- each run of
-    collinear kept segments raised to wall_snap_height of the walls' top or higher -- and the test also
-    runs on each RANSAC plane of a region's prior, not only on the whole region, choosing the plane
-    that holds most of its pixels. Cuts the part of a wall that no cue reaches (no foot line, no
-    anchor) onto the plane its cued part fixed; a region only partly on a wall keeps its other
-    planes. An extension; an assumption like the grids."""
+    """With level_snap and wall_check: the walls' vertical planes (each run of collinear kept segments
+    raised to wall_snap_height of the walls' top or higher, refitted to the first pass's plane cues on
+    it, dropped where none lie) take what the anchored planes leave: the pixels of a region's RANSAC
+    plane that no anchored plane took (no anchor near, outside their hull) are cut onto the wall plane
+    their prior lies on (level_rel, as level_snap), unless the region's cue anchors put the surface
+    3 cm or more off it. For the part of a wall no cue reaches. An extension; an assumption like the grids."""
     wall_snap_height: float = 0.6
     """A raised segment defines a wall plane for wall_snap when its rows reach this share of the top
     (a cabinet's or a sofa's foot, stopped by the wall check lower, does not)."""

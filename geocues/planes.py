@@ -217,7 +217,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           seed: int = 0, inside_only: np.ndarray | None = None,
                           anchors_group: np.ndarray | None = None, anchor_ids: np.ndarray | None = None,
                           whole_lines: np.ndarray | None = None, levels: np.ndarray | None = None,
-                          level_rel: float = 0.05, level_each_plane: bool = False) -> PlanePoints:
+                          level_rel: float = 0.05, walls: np.ndarray | None = None) -> PlanePoints:
     """Plane-like points of one image from its aligned depth prior [H, W] (metres, 0 = invalid).
 
     ``anchors_xyz`` [P, 3]: line / SfM cue points that may be visible in the image; those flagged
@@ -232,8 +232,10 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     result's ``candidates``, its agreeing anchors named by ``anchor_ids`` [P], default 0..P-1) for
     geocues.plane_surfaces. ``levels`` [L, 4] (world n . X + d = 0, `--floor.level-snap`): a region
     whose prior lies on one of these assumed planes (geocues.ceiling.level_plane_points) is cut onto it
-    without the anchors' check; with ``level_each_plane`` (`--floor.wall-snap`) each RANSAC plane of a
-    region that does not is tested the same way before its anchors' check."""
+    without the anchors' check. ``walls`` [K, 4] (`--floor.wall-snap`): the pixels of a RANSAC plane of
+    the prior that the anchors' check leaves out (no anchor near, outside their hull) are tested the
+    same way against these vertical planes and cut onto the one they lie on, unless the region's cue
+    anchors put the surface 3 cm or more off it."""
     h, w = cam.height, cam.width
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
         raise ValueError(f"{cam.name}: regions {regions.shape}, depth {aligned_depth.shape} and "
@@ -273,9 +275,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
         cue = np.ones(len(a_ids), bool) if whole_lines is None else ~whole_lines[a_ids]  # not assumed
         if levels is not None and len(levels) and not cfg.fuse_surfaces:
             snapped = level_plane_points(cam, rays[sel], z[sel], levels, level_rel)
-            if snapped is not None and level_each_plane and _cues_contradict(snapped, a_c[cue], a_w[cue], zmed, cfg):
-                _bump(rej, "level_plane_contradicted")
-            elif snapped is not None:
+            if snapped is not None:
                 keep, Xk, n_c = snapped
                 out.add(sel[keep], Xk, n_c)
                 accepted += 1
@@ -286,6 +286,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
         Xc = rays[sel] * z[sel, None]  # [m, 3] camera frame
         tau = max(cfg.ransac_dist, cfg.ransac_rel * zmed)  # the prior's error grows with depth
         remaining = np.arange(len(sel))
+        ransac_sets: list[np.ndarray] = []  # each RANSAC plane's pixels (into sel), for the wall snap
         got_any = False
         for p in range(cfg.max_planes):
             if len(remaining) < max(cfg.min_region_points, cfg.min_plane_frac * len(sel)):
@@ -296,15 +297,7 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                 break
             keep = remaining[inl]
             remaining = remaining[~inl]
-            if level_each_plane and levels is not None and len(levels) and not cfg.fuse_surfaces:
-                snapped = level_plane_points(cam, rays[sel[keep]], z[sel[keep]], levels, level_rel)
-                if snapped is not None and _cues_contradict(snapped, a_c[cue], a_w[cue], zmed, cfg):
-                    _bump(rej, "level_plane_contradicted")
-                elif snapped is not None:  # this part of the region lies on a wall (or a level plane)
-                    kk, X_l, n_l = snapped
-                    found.append((sel[keep[kk]], X_l, n_l, None, a_c[:0]))
-                    _bump(rej, "plane_on_a_level_plane")
-                    continue
+            ransac_sets.append(keep)
             # agreement with the nearby cues (paper: keep points close to the 3D line samples)
             near_plane = np.abs(a_c @ n_c + d_c) < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
             if whole_lines is not None and len(a_ids):  # a raised row crossing the plane is not on it
@@ -345,6 +338,9 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                 continue
             found.append((sel[keep], Xk, n_c, ap if cfg.snap_to_plane and near_plane.sum() >= cfg.min_agree_anchors
                           else None, a_c[near_plane]))
+        if walls is not None and len(walls) and not cfg.fuse_surfaces:
+            found += _wall_snap(cam, rays, z, sel, ransac_sets, found, walls, level_rel, a_c[cue], a_w[cue], zmed,
+                                cfg, rej)
         for (pix, Xk, n_c, _, _), (h_pix, h_X) in zip(found, _fill(cam, rows, cols, holes, found, cfg, s)):
             out.add(np.r_[pix, h_pix], np.r_[Xk, h_X], n_c)
             got_any = True
@@ -353,6 +349,34 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     res.no_depth_regions = no_depth
     res.candidates = candidates
     return res
+
+
+def _wall_snap(cam: Camera, rays: np.ndarray, z: np.ndarray, sel: np.ndarray, ransac_sets: list, found: list,
+               walls: np.ndarray, rel: float, a_c: np.ndarray, a_w: np.ndarray, zmed: float, cfg: PlaneConfig,
+               rej: dict[str, int]) -> list:
+    """`--floor.wall-snap`: per RANSAC plane of a region (``ransac_sets``, indices into ``sel``), the
+    pixels no anchored plane of ``found`` took, cut onto the wall plane their prior lies on
+    (geocues.ceiling.level_plane_points) unless the cue anchors ``a_c`` contradict it; entries in
+    ``found``'s form."""
+    taken = np.zeros(len(z), bool)
+    for f in found:
+        taken[f[0]] = True
+    out = []
+    for keep in ransac_sets:
+        left = sel[keep][~taken[sel[keep]]]
+        if len(left) < cfg.min_region_points:
+            continue
+        snapped = level_plane_points(cam, rays[left], z[left], walls, rel)
+        if snapped is None:
+            continue
+        if _cues_contradict(snapped, a_c, a_w, zmed, cfg):
+            _bump(rej, "wall_snap_contradicted")
+            continue
+        kk, X_l, n_l = snapped
+        out.append((left[kk], X_l, n_l, None, a_c[:0]))
+        taken[left[kk]] = True
+        _bump(rej, "on_a_wall_plane")
+    return out
 
 
 def _cues_contradict(snapped: tuple, a_c: np.ndarray, a_w: np.ndarray, zmed: float, cfg: PlaneConfig) -> bool:

@@ -223,9 +223,10 @@ def test_wall_planes_merge_collinear_feet_and_skip_low_or_short_ones():
 
 def test_wall_snap_cuts_the_wall_part_of_a_region_no_cue_reaches():
     """A region holding a wall and the floor below it, whose aligned prior is 4 % too far, no anchor
-    near: the region-level snap fails (neither plane holds 80 %) and the anchors' check gives nothing;
-    with the wall's plane tested on each RANSAC plane of the prior (`level_each_plane`) the wall's part
-    is cut exactly onto it, and the floor's part (not a level plane here) stays out."""
+    near: as a level plane the wall takes nothing (neither plane of the region holds 80 % of it) and
+    the anchors' check gives nothing; as a wall plane (`walls`, tested on each RANSAC plane's pixels
+    the anchored planes leave) the wall's part is cut exactly onto it, and the floor's part (not a
+    level plane here) stays out."""
     from geocues.planes import PlaneConfig, plane_cues_with_prior
 
     cam = camera(0, (2.0, 1.0, 1.2), (2.0, 3.6, 0.6))
@@ -242,9 +243,8 @@ def test_wall_snap_cuts_the_wall_part_of_a_region_no_cue_reaches():
     cfg, none = PlaneConfig(), np.zeros((0, 3))
     north = np.array([[0.0, 1.0, 0.0, -HI[1]]])
     plain = plane_cues_with_prior(cam, image, regions, prior, none, cfg, levels=north, level_rel=0.05)
-    assert len(plain.xyz) == 0
-    snapped = plane_cues_with_prior(cam, image, regions, prior, none, cfg, levels=north, level_rel=0.05,
-                                    level_each_plane=True)
+    assert len(plain.xyz) == 0  # as a level plane: the region as a whole is not on it
+    snapped = plane_cues_with_prior(cam, image, regions, prior, none, cfg, walls=north, level_rel=0.05)
     assert np.isfinite(snapped.xyz).all()
     assert len(snapped.xyz) > 0.8 * wall[::2, ::2].sum()
     np.testing.assert_allclose(snapped.xyz[:, 1], HI[1], atol=1e-6)
@@ -276,10 +276,10 @@ def test_wall_planes_refit_to_the_wall_cues_and_dropped_without_them():
 
 
 def test_wall_snap_is_vetoed_by_cues_that_put_the_wall_elsewhere():
-    """A wall region whose prior lies within level_rel of a wall plane 6 cm in front of the true wall:
-    a cue line on the true wall (5 of its samples or more in the plane's band, 6 cm off) vetoes the
-    cut, and the region's plane falls back to the anchors' check, which puts it on the line's wall;
-    with the line on the assumed plane the cut stands."""
+    """A wall region whose prior lies within level_rel of a wall plane 6 cm in front of the true wall
+    and a cue line across it: the anchored plane takes the pixels near the line; the rest, on the
+    line's wall, is not cut onto the assumed plane 6 cm off it (the line, 5 samples or more in the
+    plane's band, vetoes); with the line on the assumed plane the cut stands and takes more."""
     from geocues.planes import PlaneConfig, plane_cues_with_prior
 
     cam = camera(0, (2.0, 1.0, 1.2), (2.0, 3.6, 0.6))
@@ -292,10 +292,14 @@ def test_wall_snap_is_vetoed_by_cues_that_put_the_wall_elsewhere():
     image = np.full((H, W, 3), 0.8, np.float32)
     cfg = PlaneConfig()
     off = np.array([[0.0, 1.0, 0.0, -(HI[1] - 0.06)]])  # assumed 6 cm in front
+    counts = []
     for y, snapped in ((HI[1], False), (HI[1] - 0.06, True)):
         line = np.c_[np.linspace(1.5, 2.5, 41), np.full(41, y), np.full(41, 1.0)]  # a horizontal cue line
         out = plane_cues_with_prior(cam, image, regions, prior, line, cfg, anchors_group=np.zeros(41, np.int64),
-                                    levels=off, level_rel=0.05, level_each_plane=True)
+                                    walls=off, level_rel=0.05)
         assert len(out.xyz) > 0 and np.isfinite(out.xyz).all()
-        assert ("level_plane_contradicted" in out.rejected) != snapped, out.rejected
-        np.testing.assert_allclose(np.median(out.xyz[:, 1]), y, atol=0.01)
+        assert ("wall_snap_contradicted" in out.rejected) != snapped, out.rejected
+        assert ("on_a_wall_plane" in out.rejected) == snapped, out.rejected
+        np.testing.assert_allclose(out.xyz[:, 1], y, atol=0.01)
+        counts.append(len(out.xyz))
+    assert counts[1] > 2 * counts[0]  # the cut takes the wall beyond the line's hull
