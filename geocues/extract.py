@@ -268,7 +268,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     elif sfm is not None and cfg.plane.sfm_min_angle_deg > 0 and len(sfm.kept):
         angle = triangulation_angles(scene, sfm.kept)  # [M] degrees, inf where unknown
         plane_ok[:len(angle)] &= angle >= cfg.plane.sfm_min_angle_deg  # SfM anchors come first
-    floor_stats, assumed, cuts, levels, snap_walls = None, None, None, None, None
+    floor_stats, assumed, cuts, levels, snap_walls, measured = None, None, None, None, None, None
     if cfg.planes and cfg.floor.lines:
         extra, walls, floor_stats = _floor_lines(scene, cfg, kind, anchors, plane_ok, lines, cache, timings, notes)
         if len(extra[0]):
@@ -281,6 +281,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             cuts = walls[2]
             levels = walls[3] if cfg.floor.level_snap and len(walls[3]) else None
             snap_walls = walls[4] if len(walls[4]) else None
+            measured = anchors.group < (len(lines.views) if lines is not None else 0)  # SfM points, 3D lines
     per_image: list[dict] = []
     plane_cloud = CueCloud.empty()
     plane_stats: dict = {}
@@ -289,7 +290,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
                                                                            lines, cache, timings, notes,
                                                                            assumed=assumed, cuts=cuts,
-                                                                           levels=levels, walls=snap_walls)
+                                                                           levels=levels, walls=snap_walls,
+                                                                           wall_veto=measured)
         rejections.update(pr)
 
     # ---- merge and write

@@ -34,8 +34,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
                  lines: LineCues | None, cache: Path,
                  timings: dict[str, float], notes: list[str], aligned_out: dict | None = None,
                  desc: str = "planes", assumed: np.ndarray | None = None, cuts: np.ndarray | None = None,
-                 levels: np.ndarray | None = None, walls: np.ndarray | None = None
-                 ) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
+                 levels: np.ndarray | None = None, walls: np.ndarray | None = None,
+                 wall_veto: np.ndarray | None = None) -> tuple[CueCloud, list[dict], dict[str, dict], dict, tuple[np.ndarray, ...]]:
     """Texture, alignment and plane points for every image; returns (PLANE cloud, per-image report
     rows, rejections by stage, summary statistics, the plane anchors: kept points, normals, image).
     ``aligned_out``: filled with image index -> its aligned prior depth, every 4th pixel;
@@ -45,7 +45,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
     ceiling's, geocues.ceiling) that cut every image's regions like the 3D lines it sees. ``levels``
     [L, 4]: level planes (n . X + d = 0; `--floor.level-snap`) a region whose prior lies on one is
     cut onto; ``walls`` [K, 4]: wall planes the pixels left by the anchored planes are cut onto
-    (`--floor.wall-snap`; geocues.planes)."""
+    (`--floor.wall-snap`; geocues.planes), unless the anchors flagged ``wall_veto`` [P] (the
+    measured ones) put the surface elsewhere."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -118,7 +119,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
                                        seed=cfg.seed + i, inside_only=strict[pc],
                                        anchors_group=anchors.group[pc], anchor_ids=pc,
                                        whole_lines=None if assumed is None else assumed[pc],
-                                       levels=levels, level_rel=cfg.floor.level_rel, walls=walls)
+                                       levels=levels, level_rel=cfg.floor.level_rel, walls=walls,
+                                       wall_veto=None if wall_veto is None else wall_veto[pc])
             candidates += pp.candidates
             row["plane_mode"] = "prior"
             if pp.no_depth_regions:  # fill_holes: regions the prior has no depth in

@@ -217,7 +217,8 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                           seed: int = 0, inside_only: np.ndarray | None = None,
                           anchors_group: np.ndarray | None = None, anchor_ids: np.ndarray | None = None,
                           whole_lines: np.ndarray | None = None, levels: np.ndarray | None = None,
-                          level_rel: float = 0.05, walls: np.ndarray | None = None) -> PlanePoints:
+                          level_rel: float = 0.05, walls: np.ndarray | None = None,
+                          wall_veto: np.ndarray | None = None) -> PlanePoints:
     """Plane-like points of one image from its aligned depth prior [H, W] (metres, 0 = invalid).
 
     ``anchors_xyz`` [P, 3]: line / SfM cue points that may be visible in the image; those flagged
@@ -234,8 +235,10 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     whose prior lies on one of these assumed planes (geocues.ceiling.level_plane_points) is cut onto it
     without the anchors' check. ``walls`` [K, 4] (`--floor.wall-snap`): the pixels of a RANSAC plane of
     the prior that the anchors' check leaves out (no anchor near, outside their hull) are tested the
-    same way against these vertical planes and cut onto the one they lie on, unless the region's cue
-    anchors put the surface 3 cm or more off it."""
+    same way against these vertical planes and cut onto the one they lie on, unless the region's
+    measured anchors (``wall_veto`` [P]: SfM points and 3D lines, not the lifted feet whose offset the
+    wall planes may share, nor assumptions; default: those not in ``whole_lines``) put the surface
+    3 cm or more off it."""
     h, w = cam.height, cam.width
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
         raise ValueError(f"{cam.name}: regions {regions.shape}, depth {aligned_depth.shape} and "
@@ -272,7 +275,10 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
                                         cfg.occluder_jump, max(2, int(round(cfg.occluder_step_px * s))))]
         a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
         a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
-        cue = np.ones(len(a_ids), bool) if whole_lines is None else ~whole_lines[a_ids]  # not assumed
+        if wall_veto is not None:
+            cue = np.asarray(wall_veto, bool)[a_ids]  # the anchors that may veto a wall cut
+        else:
+            cue = np.ones(len(a_ids), bool) if whole_lines is None else ~whole_lines[a_ids]
         if levels is not None and len(levels) and not cfg.fuse_surfaces:
             snapped = level_plane_points(cam, rays[sel], z[sel], levels, level_rel)
             if snapped is not None:
@@ -380,15 +386,15 @@ def _wall_snap(cam: Camera, rays: np.ndarray, z: np.ndarray, sel: np.ndarray, ra
 
 
 def _cues_contradict(snapped: tuple, a_c: np.ndarray, a_w: np.ndarray, zmed: float, cfg: PlaneConfig) -> bool:
-    """Whether the cue anchors near a region (camera frame a_c [a, 3], weights a_w [a]; the assumed
-    raised rows and grids excluded) put the surface off the assumed plane it was cut onto: at least
-    ``min_agree_anchors`` of them within the search band of that plane and their weighted median
-    distance from it ``agree_dist`` or more (a wall plane from feet and first-pass cues can be a
-    few centimetres off or turned where the cues see the wall itself)."""
+    """Whether the measured anchors near a region (camera frame a_c [a, 3], weights a_w [a]) put the
+    surface off the assumed plane it was cut onto: at least ``min_agree_anchors`` of them within
+    2 x ``agree_dist`` of that plane and their weighted median distance from it ``agree_dist`` or
+    more (a wall plane from feet and first-pass cues can be a few centimetres off or turned where the
+    cues see the wall itself)."""
     _, X, n = snapped
     d = -float(X[0] @ n)
     r = np.abs(a_c @ n + d)
-    band = r < max(cfg.agree_dist, cfg.agree_search_rel * zmed)
+    band = r < 2 * cfg.agree_dist  # not the depth-relative search band: objects before the wall stay out
     return bool(band.sum() >= cfg.min_agree_anchors and weighted_median(r[band], a_w[band]) >= cfg.agree_dist)
 
 

@@ -276,9 +276,9 @@ def test_wall_planes_refit_to_the_wall_cues_and_dropped_without_them():
 
 
 def test_wall_snap_is_vetoed_by_cues_that_put_the_wall_elsewhere():
-    """A wall region whose prior lies within level_rel of a wall plane 6 cm in front of the true wall
+    """A wall region whose prior lies within level_rel of a wall plane 5 cm in front of the true wall
     and a cue line across it: the anchored plane takes the pixels near the line; the rest, on the
-    line's wall, is not cut onto the assumed plane 6 cm off it (the line, 5 samples or more in the
+    line's wall, is not cut onto the assumed plane 5 cm off it (the line, 5 samples or more in the
     plane's band, vetoes); with the line on the assumed plane the cut stands and takes more."""
     from geocues.planes import PlaneConfig, plane_cues_with_prior
 
@@ -291,9 +291,9 @@ def test_wall_snap_is_vetoed_by_cues_that_put_the_wall_elsewhere():
     regions = np.where(wall, 0, -1).astype(np.int32)
     image = np.full((H, W, 3), 0.8, np.float32)
     cfg = PlaneConfig()
-    off = np.array([[0.0, 1.0, 0.0, -(HI[1] - 0.06)]])  # assumed 6 cm in front
+    off = np.array([[0.0, 1.0, 0.0, -(HI[1] - 0.05)]])  # assumed 5 cm in front
     counts = []
-    for y, snapped in ((HI[1], False), (HI[1] - 0.06, True)):
+    for y, snapped in ((HI[1], False), (HI[1] - 0.05, True)):
         line = np.c_[np.linspace(1.5, 2.5, 41), np.full(41, y), np.full(41, 1.0)]  # a horizontal cue line
         out = plane_cues_with_prior(cam, image, regions, prior, line, cfg, anchors_group=np.zeros(41, np.int64),
                                     walls=off, level_rel=0.05)
@@ -303,3 +303,7 @@ def test_wall_snap_is_vetoed_by_cues_that_put_the_wall_elsewhere():
         np.testing.assert_allclose(out.xyz[:, 1], y, atol=0.01)
         counts.append(len(out.xyz))
     assert counts[1] > 2 * counts[0]  # the cut takes the wall beyond the line's hull
+    line = np.c_[np.linspace(1.5, 2.5, 41), np.full(41, HI[1]), np.full(41, 1.0)]
+    foot = plane_cues_with_prior(cam, image, regions, prior, line, cfg, anchors_group=np.zeros(41, np.int64),
+                                 walls=off, level_rel=0.05, wall_veto=np.zeros(41, bool))
+    assert "on_a_wall_plane" in foot.rejected  # an anchor that is no measured cue (a lifted foot) vetoes nothing

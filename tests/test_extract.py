@@ -199,6 +199,16 @@ class TestRun:
         on = lambda c, z: np.abs(c.xyz[:, 2] - z) < 0.03  # noqa: E731
         assert on(snap, ROOM[2]).sum() > 1.5 * on(roof, ROOM[2]).sum() and on(snap, 0.0).sum() > on(roof, 0.0).sum()  # 2x, 3x
         assert np.mean(distance_to_surface(snap.xyz) < 0.03) > 0.95
+        assert "wall_snap" not in ex._key_config(cfg)["floor"]
+        cfg.floor.wall_snap = True  # what the anchored planes leave of the walls, cut onto the walls' planes
+        rep = _report(out := ex.run(cfg, scene, tmp_path / "walls"))
+        planes = rep["floor_lines"]["walls"]["snap_planes"]
+        assert planes["confirmed_by_cues"] >= 1 and "wall_snap" in ex._key_config(cfg)["floor"]
+        assert rep["rejections"]["planes"].get("on_a_wall_plane", 0) > 0
+        walls = _no_nan(out).of_type(CueType.PLANE)
+        on_walls = lambda c: (np.abs(c.xyz[:, 1] - ROOM[1]) < 0.03) | (np.abs(c.xyz[:, 1]) < 0.03)  # noqa: E731
+        assert on_walls(walls).sum() > 1.05 * on_walls(snap).sum()  # 35.8k against 32.9k points
+        assert np.mean(distance_to_surface(walls.xyz) < 0.03) > 0.95
 
     def test_prior_free_run_of_a_scene_with_priors(self, scenes, tmp_path):
         out = ex.run(ex.ExtractConfig(priors=False), scenes["all"], tmp_path / "free")
