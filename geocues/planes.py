@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geocues.ceiling import level_plane_points
+from geocues.walls import wall_snap_points
 from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights,
                                loo_group_residuals, ray_plane_depth, weighted_median)
 from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids, on_occluder, region_pixels
@@ -345,8 +346,8 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             found.append((sel[keep], Xk, n_c, ap if cfg.snap_to_plane and near_plane.sum() >= cfg.min_agree_anchors
                           else None, a_c[near_plane]))
         if walls is not None and len(walls) and not cfg.fuse_surfaces:
-            found += _wall_snap(cam, rays, z, sel, ransac_sets, found, walls, level_rel, a_c[cue], a_w[cue], zmed,
-                                cfg, rej)
+            found += wall_snap_points(cam, rays, z, sel, ransac_sets, found, walls, level_rel, a_c[cue], a_w[cue],
+                                      cfg.min_region_points, cfg.agree_dist, cfg.min_agree_anchors, rej)
         for (pix, Xk, n_c, _, _), (h_pix, h_X) in zip(found, _fill(cam, rows, cols, holes, found, cfg, s)):
             out.add(np.r_[pix, h_pix], np.r_[Xk, h_X], n_c)
             got_any = True
@@ -355,47 +356,6 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     res.no_depth_regions = no_depth
     res.candidates = candidates
     return res
-
-
-def _wall_snap(cam: Camera, rays: np.ndarray, z: np.ndarray, sel: np.ndarray, ransac_sets: list, found: list,
-               walls: np.ndarray, rel: float, a_c: np.ndarray, a_w: np.ndarray, zmed: float, cfg: PlaneConfig,
-               rej: dict[str, int]) -> list:
-    """`--floor.wall-snap`: per RANSAC plane of a region (``ransac_sets``, indices into ``sel``), the
-    pixels no anchored plane of ``found`` took, cut onto the wall plane their prior lies on
-    (geocues.ceiling.level_plane_points) unless the cue anchors ``a_c`` contradict it; entries in
-    ``found``'s form."""
-    taken = np.zeros(len(z), bool)
-    for f in found:
-        taken[f[0]] = True
-    out = []
-    for keep in ransac_sets:
-        left = sel[keep][~taken[sel[keep]]]
-        if len(left) < cfg.min_region_points:
-            continue
-        snapped = level_plane_points(cam, rays[left], z[left], walls, rel)
-        if snapped is None:
-            continue
-        if _cues_contradict(snapped, a_c, a_w, zmed, cfg):
-            _bump(rej, "wall_snap_contradicted")
-            continue
-        kk, X_l, n_l = snapped
-        out.append((left[kk], X_l, n_l, None, a_c[:0]))
-        taken[left[kk]] = True
-        _bump(rej, "on_a_wall_plane")
-    return out
-
-
-def _cues_contradict(snapped: tuple, a_c: np.ndarray, a_w: np.ndarray, zmed: float, cfg: PlaneConfig) -> bool:
-    """Whether the measured anchors near a region (camera frame a_c [a, 3], weights a_w [a]) put the
-    surface off the assumed plane it was cut onto: at least ``min_agree_anchors`` of them within
-    2 x ``agree_dist`` of that plane and their weighted median distance from it ``agree_dist`` or
-    more (a wall plane from feet and first-pass cues can be a few centimetres off or turned where the
-    cues see the wall itself)."""
-    _, X, n = snapped
-    d = -float(X[0] @ n)
-    r = np.abs(a_c @ n + d)
-    band = r < 2 * cfg.agree_dist  # not the depth-relative search band: objects before the wall stay out
-    return bool(band.sum() >= cfg.min_agree_anchors and weighted_median(r[band], a_w[band]) >= cfg.agree_dist)
 
 
 def _candidate(cam: Camera, image: np.ndarray, n_c: np.ndarray, d_c: float, rows: np.ndarray, cols: np.ndarray,

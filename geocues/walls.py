@@ -12,13 +12,19 @@ on a surface (:func:`row_evidence`, :func:`confirmed_rows`): rows stop below two
 and a segment with no confirmed row from :data:`WALL_CHECK_MIN` up is not raised. ``wall_front_gap``
 also leaves out a segment just in front of a parallel raised one (:func:`in_front_of_walls`): a floor
 line near a wall, closer than the priors' tolerance tells apart.
+
+``wall_snap`` makes the raised walls planes (:func:`wall_planes`, :func:`refit_wall_planes`) and cuts
+onto them what the anchored plane cues of a region leave (:func:`wall_snap_points`), unless the
+measured anchors put the wall elsewhere (:func:`cues_contradict`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from geocues.ceiling import level_plane_points
 from geocues.floor_lines import FloorLineConfig, sample_nearest
+from geocues.plane_fit import weighted_median
 
 WALL_CHECK_MIN = 0.3  # metres above the floor: lower rows of a raised floor-texture line lie so close to
 # the floor the views see behind them that a loose tolerance cannot tell them from a wall
@@ -245,3 +251,47 @@ def refit_wall_planes(planes: np.ndarray, xyz: np.ndarray, normal: np.ndarray, u
             if sel.sum() >= min_points and not same:
                 out.append(np.r_[n, d])
     return np.array(out).reshape(-1, 4)
+
+
+def wall_snap_points(cam, rays: np.ndarray, z: np.ndarray, sel: np.ndarray, ransac_sets: list, found: list,
+                     walls: np.ndarray, rel: float, a_c: np.ndarray, a_w: np.ndarray, min_points: int,
+                     agree_dist: float, min_anchors: int, rejected: dict[str, int]) -> list:
+    """`--floor.wall-snap` in one image's region (geocues.planes.plane_cues_with_prior): per RANSAC
+    plane of its prior (``ransac_sets``, indices into ``sel``), the pixels no anchored plane of
+    ``found`` took -- at least ``min_points`` -- cut onto the wall plane [K, 4] their prior lies on
+    (geocues.ceiling.level_plane_points, tolerance ``rel``), unless :func:`cues_contradict` says the
+    measured anchors ``a_c`` (camera frame, weights ``a_w``) put the wall elsewhere. Returns entries in
+    ``found``'s form; counts in ``rejected``."""
+    taken = np.zeros(len(z), bool)
+    for f in found:
+        taken[f[0]] = True
+    out = []
+    for keep in ransac_sets:
+        left = sel[keep][~taken[sel[keep]]]
+        if len(left) < min_points:
+            continue
+        snapped = level_plane_points(cam, rays[left], z[left], walls, rel)
+        if snapped is None:
+            continue
+        reason = "wall_snap_contradicted" if cues_contradict(snapped, a_c, a_w, agree_dist, min_anchors) \
+            else "on_a_wall_plane"
+        rejected[reason] = rejected.get(reason, 0) + 1
+        if reason == "on_a_wall_plane":
+            kk, X_l, n_l = snapped
+            out.append((left[kk], X_l, n_l, None, a_c[:0]))
+            taken[left[kk]] = True
+    return out
+
+
+def cues_contradict(snapped: tuple, a_c: np.ndarray, a_w: np.ndarray, agree_dist: float, min_anchors: int) -> bool:
+    """Whether the measured anchors near a region (camera frame a_c [a, 3], weights a_w [a]) put the
+    surface off the assumed plane ``snapped`` (level_plane_points' result) cut it onto: at least
+    ``min_anchors`` of them within 2 x ``agree_dist`` of that plane and their weighted median
+    distance from it ``agree_dist`` or more (a wall plane from feet and first-pass cues can be a few
+    centimetres off or turned where the cues see the wall itself). The band is not the plane check's
+    depth-relative one: objects before the wall stay out of it."""
+    _, X, n = snapped
+    d = -float(X[0] @ n)
+    r = np.abs(a_c @ n + d)
+    band = r < 2 * agree_dist
+    return bool(band.sum() >= min_anchors and weighted_median(r[band], a_w[band]) >= agree_dist)
