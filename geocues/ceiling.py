@@ -169,16 +169,16 @@ def level_plane_points(cam, rays: np.ndarray, z: np.ndarray, levels: np.ndarray,
         return None
     R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
     Xp = rays * z[:, None]  # [m, 3] the prior's points
-    best, best_share = None, min_share
+    best = None  # (share, ok, zk, n_c) of the plane holding most of the pixels (ties: the first)
     for plane in np.asarray(levels, np.float64).reshape(-1, 4):
         n_c = R @ plane[:3]  # n . X + d = 0 with X = R^T (Xc - t): (R n) . Xc + d - (R n) . t = 0
         d_c = float(plane[3] - n_c @ t)
         zk = ray_plane_depth(rays, n_c, d_c)  # [m]
         ok = np.isfinite(zk) & (zk > 0) & (np.abs(Xp @ n_c + d_c) <= rel * z)
-        if ok.mean() >= best_share:  # the plane holding most of the pixels (ties: the first)
-            best, best_share = (ok, zk, n_c), ok.mean() + 1e-12
+        if ok.mean() >= min_share and (best is None or ok.mean() > best[0]):
+            best = (ok.mean(), ok, zk, n_c)
     if best is None:
         return None
-    ok, zk, n_c = best
+    _, ok, zk, n_c = best
     keep = np.flatnonzero(ok)
     return keep, rays[keep] * zk[keep, None], n_c

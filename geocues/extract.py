@@ -390,10 +390,9 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         stats["walls"] = {"samples": len(W), "top": round(top, 3)}
         if cfg.floor.wall_snap:
             feet = wall_planes(raised, up, top, cfg.floor.wall_snap_height)
-            planes = refit_wall_planes(feet, first.xyz, first.normal, up)
-            snap_walls = planes
-            stats["walls"]["snap_planes"] = {"from_feet": len(feet), "confirmed_by_cues": len(planes),
-                                             "planes": np.round(planes, 4).tolist()}
+            snap_walls = refit_wall_planes(feet, first.xyz, first.normal, up)
+            stats["walls"]["snap_planes"] = {"from_feet": len(feet), "confirmed_by_cues": len(snap_walls),
+                                             "planes": np.round(snap_walls, 4).tolist()}
         if cfg.floor.wall_check:
             stats["walls"]["check"] = checked or {"note": "no aligned prior: nothing checked"}
         W, WL, cuts, grids = add_level_grids(W, WL, up, floor_h, ceiling, cfg.floor.floor_grid, cfg.floor.wall_step)

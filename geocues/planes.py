@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geocues.ceiling import level_plane_points
-from geocues.walls import wall_snap_points
 from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac, group_weights,
                                loo_group_residuals, ray_plane_depth, weighted_median)
 from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids, on_occluder, region_pixels
 from geocues.scene import Camera
+from geocues.walls import wall_snap_points
 
 log = logging.getLogger(__name__)
 
@@ -269,17 +269,6 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             if cfg.fill_holes and in_k.sum() >= cfg.min_region_points:
                 no_depth.append(k)
             continue
-        zmed = float(np.median(z[sel]))
-        a_ids = near[k]  # anchors near the region, not hidden behind the aligned surface
-        if cfg.occluder_jump > 0 and len(a_ids):
-            a_ids = a_ids[~on_occluder(cam, regions, k, aligned_depth, anchors_xyz[a_ids], groups[a_ids],
-                                        cfg.occluder_jump, max(2, int(round(cfg.occluder_step_px * s))))]
-        a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
-        a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
-        if wall_veto is not None:
-            cue = np.asarray(wall_veto, bool)[a_ids]  # the anchors that may veto a wall cut
-        else:
-            cue = np.ones(len(a_ids), bool) if whole_lines is None else ~whole_lines[a_ids]
         if levels is not None and len(levels) and not cfg.fuse_surfaces:
             snapped = level_plane_points(cam, rays[sel], z[sel], levels, level_rel)
             if snapped is not None:
@@ -291,7 +280,14 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
         holes = np.flatnonzero(in_k & ~has_depth) if cfg.fill_holes else sel[:0]
         found = []  # (pixel indices, camera-frame points, normal, anchored plane or None) per plane
         Xc = rays[sel] * z[sel, None]  # [m, 3] camera frame
+        zmed = float(np.median(z[sel]))
         tau = max(cfg.ransac_dist, cfg.ransac_rel * zmed)  # the prior's error grows with depth
+        a_ids = near[k]  # anchors near the region, not hidden behind the aligned surface
+        if cfg.occluder_jump > 0 and len(a_ids):
+            a_ids = a_ids[~on_occluder(cam, regions, k, aligned_depth, anchors_xyz[a_ids], groups[a_ids],
+                                        cfg.occluder_jump, max(2, int(round(cfg.occluder_step_px * s))))]
+        a_c = anchors_xyz[a_ids] @ cam.R.T + cam.t  # [a, 3]
+        a_w = group_weights(groups[a_ids]) if len(a_ids) else np.zeros(0)
         remaining = np.arange(len(sel))
         ransac_sets: list[np.ndarray] = []  # each RANSAC plane's pixels (into sel), for the wall snap
         got_any = False
@@ -346,6 +342,10 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
             found.append((sel[keep], Xk, n_c, ap if cfg.snap_to_plane and near_plane.sum() >= cfg.min_agree_anchors
                           else None, a_c[near_plane]))
         if walls is not None and len(walls) and not cfg.fuse_surfaces:
+            if wall_veto is not None:
+                cue = np.asarray(wall_veto, bool)[a_ids]  # the anchors that may veto a wall cut
+            else:
+                cue = np.ones(len(a_ids), bool) if whole_lines is None else ~whole_lines[a_ids]
             found += wall_snap_points(cam, rays, z, sel, ransac_sets, found, walls, level_rel, a_c[cue], a_w[cue],
                                       cfg.min_region_points, cfg.agree_dist, cfg.min_agree_anchors, rej)
         for (pix, Xk, n_c, _, _), (h_pix, h_X) in zip(found, _fill(cam, rows, cols, holes, found, cfg, s)):
