@@ -19,7 +19,8 @@ from geocues.depth_align import DepthAlignment, align_depth_prior, kind_warning
 from geocues.lines import LineCues
 from geocues.plane_merge import merge_plane_points
 from geocues.plane_regions import split_regions_by_lines
-from geocues.planes import plane_cues_prior_free, plane_cues_with_prior
+from geocues.planes import plane_cues_with_prior
+from geocues.planes_free import plane_cues_prior_free
 from geocues.scene import Scene
 from geocues.texture import load_or_compute
 from geocues.types import CueType

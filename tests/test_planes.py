@@ -10,7 +10,8 @@ from geocues.plane_fit import (AnchoredPlane, fit_plane_groups, fit_plane_ransac
                                ray_plane_depth)
 from geocues.plane_merge import consolidate_planes, multiview_conflict, multiview_support, voxel_downsample
 from geocues.plane_regions import split_regions_by_lines
-from geocues.planes import PlaneConfig, _held_out_inliers, plane_cues_prior_free, plane_cues_with_prior
+from geocues.planes import PlaneConfig, plane_cues_with_prior
+from geocues.planes_free import _held_out_inliers, plane_cues_prior_free
 from geocues.scene import Scene
 from geocues.texture import TextureConfig, weak_texture_regions
 
