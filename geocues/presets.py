@@ -3,8 +3,9 @@
 ``paper`` is the default: the cues of the paper (§4.1). ``room`` adds this project's extensions for a
 room with a level floor and ceiling and vertical walls (docs/geocues.md, "Stages"): floor-contact
 lines lifted onto the floor, raised into walls as far as the aligned depth priors confirm them, the
-ceiling placed at the height the priors give it, grids of plane anchors on ceiling and floor, and
-weak regions on those two level planes cut onto them.
+ceiling placed at the height the priors give it, grids of plane anchors on ceiling and floor, weak
+regions on those two level planes cut onto them, and what no anchored plane took of a region on a
+checked wall's plane cut onto that wall.
 Train such cues with ``splat train --preset room``.
 """
 
@@ -16,7 +17,7 @@ from typing import Any
 EXTRACT_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "room": {"floor.lines": True, "floor.walls": True, "floor.wall_check": True, "floor.wall_front_gap": 0.3,
-             "floor.ceiling": True, "floor.floor_grid": True, "floor.level_snap": True},
+             "floor.ceiling": True, "floor.floor_grid": True, "floor.level_snap": True, "floor.wall_snap": True},
 }
 
 

@@ -105,3 +105,39 @@ def test_train_step_bench_splits_the_stages_and_restores_what_it_timed():
         assert d["composite_fwd"] + d["projection_fwd"] <= row["stages_s"]["render"] * 1.05 + 1e-3
     assert rows[0]["loss_kernels"] == "torch" and rows[1]["loss_kernels"] == "fused"
     assert "Inside the stages" in bench.format_table({"rows": rows})
+
+
+def test_room_curve_table_reads_the_checkpoints_and_sums_up_the_second_half(tmp_path, monkeypatch):
+    """bench/room_curve_table.py: one line per run with every checkpoint, the change from step 1500 to
+    the end over the runs, and a clear stop for a run whose checkpoints differ."""
+    import importlib.util
+    from pathlib import Path
+
+    import pytest
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "room_curve_table.py"
+    spec = importlib.util.spec_from_file_location("room_curve_table", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "REPO", tmp_path)
+
+    def write(name, fs, steps=(300, 750, 1500, 3000)):
+        curve = [{"step": s, "train_s": s / 4, "psnr": 20 + s / 300, "chamfer_l1": 0.1 - f / 10,
+                  "f_score": f, "normal_consistency": 0.9} for s, f in zip(steps, fs)]
+        d = tmp_path / "bench" / "results" / f"ablation_{name}"
+        d.mkdir(parents=True)
+        (d / "ablation.json").write_text(json.dumps({"rows": [{"row": "full", "runs": [{"curve": curve}]}]}))
+
+    write("a", (0.70, 0.80, 0.82, 0.81))
+    write("b", (0.70, 0.80, 0.84, 0.86))
+    text = mod.table([("room a", "a"), ("room b", "b")], "full")
+    lines = text.splitlines()
+    assert lines[0] == "| room | step 300 | step 750 | step 1500 | step 3000 |"
+    assert lines[2].startswith("| room a | 3.00 / 0.700 / 0.900 / 21.0 (75 s) |")
+    assert "over the 2 runs" in text and "F +0.005 (-0.010 to +0.020)" in text
+    assert "training +375 s" in text
+    write("c", (0.7, 0.8, 0.9), steps=(300, 750, 3000))
+    with pytest.raises(SystemExit, match="checkpoints"):
+        mod.table([("room a", "a"), ("room c", "c")], "full")
+    with pytest.raises(SystemExit, match="no finished row 'room'"):
+        mod.table([("room a", "a")], "room")

@@ -317,6 +317,7 @@ class TestCli:
         assert main(["extract", "S", "-o", str(tmp_path / "c"), "--preset", "room", "--floor.no-ceiling"]) == 0
         f = seen[0].floor
         assert f.lines and f.walls and f.wall_check and f.wall_front_gap == 0.3 and f.floor_grid and f.level_snap
+        assert f.wall_snap
         assert not f.ceiling  # given after the preset
         assert extract_preset_config("room").floor.ceiling
         assert extract_preset_config("paper") == ex.ExtractConfig()  # the default is the paper's cues
