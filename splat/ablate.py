@@ -119,6 +119,7 @@ _ADDED_LATER = (  # options added after rows were first keyed: (config section, 
     ("strategy", lambda k: k == "plane_rule", lambda s: s.get("plane_rule", "none") == "none"),
     ("", lambda k: k in ("pose_opt", "focal_opt", "pose_lr", "focal_lr"),
      lambda s: not s.get("pose_opt") and not s.get("focal_opt")),
+    ("", lambda k: k == "geometry_until", lambda s: s.get("geometry_until", 1.0) == 1.0),
 )
 
 

@@ -110,9 +110,10 @@ class CameraRefiner:
         with torch.no_grad():
             return dataclasses.replace(view, camera=self.camera(None, view.camera))
 
-    def set_progress(self, fraction: float) -> None:
-        """Learning rates decayed exponentially to a tenth at the end of the run (fraction 0..1)."""
-        mult = 0.1 ** min(max(fraction, 0.0), 1.0)
+    def set_progress(self, fraction: float, frozen: bool = False) -> None:
+        """Learning rates decayed exponentially to a tenth at the end of the run (fraction 0..1);
+        0 when ``frozen`` (TrainConfig.geometry_until)."""
+        mult = 0.0 if frozen else 0.1 ** min(max(fraction, 0.0), 1.0)
         for g, lr in zip(self.optimizer.param_groups, self.base_lr):
             g["lr"] = lr * mult
 

@@ -55,6 +55,10 @@ from splat.views import View, ViewSet
 
 log = logging.getLogger(__name__)
 
+GEOMETRY_KEYS = ("means", "scales", "quats", "opacities")
+"""The parameters TrainConfig.geometry_until stops: what the rendered depth, normals and alpha (so
+the mesh) depend on; the colours (sh0, shN) train on."""
+
 
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
@@ -330,6 +334,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         write_config_file(work / "config.yaml", cfg, {"scene": str(scene_dir), "cues": str(cues_ply)})
     checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
     sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
+    freeze_step = round(cfg.geometry_until * cfg.iters)
     base_lr = {k: opt.param_groups[0]["lr"] for k, opt in optimizers.items()}
     curve, order, train_s, step0, log_bytes = [], [], 0.0, 0, 0
     log_path = work / "train_log.jsonl"
@@ -369,8 +374,11 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
             contextlib.closing(live) if live else contextlib.nullcontext():
         while step < cfg.iters:
             t0 = time.perf_counter()
+            frozen = step >= freeze_step
             for key, opt in optimizers.items():
                 rate = means_lr(step, cfg.iters, cfg.lr, scale) if key == "means" else base_lr[key]
+                if frozen and key in GEOMETRY_KEYS:
+                    rate = 0.0  # Adam with lr 0 moves nothing: the geometry stays as it is
                 opt.param_groups[0]["lr"] = rate * guard.lr_mult.get(key, 1.0)
             if not order:
                 order = list(rng.permutation(len(train_views)))
@@ -382,7 +390,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 source = source_view(view.camera, train_views.cameras[j], train_views.image(j))
             sh_degree = min(cfg.sh_degree, step // sh_every)
             if refiner is not None:
-                refiner.set_progress(step / cfg.iters)
+                refiner.set_progress(step / cfg.iters, frozen=frozen)
                 view = refiner.view(k, view)
             loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
                                               cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,

@@ -88,6 +88,11 @@ class TrainConfig:
     """Background colour behind the Gaussians."""
     checkpoints: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
     """Fractions of the run after which test views are evaluated (accuracy against time)."""
+    geometry_until: float = 1.0
+    """Fraction of the run after which the Gaussians' geometry (means, scales, rotations, opacities)
+    and the camera refinement stop learning (learning rate 0) and only the colours train on (1.0:
+    never; an extension). The mesh is fused from that geometry: with 0.5 it is the mesh of the
+    step-0.5 checkpoint, and the rest of the run refines the novel views' colours only."""
     log_every: int = 50
     """Write a train_log.jsonl line every this many iterations."""
     mesh: bool = True
@@ -160,6 +165,8 @@ class TrainConfig:
         if self.loss.mv_patch < 3 or self.loss.mv_patch % 2 == 0 or self.loss.mv_samples < 1 or self.loss.mv_neighbours < 1:
             raise ValueError(f"--loss.mv-patch must be odd and >= 3, --loss.mv-samples and --loss.mv-neighbours >= 1 "
                              f"(got {self.loss.mv_patch}, {self.loss.mv_samples}, {self.loss.mv_neighbours})")
+        if not 0 < self.geometry_until <= 1:
+            raise ValueError(f"--geometry-until must be a fraction in (0, 1], got {self.geometry_until}")
         if not all(0 < c <= 1 for c in self.checkpoints):
             raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
         finite_pos("save-every", self.save_every, zero_ok=True)
