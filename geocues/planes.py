@@ -208,6 +208,15 @@ class _Collector:
                            np.array(self.planes), n_regions, accepted, rejected)
 
 
+def _region_rays(cam: Camera, regions: np.ndarray, cfg: PlaneConfig):
+    """(number of regions, image scale against 640 px, then the strided pixels of the regions: rows,
+    cols, region id, rays [M, 3] with z = 1) of one image: what both plane modes start from."""
+    n_regions = int(regions.max()) + 1 if regions.size else 0
+    s = cam.width / 640.0
+    rows, cols, rid = region_pixels(regions, max(1, int(round(cfg.pixel_stride * s))))
+    return n_regions, s, rows, cols, rid, cam.pixel_rays()[rows, cols]
+
+
 def _bump(d: dict[str, int], key: str, n: int = 1) -> None:
     d[key] = d.get(key, 0) + n
 
@@ -243,15 +252,11 @@ def plane_cues_with_prior(cam: Camera, image: np.ndarray, regions: np.ndarray,
     if regions.shape != (h, w) or aligned_depth.shape != (h, w) or image.shape[:2] != (h, w):
         raise ValueError(f"{cam.name}: regions {regions.shape}, depth {aligned_depth.shape} and "
                          f"image {image.shape} must all be ({h}, {w})")
-    n_regions = int(regions.max()) + 1 if regions.size else 0
+    n_regions, s, rows, cols, rid, rays = _region_rays(cam, regions, cfg)
     rej: dict[str, int] = {}
     if n_regions == 0:
         return PlanePoints.empty()
-    s = w / 640.0
-    stride = max(1, int(round(cfg.pixel_stride * s)))
-    rows, cols, rid = region_pixels(regions, stride)
     z = aligned_depth[rows, cols].astype(np.float64)
-    rays = cam.pixel_rays()[rows, cols]  # [M, 3], z = 1
     near = nearby_anchor_ids(cam, regions, n_regions, anchors_xyz, int(round(cfg.border_px * s)),
                               inside_only=inside_only, depth=aligned_depth, occl_rel=cfg.occlusion_rel)
     groups = np.arange(len(anchors_xyz)) if anchors_group is None else np.asarray(anchors_group)

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from geocues.plane_fit import AnchoredPlane, fit_plane_groups, group_weights, loo_group_residuals, ray_plane_depth
-from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids, region_pixels
-from geocues.planes import PlaneConfig, PlanePoints, _bump, _Collector
+from geocues.plane_regions import in_anchor_hull, lines_confirm_plane, nearby_anchor_ids
+from geocues.planes import PlaneConfig, PlanePoints, _bump, _Collector, _region_rays
 from geocues.scene import Camera
 
 
@@ -68,14 +68,10 @@ def plane_cues_prior_free(cam: Camera, image: np.ndarray, regions: np.ndarray,
         raise ValueError(f"{cam.name}: regions {regions.shape} and image {image.shape} must be ({h}, {w})")
     if len(anchors_group) != len(anchors_xyz):
         raise ValueError(f"anchors_group has {len(anchors_group)} entries, expected {len(anchors_xyz)}")
-    n_regions = int(regions.max()) + 1 if regions.size else 0
+    n_regions, s, rows, cols, rid, rays = _region_rays(cam, regions, cfg)
     rej: dict[str, int] = {}
     if n_regions == 0:
         return PlanePoints.empty()
-    s = w / 640.0
-    stride = max(1, int(round(cfg.pixel_stride * s)))
-    rows, cols, rid = region_pixels(regions, stride)
-    rays = cam.pixel_rays()[rows, cols]
     near = nearby_anchor_ids(cam, regions, n_regions, anchors_xyz, int(round(cfg.border_px * s)),
                               inside_only=inside_only)
     out = _Collector(cam, image, rows, cols)
