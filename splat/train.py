@@ -311,7 +311,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     compiled.enable(cfg.compile and device.type == "cuda")
     refiner = (CameraRefiner(len(train_views), scale, cfg.pose_opt, cfg.focal_opt, cfg.pose_lr, cfg.focal_lr, device)
                if cfg.pose_opt or cfg.focal_opt else None)
-    strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters))
+    strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters,  # no density control on frozen geometry
+                                      refine_stop=min(cfg.strategy.refine_stop, round(cfg.geometry_until * PAPER_ITERS))))
     loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
                        mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
     neighbours = training_neighbours(scene, train_views.indices, cfg.loss.mv_neighbours) if cfg.loss.lambda_mv > 0 else None

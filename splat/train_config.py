@@ -90,9 +90,10 @@ class TrainConfig:
     """Fractions of the run after which test views are evaluated (accuracy against time)."""
     geometry_until: float = 1.0
     """Fraction of the run after which the Gaussians' geometry (means, scales, rotations, opacities)
-    and the camera refinement stop learning (learning rate 0) and only the colours train on (1.0:
-    never; an extension). The mesh is fused from that geometry: with 0.5 it is the mesh of the
-    step-0.5 checkpoint, and the rest of the run refines the novel views' colours only."""
+    and the camera refinement stop learning (learning rate 0), density control stops (if it has not
+    yet), and only the colours train on (1.0: never; an extension). The mesh is fused from that
+    geometry: with 0.5 it is the mesh of the step-0.5 checkpoint, and the rest of the run refines the
+    novel views' colours only."""
     log_every: int = 50
     """Write a train_log.jsonl line every this many iterations."""
     mesh: bool = True
