@@ -148,7 +148,8 @@ class FloorLineConfig:
                              "it needs --floor.ceiling or --floor.floor-grid")
         if self.wall_snap and not (self.level_snap and self.wall_check):
             raise ValueError("--floor.wall-snap adds the checked walls' planes to --floor.level-snap: it needs "
-                             "--floor.level-snap and --floor.wall-check")
+                             "--floor.level-snap and --floor.wall-check (--floor.no-wall-snap turns it off, "
+                             "also in --preset room)")
         if self.wall_snap_height > 1:
             raise ValueError(f"--floor.wall-snap-height is a share of the walls' top, in (0, 1]; got "
                              f"{self.wall_snap_height}")

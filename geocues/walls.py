@@ -273,10 +273,10 @@ def wall_snap_points(cam, rays: np.ndarray, z: np.ndarray, sel: np.ndarray, rans
         snapped = level_plane_points(cam, rays[left], z[left], walls, rel)
         if snapped is None:
             continue
-        reason = "wall_snap_contradicted" if cues_contradict(snapped, a_c, a_w, agree_dist, min_anchors) \
-            else "on_a_wall_plane"
+        vetoed = cues_contradict(snapped, a_c, a_w, agree_dist, min_anchors)
+        reason = "wall_snap_contradicted" if vetoed else "on_a_wall_plane"
         rejected[reason] = rejected.get(reason, 0) + 1
-        if reason == "on_a_wall_plane":
+        if not vetoed:
             kk, X_l, n_l = snapped
             out.append((left[kk], X_l, n_l, None, a_c[:0]))
             taken[left[kk]] = True
