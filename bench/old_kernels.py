@@ -6,7 +6,8 @@
 Writes that commit's ``splat/csrc/composite_cpu.{cpp,h}`` and ``kernels.h`` (``git show``) next to
 a bindings file for the two compositing entry points in ``$INDOORGS_CACHE/torch_extensions/old_kernels/<sha>/``
 and builds them with the baseline flags of :mod:`splat.cpu_ext` (cached like the project's own builds). The entry points'
-signatures must match today's (true since the commit that added ``kernels.h``). Swapping
+signatures must match today's (true since the commit that added ``kernels.h``; the forward's later
+``store_weights`` flag is bridged). Swapping
 ``splat.composite_cpu._ext`` for the result makes render() use the old kernels.
 """
 
@@ -49,5 +50,24 @@ def composite_kernels_at(rev: str) -> ModuleType:
     sources = (src / "composite_cpu.cpp", bindings)
     out = cache_dir(name, (*sources, src / "composite_cpu.h", src / "kernels.h"),
                     cpu_ext.CFLAGS + [torch.__version__])
-    return build_or_load(name, sources, out, f"compositing kernels of {sha[:10]}", cflags=cpu_ext.CFLAGS,
-                         ldflags=["-fopenmp"])
+    ext = build_or_load(name, sources, out, f"compositing kernels of {sha[:10]}", cflags=cpu_ext.CFLAGS,
+                        ldflags=["-fopenmp"])
+    return ext if "store_weights" in (src / "kernels.h").read_text() else _WithoutWeightStore(ext)
+
+
+class _WithoutWeightStore:
+    """Today's forward signature over kernels from before the weight store (splat/composite_cpu.py):
+    the trailing ``store_weights`` flag (always False for a training step) dropped, its generation
+    output -1."""
+
+    def __init__(self, ext) -> None:
+        self.ext = ext
+
+    def forward(self, *args):
+        *args, stored = args
+        if stored:
+            raise ValueError("the compositing kernels of this commit keep no blend weights")
+        return [*self.ext.forward(*args), torch.full((1,), -1, dtype=torch.int64)]
+
+    def backward(self, *args):
+        return self.ext.backward(*args)

@@ -38,6 +38,7 @@ import sys
 import time
 import warnings
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,7 +54,8 @@ from splat.camera_opt import CameraRefiner  # noqa: E402
 from splat.bench import _cpu_build, surface_gaussians, target_views  # noqa: E402
 from splat.losses import LossConfig  # noqa: E402
 from splat.strategy import IndoorStrategy, IndoorStrategyConfig  # noqa: E402
-from splat.train import LearningRates, TrainConfig, make_optimizers, train_step  # noqa: E402
+from splat.frozen import colour_step  # noqa: E402
+from splat.train import LearningRates, TrainConfig, make_optimizers, render_view, train_step  # noqa: E402
 
 
 @dataclass
@@ -70,6 +72,8 @@ class StepBench:
     """Implementations to time side by side (names of :data:`VARIANTS`)."""
     docs: bool = False
     """write the table into docs/training.md (between its train-step markers)."""
+    docs_marker: str = "train-step"
+    """the markers' name (``<!-- NAME -->`` ... ``<!-- /NAME -->``)."""
     detail: bool = True
     """Also split the stages (CPU): projection and compositing forward and backward, each loss term's
     forward, and the rest of the backward (the loss terms' gradients), by timing those functions."""
@@ -121,8 +125,11 @@ def detail_timers(acc: dict[str, float]):
             setattr(owner, attr, value)
 # The same training step computed by other code: (TrainConfig.adam, LossConfig.kernels, whether
 # splat/compiled.py compiles the GPU's loss terms and render maps, TrainConfig.compile; no effect on the CPU).
+# "frozen": today's step once `splat train --geometry-until` has stopped the geometry (splat/frozen.py's
+# colour step: L_rgb, the colours' gradient, Adam on sh0 and shN).
 VARIANTS = {"baseline": ("torch", "torch", False), "fused-adam": ("fused", "torch", False),
-            "fused-loss": ("fused", "fused", False), "today": ("fused", "fused", True)}
+            "fused-loss": ("fused", "fused", False), "today": ("fused", "fused", True),
+            "frozen": ("fused", "fused", True)}
 
 
 def time_config(width: int, height: int, n: int, cfg: StepBench, variant: str) -> dict:
@@ -185,6 +192,10 @@ def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, 
     def one_step(step: int, stage_s: dict | None) -> Tensor:
         k = step % len(views)
         view = refiner.view(k, views[k]) if refiner is not None else views[k]
+        if variant == "frozen":
+            loss, _, _ = colour_step(params, optimizers, view, cfg.sh_degree, loss_cfg, step,
+                                     partial(render_view, cfg=tcfg))
+            return loss
         loss, _, _ = train_step(params, optimizers, strategy, state, view, step,
                                 cfg.sh_degree, tcfg, loss_cfg, g, stage_s=stage_s, refiner=refiner)
         return loss
@@ -216,9 +227,10 @@ def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, 
            "adam": adam, "loss_kernels": kernels,
            "compiled": compile_gpu and cfg.device.startswith("cuda"), "median_s": statistics.median(times),
            "min_s": min(times), "max_s": max(times),
-           "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}}
+           "stages_s": {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES
+                        if variant != "frozen"}}  # the colour step has no stage clock
     if detail:  # the backward's rest: the loss terms' gradients and the autograd glue
-        for st in stages:
+        for st in stages if variant != "frozen" else ():
             st["backward_rest"] = st["backward"] - st.get("composite_bwd", 0.0) - st.get("projection_bwd", 0.0)
         keys = sorted({k for st in stages for k in st} - set(STAGES))
         row["detail_s"] = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in keys}
@@ -271,7 +283,7 @@ def main(cfg: StepBench) -> dict:
                 row = time_config(w, h, n, cfg, variant)
                 rows.append(row)
                 print(f"{size:>8s} {n:>7d} {variant:>10s} {row['median_s']:7.3f}  "
-                      + " ".join(f"{row['stages_s'][k]:9.4f}" for k in STAGES), flush=True)
+                      + " ".join(f"{row['stages_s'][k]:9.4f}" if k in row['stages_s'] else f"{'-':>9s}" for k in STAGES), flush=True)
                 if row.get("detail_s"):
                     print(" " * 37 + ", ".join(f"{k} {v:.4f}" for k, v in row["detail_s"].items()), flush=True)
     result = {"config": asdict(cfg), "torch": torch.__version__, "threads": torch.get_num_threads(),
@@ -283,7 +295,7 @@ def main(cfg: StepBench) -> dict:
         tmp.write_text(json.dumps(result, indent=2))
     print(f"wrote {path}")
     if cfg.docs:
-        write_docs(result, path)
+        write_docs(result, path, marker=cfg.docs_marker)
     return result
 
 
@@ -294,14 +306,15 @@ def format_table(result: dict) -> str:
     for r in result["rows"]:
         st = r.get("stages_s", {})
         lines.append(f"| {r['width']}×{r['height']} | {r['n']:,} | {_variant(r)} | {r['median_s']:.3f} | "
-                     + " | ".join(f"{st.get(k, float('nan')):.3f}" for k in STAGES) + " |")
+                     + " | ".join(f"{st[k]:.3f}" if k in st else "–" for k in STAGES) + " |")
     by_config: dict[tuple, dict[str, float]] = {}
     for r in result["rows"]:
         by_config.setdefault((r["width"], r["height"], r["n"]), {})[r.get("variant", "")] = r["median_s"]
-    ratios = [f"{w}×{h}/{n // 1000}k {v['baseline'] / v['today']:.2f}×" for (w, h, n), v in by_config.items()
-              if "baseline" in v and "today" in v]
-    if ratios:
-        lines += ["", "`today` against `baseline` (seconds per iteration, baseline / today): " + ", ".join(ratios) + "."]
+    for ref, new in (("baseline", "today"), ("today", "frozen")):
+        ratios = [f"{w}×{h}/{n // 1000}k {v[ref] / v[new]:.2f}×" for (w, h, n), v in by_config.items()
+                  if ref in v and new in v]
+        if ratios:
+            lines += ["", f"`{new}` against `{ref}` (seconds per iteration, {ref} / {new}): " + ", ".join(ratios) + "."]
     detailed = [r for r in result["rows"] if r.get("detail_s")]
     if detailed:
         keys = sorted({k for r in detailed for k in r["detail_s"]})
@@ -325,9 +338,9 @@ def _variant(row: dict) -> str:
                                                                       f", compositing of {old}") + ")"
 
 
-def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md") -> None:
-    """Put the table between the train-step markers of docs/training.md."""
-    head, tail = "<!-- train-step -->", "<!-- /train-step -->"
+def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md", marker: str = "train-step") -> None:
+    """Put the table between the ``marker`` markers of docs/training.md."""
+    head, tail = f"<!-- {marker} -->", f"<!-- /{marker} -->"
     text = doc.read_text()
     if head not in text or tail not in text:
         raise ValueError(f"{doc} has no {head} ... {tail} markers")

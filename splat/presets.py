@@ -35,6 +35,9 @@ PAPER_TAB3 = {
 _NO_CUES = {"init_from": "sfm", "strategy.custom_types": (), "loss.use_depth": False,
             "loss.use_normal": False, "loss.lambda_anchor": 0.0}
 
+# The room recipe (docs/training.md): plane-first L_a over every view, PLANE seeds thinned to 90 %.
+_ROOM = {"loss.plane_anchor": True, "loss.plane_first": True, "loss.plane_views": "all", "init.plane_share": 0.9}
+
 
 @dataclass(frozen=True)
 class Preset:
@@ -101,8 +104,9 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
     Preset("flat-all", "+ L_s flattens every Gaussian, not only LINE's (PGSR / 2DGS-like thin Gaussians)",
            {"loss.flat_types": (0, 1, 2)}, extension=True),
     Preset("room", "+ plane cues first, thinned PLANE seeds (train `geocues extract --preset room` cues)",
-           {"loss.plane_anchor": True, "loss.plane_first": True, "loss.plane_views": "all", "init.plane_share": 0.9},
-           needs=("plane_anchors",), extension=True),
+           _ROOM, needs=("plane_anchors",), extension=True),
+    Preset("room-mesh", "room, the geometry frozen from mid-run (colours only after; the mesh-first preset)",
+           {**_ROOM, "geometry_until": 0.5}, needs=("plane_anchors",), extension=True),
     Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
            {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}

@@ -6,8 +6,8 @@ in one pass over the Gaussians per direction instead of ~150 torch operations on
 whose per-operation cost (allocation, OpenMP wake-up) dominated the CPU iteration. The backward is
 analytic, with torch's conventions at non-differentiable points (see the C++ header comment).
 
-Gradients flow to every Gaussian parameter (means, quats, scales, opacities, sh0, shN), not to the
-camera: when the camera's tensors require grad, :func:`splat.projection.project_gaussians` uses the
+Gradients flow to every Gaussian parameter (means, quats, scales, opacities, sh0, shN; to sh0 and
+shN alone, without the geometry's chain, when none of the others needs one), not to the camera: when the camera's tensors require grad, :func:`splat.projection.project_gaussians` uses the
 torch path instead.
 """
 
@@ -32,16 +32,21 @@ class _ProjectCPU(torch.autograd.Function):
         ctx.save_for_backward(means, quats, scales, opacities, sh0, shN, R, C, K, radii)
         ctx.options = options
         ctx.mark_non_differentiable(radii)
+        if not any(ctx.needs_input_grad[:4]):  # a frozen geometry: only the colours carry a gradient on
+            ctx.mark_non_differentiable(*(t for k, t in enumerate(outs) if k != 5))
         return tuple(outs)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_m2, g_con, g_z, _g_rad, g_op, g_col, g_sl, g_nrm):
         means, quats, scales, opacities, sh0, shN, R, C, K, radii = ctx.saved_tensors
+        geometry = any(ctx.needs_input_grad[:4])  # else the colours' chain alone (a frozen geometry)
         grads = _ext.project_backward(
             means, quats, scales, opacities, sh0, shN, R, C, K, radii, g_m2.contiguous(),
             g_con.contiguous(), g_z.contiguous(), g_op.contiguous(), g_col.contiguous(),
-            g_sl.contiguous(), g_nrm.contiguous(), *ctx.options)
+            g_sl.contiguous(), g_nrm.contiguous(), *ctx.options, geometry)
+        if not geometry:
+            grads = (None, None, None, None, *grads[4:])
         return (*grads, None, None, None, None)
 
 

@@ -60,6 +60,12 @@ def pixel_maps(features: Tensor, median: Tensor, alpha: Tensor) -> tuple[Tensor,
     return depth, median_depth, normal
 
 
+def _background(background: Tensor, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if tuple(background.shape) != (3,):
+        raise ValueError(f"background must have shape (3,), got {tuple(background.shape)}")
+    return background.to(device=device, dtype=dtype)
+
+
 def render(
     params: dict[str, Tensor],
     camera: Camera,
@@ -72,6 +78,7 @@ def render(
     eps2d: float = 0.3,
     antialiased: bool = False,
     max_per_pixel: int = 256,
+    maps: bool = True,
 ) -> dict[str, Tensor]:
     """Render one view of the Gaussians ``params`` (keys means, quats, scales, opacities, sh0, shN).
 
@@ -90,6 +97,11 @@ def render(
       alpha [H, W]            accumulated opacity, 1 - T, in [0, 1]
       means2d [N, 2]          projected means (retain_grad() set when they require grad)
       radii [N] int32, visible [N] bool, n_contrib [H, W] int32
+
+    ``maps=False`` composites the colour alone (3 channels, no median): rgb, alpha, means2d, radii,
+    visible and n_contrib, the same values as with the maps; no depth, median_depth nor normal.
+    With the Gaussians' geometry detached (``splat train --geometry-until``) its backward is the
+    colours' alone.
     """
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a splat.camera.Camera, got {type(camera).__name__}")
@@ -107,14 +119,18 @@ def render(
     if means2d.requires_grad:
         means2d.retain_grad()  # for densification (accumulated screen-space gradients)
     dtype, device = means2d.dtype, means2d.device
+    if not maps:
+        bg = torch.zeros(3, dtype=dtype, device=device) if background is None else _background(background, dtype, device)
+        out = composite(means2d, proj.conics, proj.opacities, proj.colors, proj.depths, proj.radii,
+                        camera.width, camera.height, background=bg, backend=backend, max_per_pixel=max_per_pixel)
+        return {"rgb": out.features, "alpha": out.alpha, "means2d": means2d, "radii": proj.radii,
+                "visible": proj.radii > 0, "n_contrib": out.n_contrib}
     offset = proj.depths - (proj.depth_slopes * means2d).sum(-1)  # [N] A = z - p . mean2d
     plane = torch.cat([offset[:, None], proj.depth_slopes], -1)  # [N, 3]
     features = torch.cat([proj.colors, plane, proj.normals], -1)  # [N, 9]
     bg = torch.zeros(9, dtype=dtype, device=device)
     if background is not None:
-        if tuple(background.shape) != (3,):
-            raise ValueError(f"background must have shape (3,), got {tuple(background.shape)}")
-        bg = torch.cat([background.to(device=device, dtype=dtype), bg[3:]])
+        bg = torch.cat([_background(background, dtype, device), bg[3:]])
     out = composite(means2d, proj.conics, proj.opacities, features, proj.depths, proj.radii,
                     camera.width, camera.height, background=bg, median_features=plane,
                     backend=backend, max_per_pixel=max_per_pixel)

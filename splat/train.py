@@ -25,6 +25,7 @@ import os
 import shutil
 import time
 from dataclasses import asdict, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,7 @@ from splat import checkpoint, compiled
 from splat.camera_opt import CameraRefiner
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
 from splat.export import write_3dgs_run
+from splat.frozen import GEOMETRY_KEYS, colour_step
 from splat.gaussians import cue_type_path, scene_scale
 from splat.guard import NumericsGuard, TrainingDiverged
 from splat.losses import LossConfig, total_loss
@@ -55,9 +57,9 @@ from splat.views import View, ViewSet
 
 log = logging.getLogger(__name__)
 
-GEOMETRY_KEYS = ("means", "scales", "quats", "opacities")
-"""The parameters TrainConfig.geometry_until stops: what the rendered depth, normals and alpha (so
-the mesh) depend on; the colours (sh0, shN) train on."""
+COLOUR_STEP_WHEN_FROZEN = True
+"""Once the geometry is frozen (TrainConfig.geometry_until), train with splat.frozen.colour_step (the
+colours' gradient alone); False: the full step with the geometry's learning rates at 0, its oracle."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -91,11 +93,12 @@ def means_lr(step: int, total: int, lr: LearningRates, scale: float) -> float:
 _BACKGROUNDS: dict[tuple, Tensor] = {}
 
 
-def render_view(params, view: View, sh_degree: int, cfg: TrainConfig) -> dict[str, Tensor]:
+def render_view(params, view: View, sh_degree: int, cfg: TrainConfig, maps: bool = True) -> dict[str, Tensor]:
     key = (tuple(cfg.background), view.rgb.device)  # made once: a copy to a GPU waits for it each time
     if key not in _BACKGROUNDS:
         _BACKGROUNDS[key] = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
-    return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=_BACKGROUNDS[key])
+    return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=_BACKGROUNDS[key],
+                  maps=maps)
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -393,9 +396,14 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
             if refiner is not None:
                 refiner.set_progress(step / cfg.iters, frozen=frozen)
                 view = refiner.view(k, view)
-            loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
-                                              cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,
-                                              source=source, refiner=refiner)
+            if frozen and COLOUR_STEP_WHEN_FROZEN and step >= strategy.schedule.stop:
+                loss, terms, density = colour_step(params, optimizers, view, sh_degree, loss_cfg, step,
+                                                   partial(render_view, cfg=cfg),
+                                                   guard if cfg.guard.enabled else None)
+            else:
+                loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
+                                                  cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,
+                                                  source=source, refiner=refiner)
             event = density.get("guard") or guard.check_params(step, params)
             if event is None and density.get("opacity_reset"):
                 guard.on_opacity_reset()

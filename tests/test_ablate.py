@@ -324,7 +324,10 @@ def test_splat_train_preset_flag_and_later_options_win(tmp_path, monkeypatch):
 
 def test_room_preset_is_the_measured_recipe(tmp_path, monkeypatch):
     """`splat train --preset room` is what docs/training.md measured on `geocues extract --preset room`
-    cues: the plane-first L_a over every view and PLANE seeds thinned to 90 % of the budget."""
+    cues: the plane-first L_a over every view and PLANE seeds thinned to 90 % of the budget;
+    `room-mesh` is that with the geometry frozen from mid-run."""
+    import dataclasses
+
     import splat.train
     from cli.splat_cli import main
     from splat.presets import PRESETS, preset_config
@@ -333,6 +336,9 @@ def test_room_preset_is_the_measured_recipe(tmp_path, monkeypatch):
     assert cfg.loss.plane_anchor and cfg.loss.plane_first and cfg.loss.plane_views == "all"
     assert cfg.init.plane_share == 0.9 and "plane_anchors" in PRESETS["room"].needs
     assert preset_config("full").init.plane_share == 0.0 and not preset_config("full").loss.plane_first
+    mesh = preset_config("room-mesh")  # the room recipe with the geometry frozen from mid-run
+    assert mesh.geometry_until == 0.5 and cfg.geometry_until == 1.0
+    assert dataclasses.replace(mesh, geometry_until=1.0) == cfg
     seen = []
     monkeypatch.setattr(splat.train, "run", lambda cfg, *a, **kw: seen.append(cfg))
     assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "room", "--init.plane-share", "0.8"]) == 0

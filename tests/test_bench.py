@@ -105,6 +105,11 @@ def test_train_step_bench_splits_the_stages_and_restores_what_it_timed():
         assert d["composite_fwd"] + d["projection_fwd"] <= row["stages_s"]["render"] * 1.05 + 1e-3
     assert rows[0]["loss_kernels"] == "torch" and rows[1]["loss_kernels"] == "fused"
     assert "Inside the stages" in bench.format_table({"rows": rows})
+    frozen = bench.time_config(96, 72, 1500, cfg, "frozen")  # the colour step of a frozen geometry
+    assert frozen["stages_s"] == {} and frozen["median_s"] > 0
+    assert {"composite_bwd", "projection_bwd"} <= set(frozen["detail_s"])
+    assert not any(k.startswith("loss:depth") for k in frozen["detail_s"])  # L_rgb alone
+    assert "`frozen` against `today`" in bench.format_table({"rows": rows + [frozen]})
 
 
 def test_room_curve_table_reads_the_checkpoints_and_sums_up_the_second_half(tmp_path, monkeypatch):

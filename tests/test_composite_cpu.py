@@ -209,3 +209,69 @@ def test_render_matches_torch_backend_on_room_surfaces(cpu):
         scale = float(b.abs().max())
         assert scale > 0, name
         torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * scale, msg=lambda m: f"{name}: {m}")
+
+
+@pytest.mark.parametrize("nch,dtype", [(3, torch.float32), (9, torch.float32), (4, torch.float32),
+                                       (3, torch.float64)])
+def test_frozen_geometry_backward_from_the_stored_weights(cpu, nch, dtype):
+    """With means2d, conics and opacities not requiring grad (a frozen geometry) the forward keeps its
+    blend weights and the backward sums them against d out: the same image as the full pass (bit for
+    bit), the features' and background's gradients of the full backward and of the torch reference
+    to float rounding (C = 3: render(maps=False), 9: render(), 4: generic), none to the geometry."""
+    width, height = 70, 45  # partial tiles at the right and bottom
+    leaves, depths, radii = random_scene(600, width, height, nch=nch, nmed=0, seed=5, dtype=dtype)
+    means, conics, opac, feats, bg, _ = leaves
+    gen = torch.Generator().manual_seed(3)
+    weight = torch.rand(height, width, nch, generator=gen, dtype=torch.float64).to(dtype)
+    outs, grads = {}, {}
+    for name, fn, geometry in (("full", cpu.composite, True), ("stored", cpu.composite, False),
+                               ("torch", composite_torch, False)):
+        geo = [t if geometry else t.detach() for t in (means, conics, opac)]
+        outs[name] = fn(*geo, feats, depths, radii, width, height, background=bg)
+        grads[name] = torch.autograd.grad((outs[name].features * weight).sum(), [feats, bg])
+    assert torch.equal(outs["stored"].features, outs["full"].features)
+    assert float(grads["full"][0].abs().max()) > 0 and int(outs["full"].n_contrib.max()) > 5
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for ref in ("full", "torch"):
+        for a, b in zip(grads["stored"], grads[ref]):
+            torch.testing.assert_close(a, b, rtol=tol, atol=tol * float(b.abs().max()), msg=lambda m: f"{ref}: {m}")
+
+
+def test_render_colour_only_equals_the_full_render(cpu):
+    """render(maps=False): the colour and alpha of render(), bit for bit, with either backend; its
+    colour gradient with the geometry detached equals the full render's colour gradient."""
+    from splat.bench import bench_camera, surface_gaussians
+    from splat.rasterize import render
+
+    params = surface_gaussians(3000, sh_degree=1, seed=2)
+    camera = bench_camera(64, 48)
+    background = torch.tensor([0.2, 0.5, 0.9])
+    for backend in ("torch", "cpu"):
+        runs = []
+        for maps in (True, False):
+            leaves = {k: v.clone().requires_grad_(maps or k in ("sh0", "shN")) for k, v in params.items()}
+            out = render(leaves, camera, backend=backend, background=background, maps=maps)
+            assert ("depth" in out) == maps
+            grads = torch.autograd.grad((out["rgb"] ** 2).sum(), [leaves["sh0"], leaves["shN"]])
+            runs.append((out["rgb"], out["alpha"], grads))
+        (rgb, alpha, g), (rgb2, alpha2, g2) = runs
+        assert torch.equal(rgb, rgb2) and torch.equal(alpha, alpha2), backend
+        assert float(g[0].abs().max()) > 0
+        for a, b in zip(g, g2):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7, msg=lambda m: f"{backend}: {m}")
+
+
+def test_stored_weights_replaced_by_a_later_forward_fall_back_to_the_full_backward(cpu):
+    """The kept blend weights live in reused buffers: two frozen-geometry forwards before the first
+    one's backward (two views, one loss) still give each its own gradient, the first by the full pass."""
+    width, height = 70, 45
+    leaves, depths, radii = random_scene(600, width, height, nch=3, nmed=0, seed=6)
+    means, conics, opac, feats, bg, _ = leaves
+    geo = [t.detach() for t in (means, conics, opac)]
+    first = cpu.composite(*geo, feats, depths, radii, width, height, background=bg)
+    second = cpu.composite(geo[0] + 3.0, *geo[1:], feats, depths, radii, width, height, background=bg)
+    both = torch.autograd.grad(first.features.sum() + 2 * second.features.sum(), feats)[0]
+    alone = [torch.autograd.grad(cpu.composite(g0, *geo[1:], feats, depths, radii, width, height,
+                                               background=bg).features.sum(), feats)[0]
+             for g0 in (geo[0], geo[0] + 3.0)]
+    torch.testing.assert_close(both, alone[0] + 2 * alone[1], rtol=1e-5, atol=1e-5)

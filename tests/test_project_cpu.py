@@ -150,3 +150,23 @@ def test_dispatch(cpu):
     proj = project_gaussians(params, cam, backend="cpu")
     (proj.means2d.sum() + proj.depths.sum()).backward()
     assert cam.viewmat.grad is not None and float(cam.viewmat.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_colours_only_backward_equals_the_full_one(cpu, degree):
+    """With means, quats, scales and opacities detached (a frozen geometry) the C++ backward runs the
+    colours' chain alone: sh0 and shN get the full backward's gradients bit for bit (and the torch
+    reference's within float64 rounding); the geometry gets none."""
+    params = hard_params(degree=3)
+    cam = camera()
+    grads = {}
+    for name, backend, geometry in (("full", "cpu", True), ("colours", "cpu", False), ("torch", "torch", False)):
+        leaves = {k: v.detach().clone().requires_grad_(geometry or k in ("sh0", "shN")) for k, v in params.items()}
+        proj = project_gaussians(leaves, cam, sh_degree=degree, backend=backend)
+        gen = torch.Generator().manual_seed(7)
+        loss = (proj.colors * torch.randn(proj.colors.shape, generator=gen, dtype=proj.colors.dtype)).sum()
+        grads[name] = torch.autograd.grad(loss, [leaves["sh0"], leaves["shN"]])
+    assert float(grads["full"][0].abs().max()) > 0
+    for a, b, c in zip(grads["colours"], grads["full"], grads["torch"]):
+        assert torch.equal(a, b)
+        torch.testing.assert_close(a, c, rtol=1e-9, atol=1e-12)

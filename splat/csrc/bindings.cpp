@@ -7,6 +7,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
             "and the training loss's SSIM, L_n and L_nc (forward + analytic backward)";
   m.def("forward", &composite_forward, "composite forward (see splat/composite.py)");
   m.def("backward", &composite_backward, "composite backward (see splat/composite.py)");
+  m.def("backward_stored", &composite_backward_stored,
+        "composite backward of the features alone from the forward's stored weights (see splat/composite_cpu.py)");
   m.def("project_forward", &project_forward, "projection forward (see splat/project_cpu.py)");
   m.def("project_backward", &project_backward, "projection backward (see splat/project_cpu.py)");
   m.def("ssim_forward", &ssim_forward, "fused SSIM forward (see splat/losses_cpu.py)");

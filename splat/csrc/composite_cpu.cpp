@@ -22,13 +22,38 @@ struct ForwardOut {
   torch::Tensor out, alpha, median, n_contrib, final_T, last, median_idx;
 };
 
-// Forward: L pixels of a row at once, alphas by the same eval_lanes as the backward (so both take
-// the same skip decisions), then the blend of those lanes as vector selects: a lane's pixel gets
-// exactly the operations, in the order, of the per-pixel rule. The tile's buffers are
-// channel-major (acc[ch * 256 + pixel]) so that a channel of L pixels is one vector.
+// The blend weights w = alpha T of the last forward that kept them, for a features-only backward (a
+// frozen geometry): for each (Gaussian, L pixels of a row) a tile blended, the Gaussian's position q
+// in the tile's list, the first pixel i4 of the L (tile-local) and the L weights (0 in the lanes it did
+// not blend), in the forward's order (q ascending, then rows, then columns). Written into one arena
+// per thread that keeps its memory from call to call (fresh buffers of tens of MB each step cost more
+// in page faults than the backward saves), so a kept set is valid until the next forward that keeps
+// one: ``generation`` tells the backward whether its forward's set is still there.
+template <typename scalar_t>
+struct Arena {
+  std::vector<int32_t> qi;  // (q, i4) pairs
+  std::vector<scalar_t> w;  // L weights per pair
+};
+struct TileRef {
+  int32_t arena = 0;
+  int64_t off = 0, n = 0;  // pairs [off, off + n) of that arena
+};
+template <typename scalar_t>
+struct WeightStore {
+  std::vector<Arena<scalar_t>> arenas;
+  std::vector<TileRef> tiles;
+  int64_t generation = -1;
+};
+template <typename scalar_t>
+WeightStore<scalar_t>& weight_store() {
+  static WeightStore<scalar_t> store;
+  return store;
+}
+int64_t g_generation = 0;  // counts the forwards that kept weights (any dtype)
+
 template <typename scalar_t, int NC>  // NC > 0: channel count known at compile time
 void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, const Bins& bins,
-                  ForwardOut& o, int nthreads) {
+                  ForwardOut& o, int nthreads, WeightStore<scalar_t>* ws = nullptr) {
   typedef typename Lanes<scalar_t>::V V;
   typedef typename Lanes<scalar_t>::M Mk;
   typedef typename Lanes<scalar_t>::MaskInt MaskInt;
@@ -65,6 +90,9 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
       std::fill(done.begin(), done.end(), MaskInt(0));
       int64_t alive = (px1 - px0 + 1) * (py1 - py0 + 1);
       const int64_t start = offs[tile], end = offs[tile + 1];
+      Arena<scalar_t>* ar = ws ? &ws->arenas[omp_get_thread_num()] : nullptr;
+      TileRef* ref = ws ? &ws->tiles[tile] : nullptr;
+      if (ws) *ref = {int32_t(omp_get_thread_num()), int64_t(ar->qi.size() / 2), 0};
       for (int64_t s = start; s < end && alive > 0; ++s) {
         const int64_t r = slot_rank[s];
         if (s + kAhead < end) prefetch_gaussian(pk, fs, C, slot_rank[s + kAhead]);
@@ -95,6 +123,12 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
               if (!any(m)) continue;
             }
             const V w = al * Tv;
+            if (ws) {
+              ar->qi.push_back(int32_t(s - start));
+              ar->qi.push_back(int32_t(i4));
+              ar->w.resize(ar->w.size() + L);
+              vstore(ar->w.data() + ar->w.size() - L, m ? w : V{});
+            }
             scalar_t* a = &acc[i4];
             for (int64_t ch = 0; ch < C; ++ch, a += kTilePix) {
               const V av = vload<V>(a);
@@ -108,6 +142,7 @@ void forward_impl(const Splats<scalar_t>& in, const scalar_t* medf, int64_t M, c
           }
         }
       }
+      if (ws) ref->n = int64_t(ar->qi.size() / 2) - ref->off;
       for (int64_t y = py0; y <= py1; ++y) {
         for (int64_t x = px0; x <= px1; ++x) {
           const int64_t i = (y - py0) * kTile + (x - px0), p = y * W + x;
@@ -238,6 +273,59 @@ void backward_tiles(const Splats<scalar_t>& in, const scalar_t* g_out, const sca
   }
 }
 
+// The features' and background's gradients from the forward's stored weights (WeightStore): per
+// Gaussian of a tile, d f = sum over its blended pixels of w * d out; no alpha is recomputed. Writes
+// ent [E, 6 + C] (the geometry's six 0) and tile_bg as backward_tiles does.
+template <typename scalar_t>
+void backward_features_stored(const scalar_t* g_out, const scalar_t* fT, int64_t C, int64_t W, int64_t H,
+                              const Bins& bins, const WeightStore<scalar_t>& ws, scalar_t* ent,
+                              scalar_t* tbg, int nthreads) {
+  typedef typename Lanes<scalar_t>::V V;
+  constexpr int L = Lanes<scalar_t>::L;
+  const int64_t tiles_x = bins.tiles_x, n_tiles = bins.tiles_x * bins.tiles_y, D = 6 + C;
+  const int32_t* offs = bins.tile_offsets.data_ptr<int32_t>();
+#pragma omp parallel num_threads(nthreads)
+  {
+    std::vector<scalar_t> gp(C * kTilePix + L, scalar_t(0));  // channel-major d out (+L: a row's last lanes)
+    std::vector<V> dfeat(C);
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < n_tiles; ++tile) {
+      const int64_t px0 = (tile % tiles_x) * kTile, py0 = (tile / tiles_x) * kTile;
+      const int64_t px1 = std::min(px0 + kTile, W) - 1, py1 = std::min(py0 + kTile, H) - 1;
+      scalar_t* tb = tbg + tile * C;
+      std::fill(tb, tb + C, scalar_t(0));
+      std::fill(gp.begin(), gp.end(), scalar_t(0));  // a partial tile's lanes outside the image: 0 (w is 0 there)
+      for (int64_t y = py0; y <= py1; ++y)
+        for (int64_t x = px0; x <= px1; ++x) {
+          const int64_t i = (y - py0) * kTile + (x - px0), p = y * W + x;
+          for (int64_t ch = 0; ch < C; ++ch) {
+            gp[ch * kTilePix + i] = g_out[p * C + ch];
+            tb[ch] += fT[p] * g_out[p * C + ch];
+          }
+        }
+      const int64_t start = offs[tile], count = offs[tile + 1] - start;
+      std::fill(ent + start * D, ent + (start + count) * D, scalar_t(0));
+      const TileRef& ref = ws.tiles[tile];
+      const int32_t* qi = ws.arenas[ref.arena].qi.data() + 2 * ref.off;
+      const scalar_t* wts = ws.arenas[ref.arena].w.data() + L * ref.off;
+      int64_t q = -1;
+      for (int64_t e = 0; e <= ref.n; ++e) {
+        const int64_t qe = e < ref.n ? qi[2 * e] : -2;
+        if (qe != q) {  // the previous Gaussian's sums are complete
+          if (q >= 0)
+            for (int64_t ch = 0; ch < C; ++ch) ent[(start + q) * D + 6 + ch] = hsum(dfeat[ch]);
+          std::fill(dfeat.begin(), dfeat.end(), V{});
+          q = qe;
+        }
+        if (qe < 0) break;
+        const int64_t i4 = qi[2 * e + 1];
+        const V w = vload<V>(wts + e * L);
+        for (int64_t ch = 0; ch < C; ++ch) dfeat[ch] += w * vload<V>(&gp[ch * kTilePix + i4]);
+      }
+    }
+  }
+}
+
 // Sum each Gaussian's slot gradients (fixed order: deterministic for any thread count).
 template <typename scalar_t>
 void reduce_slots(const scalar_t* ent, int64_t C, const Bins& bins, scalar_t* d_means,
@@ -286,7 +374,7 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                                              torch::Tensor opacities, torch::Tensor features,
                                              torch::Tensor depths, torch::Tensor radii,
                                              torch::Tensor background, torch::Tensor median_features,
-                                             int64_t W, int64_t H) {
+                                             int64_t W, int64_t H, bool store_weights) {
   check_inputs({means2d, conics, opacities, features, depths, background, median_features}, radii);
   const int64_t N = features.size(0), C = features.size(1), M = median_features.size(1);
   const int nthreads = num_threads(W, H);
@@ -297,16 +385,61 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                torch::empty({H, W}, opts),     torch::empty({H, W}, iopts),
                torch::empty({H, W}, iopts)};
   Bins bins;
+  int64_t generation = -1;
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_forward", [&] {
     auto in = make_splats<scalar_t>(means2d, conics, opacities, features, background, radii, W, H);
     bins = bin_gaussians(in.mu, depths.data_ptr<scalar_t>(), in.rad, N, W, H, nthreads);
+    WeightStore<scalar_t>* ws = nullptr;
+    if (store_weights) {
+      ws = &weight_store<scalar_t>();
+      ws->generation = generation = ++g_generation;
+      ws->tiles.assign(bins.tiles_x * bins.tiles_y, TileRef{});
+      const size_t n_arenas = size_t(std::max(nthreads, omp_get_max_threads()));
+      if (ws->arenas.size() < n_arenas) ws->arenas.resize(n_arenas);
+      for (auto& a : ws->arenas) {
+        a.qi.clear();  // keeps the capacity
+        a.w.clear();
+      }
+    }
     if (C == 9)  // render(): RGB, depth plane (3), normal (3)
-      forward_impl<scalar_t, 9>(in, median_features.data_ptr<scalar_t>(), M, bins, o, nthreads);
+      forward_impl<scalar_t, 9>(in, median_features.data_ptr<scalar_t>(), M, bins, o, nthreads, ws);
+    else if (C == 3)  // render(maps=False): RGB only
+      forward_impl<scalar_t, 3>(in, median_features.data_ptr<scalar_t>(), M, bins, o, nthreads, ws);
     else
-      forward_impl<scalar_t, 0>(in, median_features.data_ptr<scalar_t>(), M, bins, o, nthreads);
+      forward_impl<scalar_t, 0>(in, median_features.data_ptr<scalar_t>(), M, bins, o, nthreads, ws);
   });
   return {o.out, o.alpha, o.median, o.n_contrib, o.final_T, o.last, o.median_idx,
-          bins.tile_offsets, bins.slot_rank, bins.g_order, bins.g_start, bins.g_slots};
+          bins.tile_offsets, bins.slot_rank, bins.g_order, bins.g_start, bins.g_slots,
+          torch::full({1}, generation, torch::TensorOptions().dtype(torch::kInt64))};
+}
+
+std::vector<torch::Tensor> composite_backward_stored(
+    torch::Tensor grad_out, torch::Tensor features, torch::Tensor final_T, torch::Tensor tile_offsets,
+    torch::Tensor slot_rank, torch::Tensor g_order, torch::Tensor g_start, torch::Tensor g_slots,
+    int64_t generation, int64_t W, int64_t H) {
+  check_inputs({grad_out, features, final_T}, slot_rank);
+  const int64_t N = features.size(0), C = features.size(1);
+  const int nthreads = num_threads(W, H);
+  const int64_t tiles_x = (W + kTile - 1) / kTile, n_tiles = tile_offsets.size(0) - 1;
+  const bool current = features.scalar_type() == torch::kDouble ? weight_store<double>().generation == generation
+                                                                 : weight_store<float>().generation == generation;
+  if (!current) return {};  // a later forward kept its own weights: the caller takes the full backward
+  Bins bins{tiles_x, n_tiles / tiles_x, tile_offsets, slot_rank, g_order, g_start, g_slots};
+  auto opts = features.options();
+  torch::Tensor d_means = torch::zeros({N, 2}, opts), d_conics = torch::zeros({N, 3}, opts);
+  torch::Tensor d_opac = torch::zeros({N}, opts), d_feat = torch::zeros({N, C}, opts);
+  torch::Tensor ent = torch::empty({slot_rank.size(0), 6 + C}, opts);
+  torch::Tensor tile_bg = torch::empty({n_tiles, C}, opts);
+  AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_backward_stored", [&] {
+    const WeightStore<scalar_t>& ws = weight_store<scalar_t>();
+    TORCH_CHECK(int64_t(ws.tiles.size()) == n_tiles, "composite_backward_stored: the weights are not this image's");
+    backward_features_stored<scalar_t>(grad_out.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(), C, W, H, bins,
+                                       ws, ent.data_ptr<scalar_t>(), tile_bg.data_ptr<scalar_t>(), nthreads);
+    reduce_slots<scalar_t>(ent.data_ptr<scalar_t>(), C, bins, d_means.data_ptr<scalar_t>(),
+                           d_conics.data_ptr<scalar_t>(), d_opac.data_ptr<scalar_t>(),
+                           d_feat.data_ptr<scalar_t>(), nthreads);
+  });
+  return {d_feat, tile_bg.sum(0)};
 }
 
 std::vector<torch::Tensor> composite_backward(
@@ -330,7 +463,7 @@ std::vector<torch::Tensor> composite_backward(
   torch::Tensor tile_bg = torch::empty({n_tiles, C}, opts);
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_backward", [&] {
     auto in = make_splats<scalar_t>(means2d, conics, opacities, features, background, radii, W, H);
-    auto tiles_fn = C == 9 ? backward_tiles<scalar_t, 9> : backward_tiles<scalar_t, 0>;
+    auto tiles_fn = C == 9 ? backward_tiles<scalar_t, 9> : C == 3 ? backward_tiles<scalar_t, 3> : backward_tiles<scalar_t, 0>;
     tiles_fn(in, grad_out.data_ptr<scalar_t>(), grad_alpha.data_ptr<scalar_t>(),
                              final_T.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), bins,
                              ent.data_ptr<scalar_t>(), tile_bg.data_ptr<scalar_t>(), nthreads);

@@ -13,7 +13,11 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                                              torch::Tensor opacities, torch::Tensor features,
                                              torch::Tensor depths, torch::Tensor radii,
                                              torch::Tensor background, torch::Tensor median_features,
-                                             int64_t W, int64_t H);
+                                             int64_t W, int64_t H, bool store_weights);
+std::vector<torch::Tensor> composite_backward_stored(
+    torch::Tensor grad_out, torch::Tensor features, torch::Tensor final_T, torch::Tensor tile_offsets,
+    torch::Tensor slot_rank, torch::Tensor g_order, torch::Tensor g_start, torch::Tensor g_slots,
+    int64_t generation, int64_t W, int64_t H);
 std::vector<torch::Tensor> composite_backward(
     torch::Tensor grad_out, torch::Tensor grad_alpha, torch::Tensor grad_median,
     torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities, torch::Tensor features,
@@ -33,7 +37,7 @@ std::vector<torch::Tensor> project_backward(
     torch::Tensor radii, torch::Tensor g_m2, torch::Tensor g_con, torch::Tensor g_z,
     torch::Tensor g_op, torch::Tensor g_col, torch::Tensor g_sl, torch::Tensor g_nrm, int64_t W,
     int64_t H, double near, double far, double eps2d, double min_cos, bool antialiased,
-    int64_t sh_degree);
+    int64_t sh_degree, bool geometry);
 std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor g, double C1,
                                         double C2);
 torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y, torch::Tensor d_mx,

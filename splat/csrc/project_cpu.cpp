@@ -319,10 +319,10 @@ template <typename T>
 void backward_one(const Cam<T>& cam, int64_t i, const T* means, const T* quats, const T* lsc,
                   const T* opac, const T* sh0, const T* shN, const T* g_m2, const T* g_con,
                   const T* g_z, const T* g_op, const T* g_col, const T* g_sl, const T* g_nrm,
-                  T* d_mean, T* d_quat, T* d_ls, T* d_op, T* d_sh0, T* d_shN) {
+                  T* d_mean, T* d_quat, T* d_ls, T* d_op, T* d_sh0, T* d_shN, bool geometry) {
   Geo<T> g;
   to_camera(cam, means + 3 * i, g);
-  ewa(cam, quats + 4 * i, lsc + 3 * i, g);
+  if (geometry) ewa(cam, quats + 4 * i, lsc + 3 * i, g);
   const T* ls = lsc + 3 * i;
   const T x = g.p[0], y = g.p[1], z = g.p[2], e = cam.eps2d;
   T p_bar[3] = {T(0), T(0), g_z[i]}, rel_bar[3] = {T(0), T(0), T(0)};
@@ -346,6 +346,12 @@ void backward_one(const Cam<T>& cam, int64_t i, const T* means, const T* quats, 
       T* dst = k == 0 ? d_sh0 + 3 * i + ch : d_shN + (i * cam.sh_rest + (k - 1)) * 3 + ch;
       *dst = Y[k] * gc[ch];
     }
+  }
+  if (!geometry) {  // the colours' gradient alone (a frozen geometry: splat/frozen.py)
+    for (int k = 0; k < 3; ++k) d_mean[3 * i + k] = d_ls[3 * i + k] = T(0);
+    for (int k = 0; k < 4; ++k) d_quat[4 * i + k] = T(0);
+    d_op[i] = T(0);
+    return;
   }
   T d_bar[3] = {T(0), T(0), T(0)};
   sh_basis_vjp(cam.sh_degree, d, v, d_bar);
@@ -509,7 +515,7 @@ void backward_impl(const Cam<T>& cam, int64_t N, const int32_t* radii, const T* 
                    const T* quats, const T* lsc, const T* opac, const T* sh0, const T* shN,
                    const T* g_m2, const T* g_con, const T* g_z, const T* g_op, const T* g_col,
                    const T* g_sl, const T* g_nrm, T* d_mean, T* d_quat, T* d_ls, T* d_op,
-                   T* d_sh0, T* d_shN) {
+                   T* d_sh0, T* d_shN, bool geometry) {
   const int64_t rest = cam.sh_rest;
 #pragma omp parallel for num_threads(threads_for(N)) schedule(static)
   for (int64_t i = 0; i < N; ++i) {
@@ -524,7 +530,7 @@ void backward_impl(const Cam<T>& cam, int64_t N, const int32_t* radii, const T* 
     const int64_t used = (cam.sh_degree + 1) * (cam.sh_degree + 1) - 1;
     std::fill(d_shN + (i * rest + used) * 3, d_shN + (i + 1) * rest * 3, T(0));
     backward_one(cam, i, means, quats, lsc, opac, sh0, shN, g_m2, g_con, g_z, g_op, g_col, g_sl,
-                 g_nrm, d_mean, d_quat, d_ls, d_op, d_sh0, d_shN);
+                 g_nrm, d_mean, d_quat, d_ls, d_op, d_sh0, d_shN, geometry);
   }
 }
 
@@ -571,7 +577,7 @@ std::vector<torch::Tensor> project_backward(
     torch::Tensor radii, torch::Tensor g_m2, torch::Tensor g_con, torch::Tensor g_z,
     torch::Tensor g_op, torch::Tensor g_col, torch::Tensor g_sl, torch::Tensor g_nrm, int64_t W,
     int64_t H, double near, double far, double eps2d, double min_cos, bool antialiased,
-    int64_t sh_degree) {
+    int64_t sh_degree, bool geometry) {
   using namespace project_cpu;
   check({means, quats, log_scales, opacities, sh0, shN, R, C, K, g_m2, g_con, g_z, g_op, g_col,
          g_sl, g_nrm});
@@ -590,7 +596,7 @@ std::vector<torch::Tensor> project_backward(
         g_z.data_ptr<scalar_t>(), g_op.data_ptr<scalar_t>(), g_col.data_ptr<scalar_t>(),
         g_sl.data_ptr<scalar_t>(), g_nrm.data_ptr<scalar_t>(), d_mean.data_ptr<scalar_t>(),
         d_quat.data_ptr<scalar_t>(), d_ls.data_ptr<scalar_t>(), d_op.data_ptr<scalar_t>(),
-        d_sh0.data_ptr<scalar_t>(), d_shN.data_ptr<scalar_t>());
+        d_sh0.data_ptr<scalar_t>(), d_shN.data_ptr<scalar_t>(), geometry);
   });
   return {d_mean, d_quat, d_ls, d_op, d_sh0, d_shN};
 }
