@@ -219,6 +219,31 @@ def test_train_with_camera_refinement_reports_it_meshes_and_resumes(tmp_path):
     assert rep_b["camera_refinement"]["translation_m"]["max"] == pytest.approx(cr["translation_m"]["max"], rel=1e-4)
 
 
+def test_frozen_geometry_freezes_the_camera_corrections_too(tmp_path, monkeypatch):
+    """`--geometry-until 0.5` with pose and focal refinement: the colour step renders the refined
+    cameras, detached, and leaves the corrections as the full step with rates at 0 does."""
+    from cues_synth import make_room_scene
+    from geocues.cue_io import write_cues_ply
+    import splat.train as train_mod
+    from splat.train import TrainConfig, run
+    from test_train import surface_cues
+
+    root = make_room_scene(tmp_path / "room", n_views=8, w=48, h=36, priors="none")
+    write_cues_ply(tmp_path / "cues.ply", surface_cues(root, n_plane=400))
+    cfg = TrainConfig(iters=40, pose_opt=True, focal_opt=True, checkpoints=(), seed=0, mesh=False, geometry_until=0.5)
+    corrections = []
+    for fast in (True, False):
+        monkeypatch.setattr(train_mod, "COLOUR_STEP_WHEN_FROZEN", fast)
+        out = run(cfg, root, tmp_path / "cues.ply", tmp_path / f"run_{fast}")
+        z = np.load(out / "camera_refinement.npz")
+        corrections.append((z["rot"], z["trans"], float(z["focal_factor"])))
+    (rot, trans, focal), (rot_o, trans_o, focal_o) = corrections
+    assert np.abs(rot).max() > 0 and focal != 1.0
+    np.testing.assert_array_equal(rot, rot_o)
+    np.testing.assert_array_equal(trans, trans_o)
+    assert focal == focal_o
+
+
 @pytest.mark.parametrize("field", ["pose_lr", "focal_lr"])
 def test_a_bad_learning_rate_is_refused_before_any_work(field):
     from splat.train import TrainConfig
