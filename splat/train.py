@@ -188,7 +188,7 @@ def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out
     rows = []
     for k in range(len(views)):
         view = refiner.test_view(views[k]) if refiner is not None else views[k]
-        rgb = render_view(params, view, sh_degree, cfg)["rgb"].clamp(0, 1)
+        rgb = render_view(params, view, sh_degree, cfg, maps=False)["rgb"].clamp(0, 1)  # colour alone: the same image
         rows.append({"name": view.name, "psnr": psnr(rgb.cpu(), view.rgb.cpu()), "ssim": ssim(rgb.cpu(), view.rgb.cpu())})
         if out_dir is not None:
             import cv2

@@ -112,26 +112,29 @@ def test_sigterm_to_the_command_leaves_a_checkpoint_and_one_line(scene):
 
 
 def _poison_render(monkeypatch, at_call: int = 30) -> None:
-    """The ``at_call``-th render carries a NaN into the loss and every gradient."""
+    """The ``at_call``-th training render (test-view renders are not counted) carries a NaN into the
+    loss and every gradient."""
     import splat.train as train
 
     real = train.render_view
     calls = {"n": 0}
 
-    def poisoned(params, view, sh_degree, cfg):
-        out = real(params, view, sh_degree, cfg)
-        calls["n"] += 1
-        return {**out, "rgb": out["rgb"] * torch.tensor(float("nan"))} if calls["n"] == at_call else out
+    def poisoned(params, view, sh_degree, cfg, maps=True):
+        out = real(params, view, sh_degree, cfg, maps=maps)
+        calls["n"] += torch.is_grad_enabled()
+        return ({**out, "rgb": out["rgb"] * torch.tensor(float("nan"))}
+                if calls["n"] == at_call and torch.is_grad_enabled() else out)
 
     monkeypatch.setattr(train, "render_view", poisoned)
 
 
-def test_an_injected_nan_gradient_is_rolled_back_and_the_run_ends_finite(scene, monkeypatch):
+@pytest.mark.parametrize("geometry_until", [1.0, 0.5])  # 0.5: the NaN meets the frozen half's colour step
+def test_an_injected_nan_gradient_is_rolled_back_and_the_run_ends_finite(scene, monkeypatch, geometry_until):
     import splat.train as train
 
     base, root, cues = scene
-    _poison_render(monkeypatch)
-    out = train.run(_cfg(), root, cues, base / "nan")
+    _poison_render(monkeypatch, at_call=30 if geometry_until == 1.0 else 60)
+    out = train.run(_cfg(geometry_until=geometry_until), root, cues, base / f"nan_{geometry_until}")
     report = json.loads((out / "report.json").read_text())
     assert len(report["guard_events"]) == 1
     event = report["guard_events"][0]
