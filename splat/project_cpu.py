@@ -7,8 +7,9 @@ whose per-operation cost (allocation, OpenMP wake-up) dominated the CPU iteratio
 analytic, with torch's conventions at non-differentiable points (see the C++ header comment).
 
 Gradients flow to every Gaussian parameter (means, quats, scales, opacities, sh0, shN; to sh0 and
-shN alone, without the geometry's chain, when none of the others needs one), not to the camera: when the camera's tensors require grad, :func:`splat.projection.project_gaussians` uses the
-torch path instead.
+shN alone, without the geometry's chain, when none of the others needs one), not to the camera:
+when the camera's tensors require grad, :func:`splat.projection.project_gaussians` uses the torch
+path instead.
 """
 
 from __future__ import annotations

@@ -347,12 +347,7 @@ void backward_one(const Cam<T>& cam, int64_t i, const T* means, const T* quats, 
       *dst = Y[k] * gc[ch];
     }
   }
-  if (!geometry) {  // the colours' gradient alone (a frozen geometry: splat/frozen.py)
-    for (int k = 0; k < 3; ++k) d_mean[3 * i + k] = d_ls[3 * i + k] = T(0);
-    for (int k = 0; k < 4; ++k) d_quat[4 * i + k] = T(0);
-    d_op[i] = T(0);
-    return;
-  }
+  if (!geometry) return;  // the colours' gradient alone (a frozen geometry: splat/frozen.py)
   T d_bar[3] = {T(0), T(0), T(0)};
   sh_basis_vjp(cam.sh_degree, d, v, d_bar);
   const T rr = g.rel[0] * g.rel[0] + g.rel[1] * g.rel[1] + g.rel[2] * g.rel[2];
@@ -520,9 +515,12 @@ void backward_impl(const Cam<T>& cam, int64_t N, const int32_t* radii, const T* 
 #pragma omp parallel for num_threads(threads_for(N)) schedule(static)
   for (int64_t i = 0; i < N; ++i) {
     if (radii[i] == 0) {
-      for (int k = 0; k < 3; ++k) d_mean[3 * i + k] = d_ls[3 * i + k] = d_sh0[3 * i + k] = T(0);
-      for (int k = 0; k < 4; ++k) d_quat[4 * i + k] = T(0);
-      d_op[i] = T(0);
+      for (int k = 0; k < 3; ++k) d_sh0[3 * i + k] = T(0);
+      if (geometry) {
+        for (int k = 0; k < 3; ++k) d_mean[3 * i + k] = d_ls[3 * i + k] = T(0);
+        for (int k = 0; k < 4; ++k) d_quat[4 * i + k] = T(0);
+        d_op[i] = T(0);
+      }
       std::fill(d_shN + i * rest * 3, d_shN + (i + 1) * rest * 3, T(0));
       continue;
     }
@@ -583,8 +581,9 @@ std::vector<torch::Tensor> project_backward(
          g_sl, g_nrm});
   TORCH_CHECK(radii.scalar_type() == torch::kInt32 && radii.is_contiguous(), "radii must be int32");
   const int64_t N = means.size(0);
-  torch::Tensor d_mean = torch::empty_like(means), d_quat = torch::empty_like(quats);
-  torch::Tensor d_ls = torch::empty_like(log_scales), d_op = torch::empty_like(opacities);
+  // without the geometry's gradients (geometry false) their tensors are empty and never written
+  auto grad_of = [&](const torch::Tensor& t) { return geometry ? torch::empty_like(t) : torch::empty({0}, t.options()); };
+  torch::Tensor d_mean = grad_of(means), d_quat = grad_of(quats), d_ls = grad_of(log_scales), d_op = grad_of(opacities);
   torch::Tensor d_sh0 = torch::empty_like(sh0), d_shN = torch::empty_like(shN);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
     auto cam = make_cam<scalar_t>(R, C, K, W, H, near, far, eps2d, min_cos, antialiased, sh_degree,
