@@ -388,15 +388,16 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 order = list(rng.permutation(len(train_views)))
             k = order.pop()
             view = train_views[k]
-            source = None
-            if neighbours and neighbours[k] and step >= loss_cfg.mv_from_iter:
+            colour_only = frozen and COLOUR_STEP_WHEN_FROZEN and step >= strategy.schedule.stop
+            source = None  # L_mv's neighbour: none for the colour step, which has no L_mv
+            if neighbours and neighbours[k] and step >= loss_cfg.mv_from_iter and not colour_only:
                 j = neighbours[k][int(torch.randint(len(neighbours[k]), (1,), generator=gen))]
                 source = source_view(view.camera, train_views.cameras[j], train_views.image(j))
             sh_degree = min(cfg.sh_degree, step // sh_every)
             if refiner is not None:
                 refiner.set_progress(step / cfg.iters, frozen=frozen)
                 view = refiner.view(k, view)
-            if frozen and COLOUR_STEP_WHEN_FROZEN and step >= strategy.schedule.stop:
+            if colour_only:
                 loss, terms, density = colour_step(params, optimizers, view, sh_degree, loss_cfg, step,
                                                    partial(render_view, cfg=cfg),
                                                    guard if cfg.guard.enabled else None)

@@ -326,7 +326,8 @@ void backward_features_stored(const scalar_t* g_out, const scalar_t* fT, int64_t
   }
 }
 
-// Sum each Gaussian's slot gradients (fixed order: deterministic for any thread count).
+// Sum each Gaussian's slot gradients (fixed order: deterministic for any thread count); d_means null:
+// the features' alone (the stored-weights backward, whose slots hold no geometry gradient).
 template <typename scalar_t>
 void reduce_slots(const scalar_t* ent, int64_t C, const Bins& bins, scalar_t* d_means,
                   scalar_t* d_conics, scalar_t* d_opac, scalar_t* d_feat, int nthreads) {
@@ -339,9 +340,11 @@ void reduce_slots(const scalar_t* ent, int64_t C, const Bins& bins, scalar_t* d_
     const int64_t g = gord[k];
     for (int64_t j = gst[k]; j < gst[k + 1]; ++j) {
       const scalar_t* e = ent + int64_t(gsl[j]) * D;
-      d_means[2 * g] += e[0]; d_means[2 * g + 1] += e[1];
-      d_conics[3 * g] += e[2]; d_conics[3 * g + 1] += e[3]; d_conics[3 * g + 2] += e[4];
-      d_opac[g] += e[5];
+      if (d_means) {
+        d_means[2 * g] += e[0]; d_means[2 * g + 1] += e[1];
+        d_conics[3 * g] += e[2]; d_conics[3 * g + 1] += e[3]; d_conics[3 * g + 2] += e[4];
+        d_opac[g] += e[5];
+      }
       for (int64_t ch = 0; ch < C; ++ch) d_feat[g * C + ch] += e[6 + ch];
     }
   }
@@ -426,8 +429,7 @@ std::vector<torch::Tensor> composite_backward_stored(
   if (!current) return {};  // a later forward kept its own weights: the caller takes the full backward
   Bins bins{tiles_x, n_tiles / tiles_x, tile_offsets, slot_rank, g_order, g_start, g_slots};
   auto opts = features.options();
-  torch::Tensor d_means = torch::zeros({N, 2}, opts), d_conics = torch::zeros({N, 3}, opts);
-  torch::Tensor d_opac = torch::zeros({N}, opts), d_feat = torch::zeros({N, C}, opts);
+  torch::Tensor d_feat = torch::zeros({N, C}, opts);
   torch::Tensor ent = torch::empty({slot_rank.size(0), 6 + C}, opts);
   torch::Tensor tile_bg = torch::empty({n_tiles, C}, opts);
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "composite_backward_stored", [&] {
@@ -435,8 +437,7 @@ std::vector<torch::Tensor> composite_backward_stored(
     TORCH_CHECK(int64_t(ws.tiles.size()) == n_tiles, "composite_backward_stored: the weights are not this image's");
     backward_features_stored<scalar_t>(grad_out.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(), C, W, H, bins,
                                        ws, ent.data_ptr<scalar_t>(), tile_bg.data_ptr<scalar_t>(), nthreads);
-    reduce_slots<scalar_t>(ent.data_ptr<scalar_t>(), C, bins, d_means.data_ptr<scalar_t>(),
-                           d_conics.data_ptr<scalar_t>(), d_opac.data_ptr<scalar_t>(),
+    reduce_slots<scalar_t>(ent.data_ptr<scalar_t>(), C, bins, nullptr, nullptr, nullptr,
                            d_feat.data_ptr<scalar_t>(), nthreads);
   });
   return {d_feat, tile_bg.sum(0)};
