@@ -7,6 +7,9 @@ ceiling placed at the height the priors give it, grids of plane anchors on ceili
 regions on those two level planes cut onto them, and what no anchored plane took of a region on a
 checked wall's plane cut onto that wall.
 Train such cues with ``splat train --preset room``.
+``mvs`` is the recipe for a scene whose depth priors come from ``geocues mvs`` (photos only, no network;
+docs/training.md, "Photos only: the `mvs` recipe"): plane-like points also in the holes of the MVS depth,
+floor lines kept only where their own view's aligned prior agrees. Train with ``splat train --preset mvs``.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ EXTRACT_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "room": {"floor.lines": True, "floor.walls": True, "floor.wall_check": True, "floor.wall_front_gap": 0.3,
              "floor.ceiling": True, "floor.floor_grid": True, "floor.level_snap": True, "floor.wall_snap": True},
+    "mvs": {"plane.fill_holes": True, "floor.lines": True, "floor.prior_check": True},
 }
 
 

@@ -39,6 +39,13 @@ _NO_CUES = {"init_from": "sfm", "strategy.custom_types": (), "loss.use_depth": F
 _ROOM = {"loss.plane_anchor": True, "loss.plane_first": True, "loss.plane_views": "all", "init.plane_share": 0.9}
 
 
+# The recipe for `geocues mvs` depth priors (docs/training.md, "Photos only: the `mvs` recipe"): L_mv and
+# each view's plane normals in L_n, hole seeds at the MVS depth, a TSDF of multi-view consistent depth, smoothed.
+_MVS = {"loss.lambda_mv": 0.15, "loss.plane_normals": True, "init.fill_holes": True,
+        "tsdf.consistent_views": 2, "tsdf.max_depth_spread": 0.02, "tsdf.weight_threshold": 1.0,
+        "tsdf.smooth_iters": 30}
+
+
 @dataclass(frozen=True)
 class Preset:
     """One named training configuration."""
@@ -107,6 +114,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in [
            _ROOM, needs=("plane_anchors",), extension=True),
     Preset("room-mesh", "room, the geometry frozen from mid-run (colours only after; the mesh-first preset)",
            {**_ROOM, "geometry_until": 0.5}, needs=("plane_anchors",), extension=True),
+    Preset("mvs", "photos only: mv-plane-normals, hole seeds, consistent smoothed TSDF (train `geocues mvs` scenes, "
+           "`geocues extract --preset mvs` cues)", _MVS, needs=("plane_anchors",), extension=True),
     Preset("camera-opt", "+ per-view pose and shared focal refinement (gsplat's pose_opt)",
            {"pose_opt": True, "focal_opt": True}, extension=True),
 ]}

@@ -321,5 +321,7 @@ class TestCli:
         assert not f.ceiling  # given after the preset
         assert extract_preset_config("room").floor.ceiling
         assert extract_preset_config("paper") == ex.ExtractConfig()  # the default is the paper's cues
+        mvs = extract_preset_config("mvs")  # the photos-only recipe measured on ICL (docs/training.md)
+        assert mvs.plane.fill_holes and mvs.floor.lines and mvs.floor.prior_check and not mvs.floor.walls
         assert main(["extract", "S", "-o", str(tmp_path / "c"), "--preset", "rooms"]) == 1
-        assert "unknown preset 'rooms'; choose from paper, room" in capsys.readouterr().err
+        assert "unknown preset 'rooms'; choose from paper, room, mvs" in capsys.readouterr().err
