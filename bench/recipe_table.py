@@ -11,6 +11,9 @@ folders, C-L1 cm / F / NC / test PSNR dB (AFTER in bold where its C-L1 is lower)
 and which of the targets AFTER meets (C-L1 <= 1.3 x floor, F >= floor - 0.05, NC >= floor - 0.04).
 With NOCUES on every room, the `no-cues` row of ablation_<NOCUES> is added, with whether AFTER beats
 it by the paper's own margins (C-L1 -27 %, F +0.10, NC +0.02), and both recipes' training seconds.
+BEFORE / AFTER may name another row than `full` as ``NAME:ROW`` (``icl_mvs_preset:mvs``), and
+``--fixed-targets LABEL C_L1_CM F NC`` scores a room against fixed targets instead of its floor
+(issue 12's ICL targets: 3.0 cm, 0.85, 0.85).
 """
 
 from __future__ import annotations
@@ -25,7 +28,10 @@ RESULTS = REPO / "bench" / "results"
 
 def full_row(name: str, row: str = "full") -> tuple[dict, dict, int]:
     """(mean metrics of the ``row`` row, the floor's final metrics, seeds) of ablation_<name>; the
-    metrics also hold ``psnr_300``, the held-out PSNR at the first checkpoint (mean over seeds)."""
+    metrics also hold ``psnr_300``, the held-out PSNR at the first checkpoint (mean over seeds).
+    ``name`` may carry its row as ``NAME:ROW``."""
+    if ":" in name:
+        name, row = name.split(":", 1)
     path = RESULTS / f"ablation_{name}" / "ablation.json"
     if not path.is_file():
         raise SystemExit(f"recipe_table: no {path}")
@@ -57,6 +63,16 @@ def targets(m: dict, floor: dict) -> str:
     return f"{text} (C-L1 {ratio:.2f}×)" if len(met) == 3 else f"{text}; misses {', '.join(miss)}"
 
 
+def fixed_targets(m: dict, goal: tuple[float, float, float]) -> str:
+    """Which of C-L1 <= goal[0] cm, F >= goal[1], NC >= goal[2] ``m`` meets."""
+    c, f, n = 100 * m["chamfer_l1"], m["f_score"], m["normal_consistency"]
+    checks = (("C-L1", c <= goal[0], f"C-L1 {c:.2f} > {goal[0]:g} cm"), ("F", f >= goal[1], f"F {f:.3f} < {goal[1]:g}"),
+              ("NC", n >= goal[2], f"NC {n:.3f} < {goal[2]:g}"))
+    met, miss = [k for k, ok, _ in checks if ok], [why for _, ok, why in checks if not ok]
+    fixed = f"≤ {goal[0]:g} cm, ≥ {goal[1]:g}, ≥ {goal[2]:g}"
+    return f"all of {fixed}" if not miss else f"{', '.join(met) or 'none'} of {fixed}; misses {', '.join(miss)}"
+
+
 def beats_no_cues(m: dict, base: dict) -> str:
     """Whether ``m`` beats the no-cue row by the paper's margins (C-L1 -27 %, F +0.10, NC +0.02)."""
     d_c = m["chamfer_l1"] / base["chamfer_l1"] - 1.0
@@ -65,7 +81,8 @@ def beats_no_cues(m: dict, base: dict) -> str:
     return f"{'yes' if ok else 'no'} ({100 * d_c:+.0f} %, {d_f:+.2f}, {d_n:+.3f})"
 
 
-def table(rooms: list[tuple[str, ...]], before: str, after: str) -> str:
+def table(rooms: list[tuple[str, ...]], before: str, after: str,
+          fixed: dict[str, tuple[float, float, float]] | None = None) -> str:
     with_base = all(len(r) == 4 for r in rooms)
     head = f"| room | {before} | {after} | floor | targets ({after}) |"
     if with_base:
@@ -77,7 +94,7 @@ def table(rooms: list[tuple[str, ...]], before: str, after: str) -> str:
         mb, floor, nb = full_row(b)
         seeds = lambda n: f" ({n} seeds)" if n > 1 else ""  # noqa: E731
         fl = f"{100 * floor['chamfer_l1']:.2f} / {floor['f_score']:.3f} / {floor['normal_consistency']:.3f}"
-        line = f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, mb['chamfer_l1'] < ma['chamfer_l1'])}{seeds(nb)} | {fl} | {targets(mb, floor)} |"
+        line = f"| {label} | {_cell(ma)}{seeds(na)} | {_cell(mb, mb['chamfer_l1'] < ma['chamfer_l1'])}{seeds(nb)} | {fl} | {fixed_targets(mb, fixed[label]) if label in (fixed or {}) else targets(mb, floor)} |"
         if with_base:
             mc, _, _ = full_row(base[0], "no-cues")
             line += (f" {_cell(mc)} | {beats_no_cues(mb, mc)} | {ma['psnr_300']:.1f} → {mb['psnr_300']:.1f}"
@@ -94,11 +111,14 @@ def main() -> None:
     ap.add_argument("--after", default="after")
     ap.add_argument("--room", nargs="+", action="append", required=True,
                     help="LABEL BEFORE AFTER [NOCUES]: ablation_* folder names")
+    ap.add_argument("--fixed-targets", nargs=4, action="append", default=[], metavar=("LABEL", "C_L1_CM", "F", "NC"),
+                    help="score room LABEL against these targets instead of its floor")
     args = ap.parse_args()
     bad = [r for r in args.room if len(r) not in (3, 4)]
     if bad:
         ap.error(f"--room takes LABEL BEFORE AFTER [NOCUES], got {bad[0]}")
-    text = table([tuple(r) for r in args.room], args.before, args.after)
+    fixed = {label: (float(c), float(f), float(n)) for label, c, f, n in args.fixed_targets}
+    text = table([tuple(r) for r in args.room], args.before, args.after, fixed)
     doc = args.doc.read_text()
     start, end = f"<!-- {args.marker} -->", f"<!-- /{args.marker} -->"
     if start not in doc or end not in doc:

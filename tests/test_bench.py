@@ -146,3 +146,40 @@ def test_room_curve_table_reads_the_checkpoints_and_sums_up_the_second_half(tmp_
         mod.table([("room a", "a"), ("room c", "c")], "full")
     with pytest.raises(SystemExit, match="no finished row 'room'"):
         mod.table([("room a", "a")], "room")
+
+
+def test_recipe_table_reads_named_rows_and_scores_fixed_targets(tmp_path, monkeypatch):
+    """bench/recipe_table.py: ``NAME:ROW`` picks a row other than `full`; a room given fixed targets is
+    scored against them (ICL: 3.0 cm, 0.85, 0.85), the others against their floor; the paper's margins
+    over `no-cues`."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "recipe_table.py"
+    spec = importlib.util.spec_from_file_location("recipe_table", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "RESULTS", tmp_path)
+
+    def metrics(c, f, n, psnr=30.0, train_s=100.0):
+        return {"chamfer_l1": c, "f_score": f, "normal_consistency": n, "psnr": psnr, "train_s": train_s}
+
+    def write(name, rows, floor=(0.02, 0.95, 0.97)):
+        d = tmp_path / f"ablation_{name}"
+        d.mkdir()
+        data = {"floor": {"final": metrics(*floor)},
+                "rows": [{"row": r, "status": "done", "n_seeds": 1, "mean": m,
+                          "runs": [{"curve": [{"step": 300, "psnr": 20.0}]}]} for r, m in rows.items()]}
+        (d / "ablation.json").write_text(json.dumps(data))
+
+    write("old", {"full": metrics(0.048, 0.71, 0.73), "no-cues": metrics(0.07, 0.66, 0.75)})
+    write("new", {"mvs": metrics(0.029, 0.87, 0.86, train_s=400.0)})
+    text = mod.table([("ICL", "old", "new:mvs", "old")], "full", "mvs", {"ICL": (3.0, 0.85, 0.85)})
+    row = text.splitlines()[2]
+    assert row.startswith("| ICL | 4.80 / 0.710 / 0.730 / 30.0 | **2.90 / 0.870 / 0.860 / 30.0** |")
+    assert "all of ≤ 3 cm, ≥ 0.85, ≥ 0.85" in row and "yes (-59 %, +0.21, +0.110)" in row and "100 → 400" in row
+    write("worse", {"mvs": metrics(0.031, 0.87, 0.84)})
+    row = mod.table([("ICL", "old", "worse:mvs")], "full", "mvs", {"ICL": (3.0, 0.85, 0.85)}).splitlines()[2]
+    assert "F of ≤ 3 cm" in row and "misses C-L1 3.10 > 3 cm, NC 0.840 < 0.85" in row
+    row = mod.table([("room", "old", "worse:mvs")], "full", "mvs").splitlines()[2]  # against its floor
+    assert "misses C-L1 1.55×" in row
