@@ -248,6 +248,30 @@ def consistency_filter(cameras: Sequence[Camera], depths: dict[int, np.ndarray],
     return out
 
 
+def _sweep_key(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float, float], cfg: MvsConfig) -> str:
+    """What view ``i``'s sweep depends on: the sweep's options, the working size, the depth bounds, and the
+    poses, intrinsics and image files (name, size, mtime) of the view and of its neighbours."""
+    from geocues.texture import config_key, file_stamp
+
+    sweep = {k: getattr(cfg, k) for k in ("max_size", "n_depths", "top_k", "window", "min_texture", "min_ncc")}
+    cams = [scene.cameras[j] for j in [i, *neighbours]]
+    poses = [np.round(np.concatenate([c.K.ravel(), c.R.ravel(), c.t.ravel()]), 9).tolist() for c in cams]
+    files = file_stamp(*[c.image_path for c in cams])
+    return config_key(sweep, cams[0].width, cams[0].height, [round(b, 9) for b in bounds], poses, files)
+
+
+def _load_sweep(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(depth, conf) of a cached sweep, or None (absent or unreadable: then it is computed again)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            return z["depth"], z["conf"]
+    except (OSError, KeyError, ValueError) as exc:
+        log.warning("mvs: cached sweep %s unreadable (%s); sweeping again", path, exc)
+        return None
+
+
 def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """MVS depth priors of every view of ``scene_dir`` into the scene folder ``out_dir``; returns it."""
     import cv2
@@ -267,10 +291,21 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
     t0 = time.perf_counter()
     images = {i: _gray(scene.load_image(i)) for i in tqdm(range(len(scene)), desc="mvs: images", unit="img")}
     depths, conf, neighbours, bounds = {}, {}, {}, {}
+    cache_dir, cached = out_dir / "cache" / "mvs_sweep", 0
     for i in tqdm(range(len(scene)), desc="mvs: plane sweep", unit="view"):
         bounds[i] = depth_bounds(scene, i)
         neighbours[i] = select_neighbours(scene.cameras, i, cfg, float(np.sqrt(bounds[i][0] * bounds[i][1])))
-        depths[i], conf[i] = sweep_view(scene, i, neighbours[i], bounds[i], cfg, images)
+        path = cache_dir / f"{scene.cameras[i].stem}_{_sweep_key(scene, i, neighbours[i], bounds[i], cfg)}.npz"
+        hit = _load_sweep(path)
+        if hit is None:
+            hit = sweep_view(scene, i, neighbours[i], bounds[i], cfg, images)
+            with atomic_path(path) as tmp, open(tmp, "wb") as f:
+                np.savez(f, depth=hit[0], conf=hit[1])
+        else:
+            cached += 1
+        depths[i], conf[i] = hit
+    if cached:
+        log.info("mvs: %d of %d views' sweeps from %s", cached, len(scene), cache_dir)
     raw_valid = {i: float((d > 0).mean()) for i, d in depths.items()}
     filtered = consistency_filter(scene.cameras, depths, neighbours, cfg) if cfg.min_consistent > 0 else depths
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))

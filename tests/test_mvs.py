@@ -92,3 +92,42 @@ def test_flat_images_and_views_without_overlap_give_no_depth(tmp_path):
     assert select_neighbours(scene.cameras, 0, no_overlap, 2.0) == []
     with pytest.raises(ValueError, match="holds MVS priors already"):
         run(MvsConfig(max_size=64, n_depths=16), root, tmp_path / "flat")
+
+
+def test_a_killed_run_resumes_from_its_cached_sweeps(tmp_path, monkeypatch):
+    """Nothing is lost on a kill: each view's sweep is cached in OUT/cache as it finishes, a run started
+    again sweeps only the views left and writes what an uninterrupted run writes; an image that changed
+    is swept again, with every view that takes it as a neighbour."""
+    import os
+
+    import geocues.mvs as mvs
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=64, h=48, priors="none")
+    cfg = MvsConfig(max_size=64, n_depths=16)
+    ref = run(cfg, root, tmp_path / "ref")
+    real, swept = mvs.sweep_view, []
+
+    def sweep(scene, i, *args):
+        if len(swept) == 3 and kill:
+            raise KeyboardInterrupt  # Ctrl-C in the middle of the fourth view
+        swept.append(i)
+        return real(scene, i, *args)
+
+    monkeypatch.setattr(mvs, "sweep_view", sweep)
+    kill, out = True, tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        run(cfg, root, out)
+    assert swept == [0, 1, 2] and not (out / "mvs_report.json").exists()
+    kill, swept[:] = False, []
+    run(cfg, root, out)
+    assert swept == [3, 4, 5]
+    scene, done = Scene.load(out, check_priors=False), Scene.load(ref, check_priors=False)
+    for i in range(len(scene)):
+        assert np.array_equal(scene.depth_prior(i), done.depth_prior(i))
+    image = scene.cameras[2].image_path
+    os.utime(image, ns=(image.stat().st_atime_ns, image.stat().st_mtime_ns + 10**9))  # the photo changed
+    swept[:] = []
+    run(cfg, root, out, overwrite=True)
+    takers = [i for i, v in json.loads((out / "mvs_report.json").read_text())["per_view"].items()
+              if scene.cameras[2].name in v["neighbours"]]
+    assert 2 in swept and len(swept) == 1 + len(takers) < len(scene)
