@@ -259,7 +259,7 @@ def test_live_view_serves_and_refreshes_during_training(trained, tmp_path, monke
     assert stopped == [1]
 
 
-def test_multiview_consistency_pulls_an_offset_textured_floor_back(tmp_path):
+def test_multiview_consistency_pulls_an_offset_textured_floor_back(tmp_path, caplog):
     """Cues 8 cm inside the room and no priors at all: nothing but the photos can tell where the
     surface is. L_mv (the rendered plane warps patches into a neighbouring photo) pulls the Gaussians
     of the textured floor back towards it; without it they stay off the surface."""
@@ -288,6 +288,8 @@ def test_multiview_consistency_pulls_an_offset_textured_floor_back(tmp_path):
 
     assert on_floor.sum() > 100
     without, with_mv = floor_distance(0.0), floor_distance(0.5)
+    hints = [r for r in caplog.records if "has no depth priors" in r.getMessage()]
+    assert len(hints) == 2 and "--preset mvs" in hints[0].getMessage()  # photos only: the way to priors
     msg = f"floor Gaussians to the surface: {without:.4f} m without L_mv, {with_mv:.4f} m with"
     assert without > 0.04, msg  # measured 0.049 (0.047 after 600 iterations)
     assert with_mv < 0.8 * without, msg  # measured 0.035 (λ_mv = 2: 0.034)
