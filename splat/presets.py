@@ -40,8 +40,9 @@ _ROOM = {"loss.plane_anchor": True, "loss.plane_first": True, "loss.plane_views"
 
 
 # The recipe for `geocues mvs` depth priors (docs/training.md, "Photos only: the `mvs` recipe"): L_mv and
-# each view's plane normals in L_n, hole seeds at the MVS depth, a TSDF of multi-view consistent depth, smoothed.
-_MVS = {"loss.lambda_mv": 0.15, "loss.plane_normals": True, "init.fill_holes": True,
+# each view's plane normals in L_n, hole seeds at the MVS depth, a TSDF of multi-view consistent depth, smoothed;
+# PLANE seeds thinned to 90 % of the budget where the cues would fill it (a no-op on ICL: 46k cues, 150k budget).
+_MVS = {"loss.lambda_mv": 0.15, "loss.plane_normals": True, "init.fill_holes": True, "init.plane_share": 0.9,
         "tsdf.consistent_views": 2, "tsdf.max_depth_spread": 0.02, "tsdf.weight_threshold": 1.0,
         "tsdf.smooth_iters": 30}
 
