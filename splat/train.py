@@ -305,12 +305,12 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                           plane_normals=planes if plane_normals else None, plane_first=cfg.loss.plane_first,
                           plane_views=cfg.loss.plane_views, anchor_override=fused)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
+    if len(train_views) == 0:
+        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
     if cfg.loss.use_depth and not train_views.has_depth_priors:
         log.warning("%s has no depth priors: L_d and L_a are off. From photos alone, `geocues mvs` computes "
                     "them without a network; train its scene with `geocues extract --preset mvs` cues and "
                     "`splat train --preset mvs` (docs/training.md, \"Photos only\")", scene_dir)
-    if len(train_views) == 0:
-        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
     init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)
     scale = scene_scale(train_views.camera_centers(), seeds)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
