@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import torch
@@ -386,6 +386,12 @@ class LossConfig:
     """L_mv leaves out pixels whose NCC is at or below this (occluded or unmatched)."""
     mv_neighbours: int = 4
     """Neighbouring training views per view; one is drawn per step."""
+
+
+def without_priors(cfg: LossConfig) -> LossConfig:
+    """``cfg`` with the terms that pull towards priors off (L_d, L_a, L_n, L_mv): what trains after
+    TrainConfig.priors_until. L_rgb, L_s and L_nc are kept."""
+    return replace(cfg, use_depth=False, use_normal=False, lambda_anchor=0.0, lambda_mv=0.0)
 
 
 def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params: dict[str, Tensor],

@@ -45,7 +45,7 @@ from splat.export import write_3dgs_run
 from splat.frozen import GEOMETRY_KEYS, colour_step
 from splat.gaussians import cue_type_path, scene_scale
 from splat.guard import NumericsGuard, TrainingDiverged
-from splat.losses import LossConfig, total_loss
+from splat.losses import LossConfig, total_loss, without_priors
 from splat.mesh import write_mesh
 from splat.mesh_run import fuse_cameras
 from splat.multiview import SourceView, source_view, training_neighbours
@@ -322,6 +322,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                                       refine_stop=min(cfg.strategy.refine_stop, round(cfg.geometry_until * PAPER_ITERS))))
     loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
                        mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
+    late_loss_cfg, priors_step = without_priors(loss_cfg), round(cfg.priors_until * cfg.iters)
     neighbours = training_neighbours(scene, train_views.indices, cfg.loss.mv_neighbours) if cfg.loss.lambda_mv > 0 else None
     if neighbours is not None:
         log.info("L_mv: %d of %d training views have a neighbour (%.1f on average)", sum(map(bool, neighbours)),
@@ -393,8 +394,10 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
             k = order.pop()
             view = train_views[k]
             colour_only = frozen and COLOUR_STEP_WHEN_FROZEN and step >= strategy.schedule.stop
+            step_loss_cfg = loss_cfg if step < priors_step else late_loss_cfg
             source = None  # L_mv's neighbour: none for the colour step, which has no L_mv
-            if neighbours and neighbours[k] and step >= loss_cfg.mv_from_iter and not colour_only:
+            if neighbours and neighbours[k] and step >= loss_cfg.mv_from_iter and step_loss_cfg.lambda_mv > 0 \
+                    and not colour_only:
                 j = neighbours[k][int(torch.randint(len(neighbours[k]), (1,), generator=gen))]
                 source = source_view(view.camera, train_views.cameras[j], train_views.image(j))
             sh_degree = min(cfg.sh_degree, step // sh_every)
@@ -402,12 +405,12 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                 refiner.set_progress(step / cfg.iters, frozen=frozen)
                 view = refiner.view(k, view)
             if colour_only:
-                loss, terms, density = colour_step(params, optimizers, view, sh_degree, loss_cfg, step,
+                loss, terms, density = colour_step(params, optimizers, view, sh_degree, step_loss_cfg, step,
                                                    partial(render_view, cfg=cfg),
                                                    guard if cfg.guard.enabled else None)
             else:
                 loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
-                                                  cfg, loss_cfg, gen, guard if cfg.guard.enabled else None,
+                                                  cfg, step_loss_cfg, gen, guard if cfg.guard.enabled else None,
                                                   source=source, refiner=refiner)
             event = density.get("guard") or guard.check_params(step, params)
             if event is None and density.get("opacity_reset"):

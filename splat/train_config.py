@@ -95,6 +95,11 @@ class TrainConfig:
     geometry: with 0.5 it is the mesh of the step-0.5 checkpoint, and the rest of the run refines the
     novel views' colours only, by a colour-only step (splat/frozen.py, about 1.8x cheaper on the CPU).
     `--preset room-mesh` is `room` with 0.5."""
+    priors_until: float = 1.0
+    """Fraction of the run after which the prior terms stop (L_d, L_a, L_n and L_mv; see
+    splat.losses.without_priors) while L_rgb, L_s and L_nc and the whole geometry go on learning
+    (1.0: never; an extension). The priors place the surface early; the rest of the run fits the
+    photos without pulling towards priors that disagree with them."""
     log_every: int = 50
     """Write a train_log.jsonl line every this many iterations."""
     mesh: bool = True
@@ -169,6 +174,8 @@ class TrainConfig:
                              f"(got {self.loss.mv_patch}, {self.loss.mv_samples}, {self.loss.mv_neighbours})")
         if not 0 < self.geometry_until <= 1:
             raise ValueError(f"--geometry-until must be a fraction in (0, 1], got {self.geometry_until}")
+        if not 0 <= self.priors_until <= 1:
+            raise ValueError(f"--priors-until must be a fraction in [0, 1], got {self.priors_until}")
         if not all(0 < c <= 1 for c in self.checkpoints):
             raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
         finite_pos("save-every", self.save_every, zero_ok=True)

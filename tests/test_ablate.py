@@ -558,19 +558,20 @@ def test_plane_rule_left_at_the_paper_keeps_finished_rows_keys(tiny, tmp_path):
     assert specs[1]["train_config"]["strategy"]["plane_rule"] == "tangent" and specs[1]["key"] != specs[0]["key"]
 
 
-def test_geometry_until_left_at_the_end_keeps_finished_rows_keys(tiny, tmp_path):
-    """Rows planned before --geometry-until existed keep their key; a run that freezes the geometry
-    earlier is a new row."""
+@pytest.mark.parametrize("field", ["geometry_until", "priors_until"])
+def test_fractions_left_at_the_end_keep_finished_rows_keys(tiny, tmp_path, field):
+    """Rows planned before --geometry-until / --priors-until existed keep their key; a run that
+    freezes the geometry (or stops the prior terms) earlier is a new row."""
     from splat.ablate import AblateConfig, plan, row_keys
 
     base, root, cues = tiny
     specs, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, TRAIN_ARGS)
     before = json.loads(json.dumps(specs[0]))
-    del before["train_config"]["geometry_until"]
+    del before["train_config"][field]
     assert row_keys(before) == specs[0]["keys"]
-    frozen, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path,
-                     [*TRAIN_ARGS, "--geometry-until", "0.5"])
-    assert frozen[0]["train_config"]["geometry_until"] == 0.5 and frozen[0]["key"] != specs[0]["key"]
+    early, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path,
+                    [*TRAIN_ARGS, "--" + field.replace("_", "-"), "0.5"])
+    assert early[0]["train_config"][field] == 0.5 and early[0]["key"] != specs[0]["key"]
 
 
 def test_mesh_smoothing_left_off_keeps_finished_floor_keys():
