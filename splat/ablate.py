@@ -120,7 +120,8 @@ _ADDED_LATER = (  # options added after rows were first keyed: (config section, 
     ("", lambda k: k in ("pose_opt", "focal_opt", "pose_lr", "focal_lr"),
      lambda s: not s.get("pose_opt") and not s.get("focal_opt")),
     ("", lambda k: k == "geometry_until", lambda s: s.get("geometry_until", 1.0) == 1.0),
-    ("", lambda k: k == "priors_until", lambda s: s.get("priors_until", 1.0) == 1.0),
+    ("", lambda k: k in ("priors_until", "priors_kept"),
+     lambda s: s.get("priors_until", 1.0) == 1.0 and not s.get("priors_kept")),
 )
 
 

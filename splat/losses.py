@@ -388,10 +388,19 @@ class LossConfig:
     """Neighbouring training views per view; one is drawn per step."""
 
 
-def without_priors(cfg: LossConfig) -> LossConfig:
-    """``cfg`` with the terms that pull towards priors off (L_d, L_a, L_n, L_mv): what trains after
-    TrainConfig.priors_until. L_rgb, L_s and L_nc are kept."""
-    return replace(cfg, use_depth=False, use_normal=False, lambda_anchor=0.0, lambda_mv=0.0)
+PRIOR_TERMS = ("depth", "anchor", "normal", "mv")
+"""The terms TrainConfig.priors_until stops (L_d, L_a, L_n, L_mv), as total_loss names them."""
+
+
+def without_priors(cfg: LossConfig, keep: tuple[str, ...] = ()) -> LossConfig:
+    """``cfg`` with the terms that pull towards priors off (L_d, L_a, L_n, L_mv) but those named in
+    ``keep``: what trains after TrainConfig.priors_until. L_rgb, L_s and L_nc are kept."""
+    unknown = sorted(set(keep) - set(PRIOR_TERMS))
+    if unknown:
+        raise ValueError(f"unknown prior terms {unknown}; choose from {', '.join(PRIOR_TERMS)}")
+    off = {"depth": {"use_depth": False}, "anchor": {"lambda_anchor": 0.0}, "normal": {"use_normal": False},
+           "mv": {"lambda_mv": 0.0}}
+    return replace(cfg, **{k: v for term in PRIOR_TERMS if term not in keep for k, v in off[term].items()})
 
 
 def total_loss(out: dict[str, Tensor], gt_rgb: Tensor, camera_K: Tensor, params: dict[str, Tensor],

@@ -322,7 +322,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                                       refine_stop=min(cfg.strategy.refine_stop, round(cfg.geometry_until * PAPER_ITERS))))
     loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
                        mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
-    late_loss_cfg, priors_step = without_priors(loss_cfg), round(cfg.priors_until * cfg.iters)
+    late_loss_cfg, priors_step = without_priors(loss_cfg, cfg.priors_kept), round(cfg.priors_until * cfg.iters)
     neighbours = training_neighbours(scene, train_views.indices, cfg.loss.mv_neighbours) if cfg.loss.lambda_mv > 0 else None
     if neighbours is not None:
         log.info("L_mv: %d of %d training views have a neighbour (%.1f on average)", sum(map(bool, neighbours)),

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 from geocues.types import CueType
 from splat.gaussians import InitConfig
 from splat.guard import GuardConfig
-from splat.losses import LossConfig
+from splat.losses import PRIOR_TERMS, LossConfig
 from splat.mesh import TSDFConfig
 from splat.strategy import IndoorStrategyConfig
 
@@ -100,6 +100,8 @@ class TrainConfig:
     splat.losses.without_priors) while L_rgb, L_s and L_nc and the whole geometry go on learning
     (1.0: never; an extension). The priors place the surface early; the rest of the run fits the
     photos without pulling towards priors that disagree with them."""
+    priors_kept: tuple[str, ...] = ()
+    """The prior terms that go on after priors_until ("depth", "anchor", "normal", "mv")."""
     log_every: int = 50
     """Write a train_log.jsonl line every this many iterations."""
     mesh: bool = True
@@ -176,6 +178,9 @@ class TrainConfig:
             raise ValueError(f"--geometry-until must be a fraction in (0, 1], got {self.geometry_until}")
         if not 0 <= self.priors_until <= 1:
             raise ValueError(f"--priors-until must be a fraction in [0, 1], got {self.priors_until}")
+        if not set(self.priors_kept) <= set(PRIOR_TERMS):
+            raise ValueError(f"--priors-kept: unknown terms {sorted(set(self.priors_kept) - set(PRIOR_TERMS))}; "
+                             f"choose from {', '.join(PRIOR_TERMS)}")
         if not all(0 < c <= 1 for c in self.checkpoints):
             raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
         finite_pos("save-every", self.save_every, zero_ok=True)

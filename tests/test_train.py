@@ -295,9 +295,11 @@ def test_multiview_consistency_pulls_an_offset_textured_floor_back(tmp_path, cap
     assert with_mv < 0.8 * without, msg  # measured 0.035 (λ_mv = 2: 0.034)
 
 
-def test_priors_until_stops_the_prior_terms(tmp_path):
+@pytest.mark.parametrize("kept", [(), ("mv",)])
+def test_priors_until_stops_the_prior_terms(tmp_path, kept):
     """--priors-until 0.5: L_d and L_mv are in the loss of the first half's steps, no prior term (L_d,
-    L_a, L_n, L_mv) is in any step of the second half, and L_rgb, L_s and L_nc go on."""
+    L_a, L_n, L_mv) but those of --priors-kept is in any step of the second half, and L_rgb, L_s and
+    L_nc go on."""
     from splat.losses import LossConfig
     from splat.train import TrainConfig, run
 
@@ -305,12 +307,12 @@ def test_priors_until_stops_the_prior_terms(tmp_path):
     cues = tmp_path / "cues"
     write_cues_ply(cues / "cues.ply", surface_cues(root, n_plane=800))
     cfg = TrainConfig(iters=40, checkpoints=(1.0,), sh_degree=0, mesh=False, test_every=0, log_every=1,
-                      priors_until=0.5, loss=LossConfig(lambda_mv=0.1, mv_from_iter=0, nc_from_iter=0))
+                      priors_until=0.5, priors_kept=kept, loss=LossConfig(lambda_mv=0.1, mv_from_iter=0, nc_from_iter=0))
     out = run(cfg, root, cues, tmp_path / "out")
     rows = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
     rows = [r for r in rows if "loss" in r]
     early, late = [r for r in rows if r["step"] < 20], [r for r in rows if r["step"] >= 20]
     assert len(early) == 20 and len(late) == 20
     assert all({"depth", "mv", "nc", "flat"} <= set(r) for r in early)
-    assert not any({"depth", "normal", "anchor", "mv"} & set(r) for r in late)
-    assert all({"rgb", "nc", "flat"} <= set(r) for r in late)
+    assert not any(({"depth", "normal", "anchor", "mv"} - set(kept)) & set(r) for r in late)
+    assert all({"rgb", "nc", "flat", *kept} <= set(r) for r in late)
