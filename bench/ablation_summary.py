@@ -55,7 +55,7 @@ def scene_table(data: dict) -> str:
                      f"{_f(floor['normal_consistency'])} | 1.00 |  |  | – | – | – |")
     for name, r in rows.items():
         if r["status"] != "done":
-            why = f"n/a ({r['reason']})" if r["status"] == "n/a" else "not run yet"
+            why = f"{r['status']} ({r['reason']})" if r["status"] in ("n/a", "diverged") else "not run yet"
             lines.append(f"| `{name}` | {why} |  |  |  |  |  |  |  |  |")
             continue
         m = r["mean"]

@@ -113,6 +113,8 @@ def ablation_markdown(summary: dict) -> str:
         paper = " / ".join(f"{v:.3f}" for v in r["paper"]) if r.get("paper") else "–"
         if r["status"] == "n/a":
             lines.append(f"| {name} | {paper} | n/a ({r['reason']}) |  |  |  |  |  |  |  |")
+        elif r["status"] == "diverged":
+            lines.append(f"| {name} | {paper} | diverged ({r['reason']}) |  |  |  |  |  |  |  |")
         elif r["status"] == "pending":
             lines.append(f"| {name} | {paper} | (not run yet) |  |  |  |  |  |  |  |")
         else:

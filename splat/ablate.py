@@ -32,6 +32,7 @@ from geocues.atomic import atomic_path, check_output_dir
 from geocues.plane_anchors import plane_anchors_path
 from splat.ablate_exec import execute
 from splat.checkpoint import TrainingInterrupted
+from splat.guard import TrainingDiverged
 from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
 
 log = logging.getLogger(__name__)
@@ -163,7 +164,9 @@ def score_mesh(mesh: Path, gt: Path | None, scene: Path, metrics: MeshMetricsCon
 def run_row(spec: dict) -> dict:
     """Train and score one row (a plain function of a JSON-able spec: it runs in a worker process
     or a Ray task as well as here) with ``spec["threads"]`` torch and Open3D threads if given (the
-    caller's counts are restored after). Writes ``spec["out"]/score.json`` last and returns it."""
+    caller's counts are restored after). Writes ``spec["out"]/score.json`` last and returns it; a
+    training that diverged returns ``{"row", "seed", "key", "diverged": message}`` (no score.json:
+    the same command tries it again from its last good checkpoint)."""
     import open3d as o3d
     import torch
 
@@ -173,6 +176,8 @@ def run_row(spec: dict) -> dict:
         o3d.utility.set_max_threads(int(spec["threads"]))
     try:
         return _run_row(spec)
+    except TrainingDiverged as exc:  # the other rows go on; the report and the exit status say so
+        return {"row": spec["row"], "seed": spec["seed"], "key": spec["key"], "diverged": str(exc)}
     finally:
         torch.set_num_threads(before[0])
         o3d.utility.set_max_threads(before[1])
@@ -365,18 +370,23 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     _add_finished_on_disk(cfg, scene_dir, cues, out_dir, train_args, results, todo)
     shown = [r for r in PRESETS if r in cfg.rows or any(row == r for row, _ in results)]
     floor = _run_floor(cfg, scene_dir, out_dir, example)
+    diverged: dict[tuple[str, int], str] = {}
 
     def summary() -> dict:
         return {"scene": str(scene_dir), "scene_label": cfg.scene_label or scene_dir.name, "cues": str(cues),
                 "config": asdict(cfg) | {"gt": str(cfg.gt) if cfg.gt else None,
                                          "gt_depth": str(cfg.gt_depth) if cfg.gt_depth else None},
                 "train_args": train_args, "floor": floor,
-                "rows": [_row_summary(r, [results[k] for k in sorted(results) if k[0] == r], na)
-                         for r in shown]}
+                "rows": [_row_summary(r, [results[k] for k in sorted(results) if k[0] == r], na,
+                                      {k[1]: m for k, m in diverged.items() if k[0] == r}) for r in shown]}
 
     def on_done(spec: dict, result: dict) -> None:
-        results[(spec["row"], spec["seed"])] = result
-        log.info("row %s seed %d done: %s", spec["row"], spec["seed"], _short(result["final"]))
+        if "diverged" in result:
+            diverged[(spec["row"], spec["seed"])] = result["diverged"]
+            log.error("row %s seed %d diverged: %s", spec["row"], spec["seed"], result["diverged"])
+        else:
+            results[(spec["row"], spec["seed"])] = result
+            log.info("row %s seed %d done: %s", spec["row"], spec["seed"], _short(result["final"]))
         write_reports(summary(), out_dir)
 
     write_reports(summary(), out_dir)
@@ -387,6 +397,11 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
         raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {n} finished row run{'s' * (n != 1)} in "
                                   f"{out_dir}: run the same command again to continue") from None
     write_reports(summary(), out_dir)
+    if diverged:
+        names = ", ".join(f"{row} (seed {seed})" for row, seed in sorted(diverged))
+        raise TrainingDiverged(f"{len(diverged)} row run{'s' * (len(diverged) != 1)} diverged: {names}; "
+                               f"{out_dir / 'report.md'} has the other rows and why (first: "
+                               f"{next(iter(diverged.values()))})")
     return out_dir
 
 
@@ -435,13 +450,15 @@ def _short(final: dict) -> str:
                      if final.get(k) is not None)
 
 
-def _row_summary(row: str, runs: list[dict], na: dict[str, str]) -> dict:
+def _row_summary(row: str, runs: list[dict], na: dict[str, str], diverged: dict[int, str] | None = None) -> dict:
     preset = get_preset(row)
     out = {"row": row, "label": preset.label, "paper": preset.paper, "extension": preset.extension,
            "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in preset.overrides.items()},
            "iters_factor": preset.iters_factor}
     if row in na:
         return out | {"status": "n/a", "reason": na[row]}
+    if diverged:  # a seed whose training diverged: the row's mean would leave it out silently
+        return out | {"status": "diverged", "reason": "; ".join(f"seed {k}: {m}" for k, m in sorted(diverged.items()))}
     if not runs:
         return out | {"status": "pending"}
     return out | row_stats([{k: r[k] for k in RUN_FIELDS if k in r} for r in runs])

@@ -608,3 +608,26 @@ def test_options_left_off_keep_finished_rows_keys(tiny, tmp_path, section, field
     assert row_keys(before) == specs[0]["keys"]
     on, _ = plan(cfg, root, cues, tmp_path, TRAIN_ARGS + [flag, str(value)])
     assert on[0]["train_config"][section][field] == value and on[0]["key"] != specs[0]["key"]
+
+
+def test_a_diverged_row_is_reported_and_the_other_rows_go_on(tiny, monkeypatch):
+    """A row whose training diverges (splat.guard gave up) is in the report as diverged with its
+    reason, the rows after it still run, and the ablation ends with an error naming it."""
+    import splat.train
+    from splat.guard import TrainingDiverged
+
+    real_run = splat.train.run
+
+    def run(cfg, *args, **kw):
+        if cfg.init_from == "sfm":  # the no-cues row
+            raise TrainingDiverged("training diverged at step 7: loss 9 is 23x its running mean")
+        return real_run(cfg, *args, **kw)
+
+    monkeypatch.setattr(splat.train, "run", run)
+    with pytest.raises(TrainingDiverged, match=r"1 row run diverged: no-cues \(seed 0\)"):
+        _run(tiny, "diverged", ["no-cues", "full"], num_threads=1)
+    base = tiny[0]
+    rows = {r["row"]: r for r in json.loads((base / "diverged" / "ablation.json").read_text())["rows"]}
+    assert rows["full"]["status"] == "done"
+    assert rows["no-cues"]["status"] == "diverged" and "step 7" in rows["no-cues"]["reason"]
+    assert "diverged (seed 0: training diverged at step 7" in (base / "diverged" / "report.md").read_text()
