@@ -397,7 +397,7 @@ def without_priors(cfg: LossConfig, keep: tuple[str, ...] = ()) -> LossConfig:
     ``keep``: what trains after TrainConfig.priors_until. L_rgb, L_s and L_nc are kept."""
     unknown = sorted(set(keep) - set(PRIOR_TERMS))
     if unknown:
-        raise ValueError(f"unknown prior terms {unknown}; choose from {', '.join(PRIOR_TERMS)}")
+        raise ValueError(f"--priors-kept: unknown terms {unknown}; choose from {', '.join(PRIOR_TERMS)}")
     off = {"depth": {"use_depth": False}, "anchor": {"lambda_anchor": 0.0}, "normal": {"use_normal": False},
            "mv": {"lambda_mv": 0.0}}
     return replace(cfg, **{k: v for term in PRIOR_TERMS if term not in keep for k, v in off[term].items()})

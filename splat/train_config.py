@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 from geocues.types import CueType
 from splat.gaussians import InitConfig
 from splat.guard import GuardConfig
-from splat.losses import PRIOR_TERMS, LossConfig
+from splat.losses import LossConfig, without_priors
 from splat.mesh import TSDFConfig
 from splat.strategy import IndoorStrategyConfig
 
@@ -178,9 +178,7 @@ class TrainConfig:
             raise ValueError(f"--geometry-until must be a fraction in (0, 1], got {self.geometry_until}")
         if not 0 <= self.priors_until <= 1:
             raise ValueError(f"--priors-until must be a fraction in [0, 1], got {self.priors_until}")
-        if not set(self.priors_kept) <= set(PRIOR_TERMS):
-            raise ValueError(f"--priors-kept: unknown terms {sorted(set(self.priors_kept) - set(PRIOR_TERMS))}; "
-                             f"choose from {', '.join(PRIOR_TERMS)}")
+        without_priors(self.loss, self.priors_kept)  # names an unknown --priors-kept term
         if not all(0 < c <= 1 for c in self.checkpoints):
             raise ValueError(f"--checkpoints must be fractions in (0, 1], got {self.checkpoints}")
         finite_pos("save-every", self.save_every, zero_ok=True)
