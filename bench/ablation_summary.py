@@ -4,7 +4,7 @@
     python bench/ablation_summary.py --demo outputs/demo  # also README.md's demo figures and plot
 
 For each ``bench/results/ablation_<scene>/ablation.json`` (copied there from a `splat ablate` OUT
-with ``--collect OUT NAME``; merged with the rows already there when the setup is the same, so an
+with ``--collect OUT NAME [--label TEXT]``; merged with the rows already there when the setup is the same, so an
 ablation can be finished over several sessions), a table of every row: Chamfer-L1, F@5cm, NC, test PSNR, training
 seconds, the ratio of Chamfer-L1 to the floor's and the deltas against `no-cues`. The text between
 ``<!-- ablation-summary -->`` and ``<!-- /ablation-summary -->`` in docs/training.md is replaced.
@@ -71,10 +71,11 @@ def scene_table(data: dict) -> str:
     return "\n".join(lines)
 
 
-def collect(out: Path, name: str, replace: bool = False) -> Path:
+def collect(out: Path, name: str, replace: bool = False, label: str | None = None) -> Path:
     """Copy a `splat ablate` OUT's reports (not its training folders) to bench/results/ablation_NAME/.
     Where that folder already holds an ablation of the same setup, the two are merged (rows and seeds
-    finished only there stay; ``replace`` drops them) and the report and plot are redrawn."""
+    finished only there stay; ``replace`` drops them) and the report and plot are redrawn. ``label``
+    names the scene in the tables instead of the run's ``--scene-label`` (JSON, report and plot alike)."""
     import sys
 
     sys.path.insert(0, str(REPO))
@@ -82,12 +83,18 @@ def collect(out: Path, name: str, replace: bool = False) -> Path:
 
     dst = RESULTS / f"ablation_{name}"
     dst.mkdir(parents=True, exist_ok=True)
+    new = json.loads((out / "ablation.json").read_text())
+    if label:
+        new["scene_label"] = new["config"]["scene_label"] = label
     if (dst / "ablation.json").is_file() and not replace:
-        old, new = (json.loads((d / "ablation.json").read_text()) for d in (dst, out))
+        old = json.loads((dst / "ablation.json").read_text())
         try:
             write_reports(merge_summaries(old, new), dst)
         except ValueError as exc:
             raise SystemExit(f"{dst}: {exc} (--replace overwrites it)") from None
+        return dst
+    if label:
+        write_reports(new, dst)
         return dst
     for f in ("ablation.json", "report.md", "accuracy_vs_time.png"):
         shutil.copyfile(out / f, dst / f)
@@ -100,10 +107,11 @@ def main() -> None:
                     help="copy the reports of a `splat ablate` OUT to bench/results/ablation_NAME first")
     ap.add_argument("--replace", action="store_true",
                     help="--collect replaces bench/results/ablation_NAME instead of merging into it")
+    ap.add_argument("--label", help="--collect names the scene so in its tables (instead of the run's label)")
     ap.add_argument("--demo", type=Path, help="the main job's output folder (outputs/demo)")
     args = ap.parse_args()
     for out, name in args.collect:
-        print(f"collected {collect(Path(out), name, args.replace)}")
+        print(f"collected {collect(Path(out), name, args.replace, args.label)}")
     parts = []
     for path in sorted(RESULTS.glob("ablation_*/ablation.json")):
         data = json.loads(path.read_text())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from cli.splat_cli import main
@@ -183,3 +184,40 @@ def test_recipe_table_reads_named_rows_and_scores_fixed_targets(tmp_path, monkey
     assert "F of ≤ 3 cm" in row and "misses C-L1 3.10 > 3 cm, NC 0.840 < 0.85" in row
     row = mod.table([("room", "old", "worse:mvs")], "full", "mvs").splitlines()[2]  # against its floor
     assert "misses C-L1 1.55×" in row
+
+
+def test_collect_with_a_label_names_the_scene_in_json_report_and_merge(tmp_path, monkeypatch):
+    """bench/ablation_summary.py ``--collect OUT NAME --label TEXT``: the collected JSON and report.md
+    carry the label (not the run's), and a second run collected under the same label merges into it."""
+    import importlib.util
+    from pathlib import Path
+
+    from tests.test_ablation_merge import _run, _summary
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "ablation_summary.py"
+    spec = importlib.util.spec_from_file_location("ablation_summary", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "RESULTS", tmp_path / "results")
+
+    def run_out(name, rows):
+        out = tmp_path / name
+        out.mkdir()
+        summary = _summary(rows)
+        summary["floor"]["final"] = _run(0, 0.01)["final"]
+        for r in summary["rows"]:
+            for run in r["runs"]:
+                run["curve"][0]["train_s"] = run["train_s"]
+        (out / "ablation.json").write_text(json.dumps(summary))
+        return out
+
+    dst = mod.collect(run_out("a", [("full", [_run(0, 0.05)])]), "x", label="room, seed 0")
+    data = json.loads((dst / "ablation.json").read_text())
+    assert data["scene_label"] == data["config"]["scene_label"] == "room, seed 0"
+    assert (dst / "report.md").read_text().startswith("# Ablation on room, seed 0")
+    assert (dst / "accuracy_vs_time.png").stat().st_size > 0
+    mod.collect(run_out("b", [("full", [_run(1, 0.07)])]), "x", label="room, seed 0")
+    row = json.loads((dst / "ablation.json").read_text())["rows"][0]
+    assert row["n_seeds"] == 2
+    with pytest.raises(SystemExit, match="scene_label"):  # without the label the run's own differs
+        mod.collect(run_out("c", [("full", [_run(2, 0.07)])]), "x")
