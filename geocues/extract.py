@@ -36,7 +36,6 @@ from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
 from geocues.ceiling import add_level_grids, ceiling_height
 from geocues.floor_lines import FloorLineConfig, floor_line_anchors
-from geocues.plane_visibility import behind_and_agree, visible_mask
 from geocues.depth_align import DepthAlignConfig, write_alignments
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
@@ -93,7 +92,6 @@ _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg"
 _WALL_FIELDS = ("walls", "wall_step", "wall_height")  # added after --floor.lines folders were made
 _WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel", "wall_front_gap")  # added after --floor.walls folders
 _CEILING_FIELDS = ("ceiling", "ceiling_margin", "ceiling_min_views")  # added after --floor.wall-front-gap folders
-_VISIBILITY_FIELDS = ("visibility_check", "visibility_rel", "visibility_min_views")  # added after --preset mvs
 
 
 def _key_config(cfg: ExtractConfig) -> dict:
@@ -123,9 +121,6 @@ def _key_config(cfg: ExtractConfig) -> dict:
         d["floor"].pop("wall_front_gap")
     if not cfg.plane.fuse_surfaces:
         for k in _SURFACE_FIELDS:
-            d["plane"].pop(k)
-    if not cfg.plane.visibility_check:
-        for k in _VISIBILITY_FIELDS:
             d["plane"].pop(k)
     return d
 
@@ -292,16 +287,12 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     plane_stats: dict = {}
     anchor_pts = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))  # plane anchors: X, normal, image
     if cfg.planes:
-        seen: dict[int, np.ndarray] | None = {} if cfg.plane.visibility_check else None
         plane_cloud, per_image, pr, plane_stats, anchor_pts = plane_stage(scene, cfg, kind, anchors, plane_ok,
-                                                                           lines, cache, timings, notes, seen,
+                                                                           lines, cache, timings, notes,
                                                                            assumed=assumed, cuts=cuts,
                                                                            levels=levels, walls=snap_walls,
                                                                            wall_veto=measured)
         rejections.update(pr)
-        if seen is not None:
-            plane_cloud, anchor_pts = _visibility_check(scene, cfg, seen, plane_cloud, anchor_pts, rejections,
-                                                        timings, notes)
 
     # ---- merge and write
     t0 = time.perf_counter()
@@ -363,27 +354,6 @@ def _anchors(scene: Scene, sfm: SfmCues | None, lines: LineCues | None,
         sfm_views=({c: np.flatnonzero(np.isin(sfm.kept, v)) for c, v in scene.points.visible_in.items()}
                    if sfm and len(sfm.kept) else None),
         line_points=lp, line_of_point=lo, line_views=lv)
-
-
-def _visibility_check(scene: Scene, cfg: ExtractConfig, priors: dict[int, np.ndarray], cloud: CueCloud,
-                      anchor_pts: tuple[np.ndarray, ...], rejections: dict, timings: dict[str, float],
-                      notes: list[str]) -> tuple[CueCloud, tuple[np.ndarray, ...]]:
-    """``--plane.visibility-check``: the plane points and plane anchors the views' aligned priors
-    (every 4th pixel, as plane_stage keeps them) put behind a surface are dropped."""
-    t0 = time.perf_counter()
-    pc = cfg.plane
-    if not priors:
-        notes.append("--plane.visibility-check: no view has an aligned depth prior; nothing checked")
-        return cloud, anchor_pts
-    keep = visible_mask(*behind_and_agree(cloud.xyz, scene.cameras, priors, 4, pc.visibility_rel),
-                       pc.visibility_min_views)
-    keep_a = visible_mask(*behind_and_agree(anchor_pts[0], scene.cameras, priors, 4, pc.visibility_rel),
-                         pc.visibility_min_views)
-    rejections.setdefault("planes", {})["hidden_by_other_views"] = int((~keep).sum())
-    notes.append(f"--plane.visibility-check: {int((~keep).sum())} of {len(keep)} plane points and "
-                 f"{int((~keep_a).sum())} of {len(keep_a)} plane anchors lay behind the surface other views' priors see")
-    timings["planes_visibility"] = time.perf_counter() - t0
-    return cloud.select(keep), tuple(a[keep_a] for a in anchor_pts)
 
 
 def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, plane_ok: np.ndarray,

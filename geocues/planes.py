@@ -95,15 +95,6 @@ class PlaneConfig:
     where the prior has no depth are cut with the anchored plane of their nearest pixel that has
     one (same pins: max_plane_std, anchor hull), and regions with no prior depth at all get
     prior-free plane cues (an extension)."""
-    visibility_check: bool = False
-    """Drop plane points (and plane anchors) that every view's aligned prior puts behind a surface:
-    hidden (behind the prior by more than visibility_rel of its depth) in at least
-    visibility_min_views views and in more views than agree with them (geocues.plane_visibility;
-    an extension)."""
-    visibility_rel: float = 0.05
-    """That check's tolerance, a fraction of the prior's depth."""
-    visibility_min_views: int = 2
-    """Views that must hide a point before it can be dropped."""
     # ---- prior-free
     free_min_anchors: int = 8
     """Prior-free: anchors (near the region) needed to fit its plane."""

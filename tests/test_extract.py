@@ -119,22 +119,6 @@ class TestRun:
         with pytest.raises(ValueError, match="overwrite"):
             ex.run(None, scenes["all"], out)
 
-    def test_visibility_check_run(self, scenes, tmp_path):
-        """--plane.visibility-check end to end: the plane cues of a room whose priors are right all
-        pass (accurate cues are never behind what other views see), the count and a note in the
-        report, no NaN; off, its fields stay out of the key of older folders."""
-        cfg = ex.ExtractConfig()
-        cfg.plane.visibility_check = True
-        out = ex.run(cfg, scenes["all"], tmp_path / "vis")
-        rep = _report(out)
-        plane = _no_nan(out).of_type(CueType.PLANE)
-        hidden = rep["rejections"]["planes"]["hidden_by_other_views"]
-        assert len(plane) > 100 and hidden < 0.02 * (len(plane) + hidden)
-        assert np.mean(distance_to_surface(plane.xyz) < 0.01) > 0.95
-        assert any(n.startswith("--plane.visibility-check:") for n in rep["notes"])
-        assert "visibility_check" not in ex._key_config(ex.ExtractConfig())["plane"]
-        assert "visibility_rel" in ex._key_config(cfg)["plane"]
-
     def test_floor_lines_run(self, scenes, tmp_path):
         """--floor.lines end to end on the room with a plain floor: the floor from the first plane
         pass, wall and box feet kept as plane anchors, plane cues as accurate as before, no NaN; a
