@@ -125,7 +125,7 @@ def _extract_command(preset_name: str = "paper"):
                 `room` adds floor lines, walls, ceiling, floor grids and level snap for a room with a level floor and
                 ceiling and vertical walls, seen with depth priors (train with `splat train --preset
                 room`); `mvs` for a scene whose depth priors come from `geocues mvs` (photos only): plane points
-                in the MVS depth's holes, floor lines its priors confirm (train with `splat train --preset mvs`).
+                also in the MVS depth's holes (train with `splat train --preset mvs`).
                 Options given on the command line override it.
             overwrite: replace cues already in OUT (the per-image cache is still reused).
             cfg: extraction options; --no-sfm / --no-lines / --no-planes / --no-priors switch stages off;

@@ -8,8 +8,9 @@ regions on those two level planes cut onto them, and what no anchored plane took
 checked wall's plane cut onto that wall.
 Train such cues with ``splat train --preset room``.
 ``mvs`` is the recipe for a scene whose depth priors come from ``geocues mvs`` (photos only, no network;
-docs/training.md, "Photos only: the `mvs` recipe"): plane-like points also in the holes of the MVS depth,
-floor lines kept only where their own view's aligned prior agrees. Train with ``splat train --preset mvs``.
+docs/training.md, "Photos only: the `mvs` recipe"): plane-like points also in the holes of the MVS depth.
+Train with ``splat train --preset mvs``. (Until the twenty-fifth session it also lifted floor lines,
+``--floor.lines --floor.prior-check``: they cost held-out PSNR on ICL and on a photos-only room.)
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ EXTRACT_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "room": {"floor.lines": True, "floor.walls": True, "floor.wall_check": True, "floor.wall_front_gap": 0.3,
              "floor.ceiling": True, "floor.floor_grid": True, "floor.level_snap": True, "floor.wall_snap": True},
-    "mvs": {"plane.fill_holes": True, "floor.lines": True, "floor.prior_check": True},
+    "mvs": {"plane.fill_holes": True},
 }
 
 
