@@ -93,11 +93,7 @@ def collect(out: Path, name: str, replace: bool = False, label: str | None = Non
         except ValueError as exc:
             raise SystemExit(f"{dst}: {exc} (--replace overwrites it)") from None
         return dst
-    if label:
-        write_reports(new, dst)
-        return dst
-    for f in ("ablation.json", "report.md", "accuracy_vs_time.png"):
-        shutil.copyfile(out / f, dst / f)
+    write_reports(new, dst)  # the run's own reports, redrawn (with ``label`` where given)
     return dst
 
 

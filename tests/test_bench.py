@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +13,15 @@ import torch
 
 from cli.splat_cli import main
 from splat.bench import FURNITURE, ROOM, bench_camera, box_triangles, room_triangles, surface_gaussians
+
+
+def _bench_script(name: str):
+    """bench/NAME.py imported as a module (bench/ is scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "bench" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _normals(tris: np.ndarray) -> np.ndarray:
@@ -80,17 +92,9 @@ def test_bench_cli_tiny_run(tmp_path):
 def test_train_step_bench_splits_the_stages_and_restores_what_it_timed():
     """bench/train_step_bench.py on a tiny problem: both variants, every stage and the split inside
     them; the library functions it wraps for the split are the originals afterwards."""
-    import importlib.util
-    import sys
-    from pathlib import Path
-
     from splat import composite_cpu, losses, project_cpu
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "train_step_bench.py"
-    spec = importlib.util.spec_from_file_location("train_step_bench", path)
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = bench  # dataclasses look their module up there
-    spec.loader.exec_module(bench)
+    bench = _bench_script("train_step_bench")
     before = (composite_cpu._CompositeCPU.__dict__["forward"], project_cpu._ProjectCPU.__dict__["backward"],
               losses.rgb_loss, losses.depth_normal_consistency_loss)
     cfg = bench.StepBench(name="test", sizes=("96x72",), counts=(1500,), iters=2)
@@ -116,15 +120,7 @@ def test_train_step_bench_splits_the_stages_and_restores_what_it_timed():
 def test_room_curve_table_reads_the_checkpoints_and_sums_up_the_second_half(tmp_path, monkeypatch):
     """bench/room_curve_table.py: one line per run with every checkpoint, the change from step 1500 to
     the end over the runs, and a clear stop for a run whose checkpoints differ."""
-    import importlib.util
-    from pathlib import Path
-
-    import pytest
-
-    path = Path(__file__).resolve().parents[1] / "bench" / "room_curve_table.py"
-    spec = importlib.util.spec_from_file_location("room_curve_table", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _bench_script("room_curve_table")
     monkeypatch.setattr(mod, "REPO", tmp_path)
 
     def write(name, fs, steps=(300, 750, 1500, 3000)):
@@ -153,13 +149,7 @@ def test_recipe_table_reads_named_rows_and_scores_fixed_targets(tmp_path, monkey
     """bench/recipe_table.py: ``NAME:ROW`` picks a row other than `full`; a room given fixed targets is
     scored against them (ICL: 3.0 cm, 0.85, 0.85), the others against their floor; the paper's margins
     over `no-cues`."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "bench" / "recipe_table.py"
-    spec = importlib.util.spec_from_file_location("recipe_table", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _bench_script("recipe_table")
     monkeypatch.setattr(mod, "RESULTS", tmp_path)
 
     def metrics(c, f, n, psnr=30.0, train_s=100.0):
@@ -189,15 +179,9 @@ def test_recipe_table_reads_named_rows_and_scores_fixed_targets(tmp_path, monkey
 def test_collect_with_a_label_names_the_scene_in_json_report_and_merge(tmp_path, monkeypatch):
     """bench/ablation_summary.py ``--collect OUT NAME --label TEXT``: the collected JSON and report.md
     carry the label (not the run's), and a second run collected under the same label merges into it."""
-    import importlib.util
-    from pathlib import Path
-
     from tests.test_ablation_merge import _run, _summary
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "ablation_summary.py"
-    spec = importlib.util.spec_from_file_location("ablation_summary", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _bench_script("ablation_summary")
     monkeypatch.setattr(mod, "RESULTS", tmp_path / "results")
 
     def run_out(name, rows):
