@@ -81,9 +81,11 @@ def collect(out: Path, name: str, replace: bool = False, label: str | None = Non
     sys.path.insert(0, str(REPO))
     from evaluation.ablation_report import merge_summaries, write_reports
 
+    if not (out / "ablation.json").is_file():
+        raise SystemExit(f"{out}: no ablation.json (not the OUT of a `splat ablate` run)")
+    new = json.loads((out / "ablation.json").read_text())
     dst = RESULTS / f"ablation_{name}"
     dst.mkdir(parents=True, exist_ok=True)
-    new = json.loads((out / "ablation.json").read_text())
     if label:
         new["scene_label"] = new["config"]["scene_label"] = label
     if (dst / "ablation.json").is_file() and not replace:

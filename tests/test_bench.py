@@ -205,3 +205,6 @@ def test_collect_with_a_label_names_the_scene_in_json_report_and_merge(tmp_path,
     assert row["n_seeds"] == 2
     with pytest.raises(SystemExit, match="scene_label"):  # without the label the run's own differs
         mod.collect(run_out("c", [("full", [_run(2, 0.07)])]), "x")
+    with pytest.raises(SystemExit, match="no ablation.json"):  # not an ablation's OUT: one line, no folder made
+        mod.collect(tmp_path / "missing", "y")
+    assert not (tmp_path / "results" / "ablation_y").exists()
