@@ -348,7 +348,7 @@ def test_room_preset_is_the_measured_recipe(tmp_path, monkeypatch):
 def test_mvs_preset_is_the_measured_photos_recipe():
     """`splat train --preset mvs` is the ICL recipe of docs/training.md ("Photos only"): `mv-plane-normals`,
     hole seeds, the multi-view consistent, smoothed TSDF, PLANE seeds thinned where the cues fill the
-    budget and every prior term but L_mv stopped half-way; nothing else differs from `full`."""
+    budget and every prior term but L_mv stopped after a quarter of the run; nothing else differs from `full`."""
     import dataclasses
 
     from splat.presets import preset_config
@@ -356,7 +356,7 @@ def test_mvs_preset_is_the_measured_photos_recipe():
     cfg, full, mvpn = preset_config("mvs"), preset_config("full"), preset_config("mv-plane-normals")
     assert cfg.init.fill_holes and (cfg.tsdf.consistent_views, cfg.tsdf.max_depth_spread) == (2, 0.02)
     assert (cfg.tsdf.weight_threshold, cfg.tsdf.smooth_iters) == (1.0, 30) and cfg.init.plane_share == 0.9
-    assert (cfg.priors_until, cfg.priors_kept) == (0.5, ("mv",))
+    assert (cfg.priors_until, cfg.priors_kept) == (0.25, ("mv",))
     assert dataclasses.replace(cfg, init=full.init, tsdf=full.tsdf, priors_until=1.0, priors_kept=()) == mvpn
 
 
