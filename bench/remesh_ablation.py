@@ -5,8 +5,9 @@ TSDF weight threshold can be compared on the Gaussians every row already trained
 row (OUT/rows/<row>_s<seed>/train) and each variant this runs what `splat mesh` runs, scores the mesh
 with the ablation's own metrics, and fuses the exact-depth floor with the same weight threshold (the
 floor is exact depth: the rendered-depth choice does not apply to it). Variants are named
-``<depth>_w<threshold>[_c<views>][_s<spread>][_t<steps>]`` (``_c2``: fuse only rendered depths that 2 neighbouring
-renders agree with, ``--tsdf.consistent-views 2``; ``_s0.02``: only pixels whose expected and median
+``<depth>_w<threshold>[_c<views>][_n<neighbours>][_s<spread>][_t<steps>]`` (``_c2``: fuse only rendered depths that 2 neighbouring
+renders agree with, ``--tsdf.consistent-views 2``; ``_n16``: of 16 neighbouring views instead of 4,
+``--tsdf.consistency-neighbours 16``; ``_s0.02``: only pixels whose expected and median
 depths agree within 2 %, ``--tsdf.max-depth-spread 0.02``; ``_t30``: 30 Taubin smoothing steps on the
 trained meshes and the floor alike, ``--tsdf.smooth-iters 30``); ``median_w3`` is what `splat train` fused before
 ``expected`` became the default (checked: it reproduces each row's score.json).
@@ -52,15 +53,15 @@ class Remesh:
     """rows to re-mesh (default: every finished row)."""
 
 
-def parse_variant(name: str) -> tuple[str, float, int | None, float | None, int]:
-    """``<depth>_w<threshold>[_c<views>][_s<spread>][_t<steps>]`` -> (depth, weight threshold,
-    consistent_views or None, max_depth_spread or None, Taubin smoothing steps)."""
+def parse_variant(name: str) -> tuple[str, float, int | None, float | None, int, int]:
+    """``<depth>_w<threshold>[_c<views>][_n<neighbours>][_s<spread>][_t<steps>]`` -> (depth, weight threshold,
+    consistent_views or None, max_depth_spread or None, Taubin smoothing steps, consistency_neighbours)."""
     depth, *parts = name.split("_")
     opts = {p[0]: p[1:] for p in parts if p}
-    if not parts or set(opts) - set("wcst") or "w" not in opts:
-        raise ValueError(f"variant {name!r} is not <depth>_w<threshold>[_c<views>][_s<spread>][_t<steps>]")
+    if not parts or set(opts) - set("wcnst") or "w" not in opts:
+        raise ValueError(f"variant {name!r} is not <depth>_w<threshold>[_c<views>][_n<neighbours>][_s<spread>][_t<steps>]")
     return (depth, float(opts["w"]), int(opts["c"]) if "c" in opts else None,
-            float(opts["s"]) if "s" in opts else None, int(opts.get("t", 0)))
+            float(opts["s"]) if "s" in opts else None, int(opts.get("t", 0)), int(opts.get("n", 4)))
 
 
 def main(cfg: Remesh) -> dict:
@@ -78,11 +79,12 @@ def main(cfg: Remesh) -> dict:
     path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"
     done = json.loads(path.read_text())["variants"] if path.is_file() else {}  # a re-run scores only what is new
     for variant in cfg.variants:
-        depth, w, consistent, spread, smooth = parse_variant(variant)
+        depth, w, consistent, spread, smooth, neighbours = parse_variant(variant)
         rows = dict(done.get(variant, {}))  # rows of an earlier run of this name stay
         base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
         tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w,
-                       consistent_views=consistent, max_depth_spread=spread, smooth_iters=smooth)
+                       consistent_views=consistent, max_depth_spread=spread, smooth_iters=smooth,
+                       consistency_neighbours=neighbours)
         folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
         floor_name = f"floor_w{w:g}" + (f"_t{smooth}" if smooth else "") + ".ply"
         if folder is not None and not ("floor" in rows and (work / floor_name).is_file()):
