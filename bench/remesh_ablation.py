@@ -51,6 +51,8 @@ class Remesh:
     variants: tuple[str, ...] = ("median_w3", "expected_w3", "median_w1", "expected_w1")
     rows: tuple[str, ...] = ()
     """rows to re-mesh (default: every finished row)."""
+    label: str | None = None
+    """the scene's name in the tables (default: an earlier run of this name's, else the ablation's label)."""
 
 
 def parse_variant(name: str) -> tuple[str, float, int | None, float | None, int, int]:
@@ -74,18 +76,32 @@ def main(cfg: Remesh) -> dict:
                   and not p.parent.name.endswith(".outdated"))
     if cfg.rows:
         runs = [p for p in runs if p.parent.name.rsplit("_s", 1)[0] in cfg.rows]
-    result = {"ablation": str(cfg.ablation), "scene": str(scene), "scene_label": abl.get("scene_label"),
-              "variants": {}}
+    try:  # every name checked before the first (minutes-long) variant runs
+        parsed = {variant: parse_variant(variant) for variant in cfg.variants}
+    except ValueError as exc:
+        raise SystemExit(f"remesh_ablation: {exc}") from None
     path = REPO / "bench" / "results" / f"remesh_{cfg.name}.json"
-    done = json.loads(path.read_text())["variants"] if path.is_file() else {}  # a re-run scores only what is new
-    for variant in cfg.variants:
-        depth, w, consistent, spread, smooth, neighbours = parse_variant(variant)
+    earlier = json.loads(path.read_text()) if path.is_file() else {}
+    done = earlier.get("variants", {})  # a re-run scores only what is new
+    label = cfg.label or earlier.get("scene_label") or abl.get("scene_label")
+    result = {"ablation": str(cfg.ablation), "scene": str(scene), "scene_label": label, "variants": {}}
+    base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
+    folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
+
+    def save() -> dict:  # after every variant: a kill keeps the variants already scored
+        variants = dict(result["variants"])
+        for variant, rows in done.items():  # earlier variants of this name stay in its file
+            variants.setdefault(variant, rows)
+        merged = {**result, "variants": variants}
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(merged, indent=2))
+        return merged
+
+    for variant, (depth, w, consistent, spread, smooth, neighbours) in parsed.items():
         rows = dict(done.get(variant, {}))  # rows of an earlier run of this name stay
-        base_cfg = json.loads((runs[0] / "report.json").read_text())["config"] if runs else {}
         tsdf = replace(TSDFConfig(**base_cfg.get("tsdf", {})), depth=depth, weight_threshold=w,
                        consistent_views=consistent, max_depth_spread=spread, smooth_iters=smooth,
                        consistency_neighbours=neighbours)
-        folder = find_gt_depth_dir(scene, abl["config"].get("gt_depth"))
         floor_name = f"floor_w{w:g}" + (f"_t{smooth}" if smooth else "") + ".ply"
         if folder is not None and not ("floor" in rows and (work / floor_name).is_file()):
             floor_mesh = fuse_floor(scene, work / floor_name, gt_depth=folder,
@@ -101,10 +117,8 @@ def main(cfg: Remesh) -> dict:
             rows[row] = score_mesh(out, gt, scene, metrics) | {"mesh_s": time.perf_counter() - t0}
             print(variant, row, {k: round(rows[row][k], 4) for k in SHOW}, flush=True)
         result["variants"][variant] = rows
-    for variant, rows in done.items():  # earlier variants of this name stay in its file
-        result["variants"].setdefault(variant, rows)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=2))
+        save()
+    result = save()
     print(format_table(result))
     print(f"wrote {path}")
     write_docs()
