@@ -17,6 +17,10 @@ A second pass keeps a depth only where it is geometrically consistent with at le
 back within ``max_reproj_px`` pixels and ``max_rel_depth`` relative depth (forward–backward check,
 as in COLMAP's fusion and PGSR's filtering).
 
+With ``planar_fill`` the textureless pixels the sweep leaves empty are then completed from the planes
+of a Delaunay triangulation of each view's consistent depth and kept only where they pass the same
+check (geocues/mvs_fill.py, after ACMP's planar prior).
+
 Output: ``OUT`` is a scene folder (images, sparse, gt linked to the source scene) whose
 ``priors/depth/<stem>.npy`` are the filtered MVS depths in metres (0 = no depth) at image size and
 ``priors/depth_conf/<stem>.npy`` their scores in [0, 1]; ``geocues extract OUT`` then aligns them,
@@ -71,6 +75,16 @@ class MvsConfig:
     """minimum triangulation angle of a neighbour at the view's median depth."""
     max_angle_deg: float = 40.0
     """maximum angle between the optical axes of a view and its neighbour."""
+    planar_fill: bool = False
+    """complete the textureless pixels from the planes of a Delaunay triangulation of each view's consistent
+    depth, then keep a fill only where it passes the same consistency check (geocues/mvs_fill.py; after ACMP's
+    planar prior, an extension)."""
+    fill_stride: int = 8
+    """one consistent depth per fill_stride x fill_stride cell is triangulated (pixels at the working size)."""
+    fill_max_edge: float = 2.0
+    """a triangle whose longest 3D edge exceeds this times its mean depth gives no plane (it spans a depth jump)."""
+    fill_min_cos: float = 0.25
+    """a triangle whose plane the view sees at |cos| below this (grazing) gives no plane."""
 
     def validate(self) -> None:
         if self.max_size < 16 or self.n_depths < 8 or self.window < 3 or self.window % 2 == 0:
@@ -80,6 +94,11 @@ class MvsConfig:
             raise ValueError(f"mvs: need 1 <= top_k <= n_neighbours (got {self.top_k}, {self.n_neighbours})")
         if not 0 <= self.min_consistent <= self.n_neighbours:
             raise ValueError(f"mvs: min_consistent must be in 0..n_neighbours, got {self.min_consistent}")
+        if self.planar_fill and self.min_consistent < 1:
+            raise ValueError("mvs: --planar-fill keeps a fill only where neighbours agree: it needs --min-consistent >= 1")
+        if self.fill_stride < 1 or not self.fill_max_edge > 0 or not 0 <= self.fill_min_cos < 1:
+            raise ValueError(f"mvs: need fill_stride >= 1, fill_max_edge > 0 and 0 <= fill_min_cos < 1 "
+                             f"(got {self.fill_stride}, {self.fill_max_edge}, {self.fill_min_cos})")
 
 
 def depth_bounds(scene: Scene, i: int) -> tuple[float, float]:
@@ -248,6 +267,24 @@ def consistency_filter(cameras: Sequence[Camera], depths: dict[int, np.ndarray],
     return out
 
 
+def fill_textureless(scene: Scene, depths: dict[int, np.ndarray], images: dict[int, torch.Tensor],
+                     bounds: dict[int, tuple[float, float]], neighbours: dict[int, list[int]],
+                     cfg: MvsConfig) -> dict[int, np.ndarray]:
+    """``depths`` (consistent, per view) with their textureless holes filled by
+    :func:`geocues.mvs_fill.planar_fill` where the fills pass :func:`consistency_filter` (checked
+    with the swept depths beside them); the swept depths are kept as they are."""
+    from geocues.mvs_fill import planar_fill
+
+    filled = {}
+    for i, d in depths.items():
+        textureless = (torch.sqrt(patch_stats(images[i], cfg.window)[1])[0, 0] < cfg.min_texture).numpy()
+        fill = planar_fill(d, textureless, scene.cameras[i].pixel_rays(), bounds[i], stride=cfg.fill_stride,
+                           max_edge=cfg.fill_max_edge, min_cos=cfg.fill_min_cos)
+        filled[i] = np.where(d > 0, d, fill).astype(np.float32)
+    kept = consistency_filter(scene.cameras, filled, neighbours, cfg)
+    return {i: np.where(d > 0, d, kept[i]).astype(np.float32) for i, d in depths.items()}
+
+
 def _sweep_key(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float, float], cfg: MvsConfig) -> str:
     """What view ``i``'s sweep depends on: the sweep's options, the working size, the depth bounds, and the
     poses, intrinsics and image files (name, size, mtime) of the view and of its neighbours."""
@@ -308,6 +345,9 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
         log.info("mvs: %d of %d views' sweeps from %s", cached, len(scene), cache_dir)
     raw_valid = {i: float((d > 0).mean()) for i, d in depths.items()}
     filtered = consistency_filter(scene.cameras, depths, neighbours, cfg) if cfg.min_consistent > 0 else depths
+    swept_valid = {i: float((d > 0).mean()) for i, d in filtered.items()}
+    if cfg.planar_fill:
+        filtered = fill_textureless(scene, filtered, images, bounds, neighbours, cfg)
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
     if (out_dir / "scene.json").is_file():
         meta = json.loads((out_dir / "scene.json").read_text())
@@ -323,12 +363,15 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
     report = {"config": asdict(cfg), "scene": str(scene_dir.resolve()), "working_size": [scene.cameras[0].width,
               scene.cameras[0].height], "seconds": round(time.perf_counter() - t0, 1),
               "valid_fraction": {"mean": float(np.mean(list(valid.values()))),
-                                 "mean_before_consistency": float(np.mean(list(raw_valid.values())))},
+                                 "mean_before_consistency": float(np.mean(list(raw_valid.values()))),
+                                 "mean_before_planar_fill": float(np.mean(list(swept_valid.values())))},
               "per_view": {cam.name: {"valid": valid[cam.name], "neighbours": [scene.cameras[j].name for j in neighbours[i]],
                                       "bounds_m": list(bounds[i])} for i, cam in enumerate(scene.cameras)}}
     with atomic_path(report_path) as tmp:
         tmp.write_text(json.dumps(report, indent=1))
-    log.info("mvs: %d views in %.0f s, %.0f %% of pixels with a depth (%.0f %% before the consistency check)",
+    log.info("mvs: %d views in %.0f s, %.0f %% of pixels with a depth (%.0f %% before the consistency check%s)",
              len(scene), report["seconds"], 100 * report["valid_fraction"]["mean"],
-             100 * report["valid_fraction"]["mean_before_consistency"])
+             100 * report["valid_fraction"]["mean_before_consistency"],
+             f", {100 * report['valid_fraction']['mean_before_planar_fill']:.0f} % before the planar fill"
+             if cfg.planar_fill else "")
     return out_dir

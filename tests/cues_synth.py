@@ -84,10 +84,23 @@ def _hash_noise(p: np.ndarray, cell: float) -> np.ndarray:
     return v - np.floor(v)
 
 
-def render(K: np.ndarray, R: np.ndarray, t: np.ndarray, w: int, h: int, plain_floor: bool = False
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _smooth_noise(p: np.ndarray, cell: float) -> np.ndarray:
+    """:func:`_hash_noise` interpolated trilinearly between the cell corners: continuous, in [0, 1]."""
+    k = np.floor(p / cell)
+    f = p / cell - k
+    out = np.zeros(len(p))
+    for corner in np.ndindex(2, 2, 2):
+        c = np.array(corner)
+        w = np.prod(np.where(c, f, 1 - f), axis=1)
+        out += w * _hash_noise((k + c + 0.5) * cell, cell)
+    return out
+
+
+def render(K: np.ndarray, R: np.ndarray, t: np.ndarray, w: int, h: int, plain_floor: bool = False,
+           framed_walls: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb [H, W, 3] float32, z-depth [H, W] float32, material index [H, W]); ``plain_floor``: an
-    untextured floor (weak texture, like the walls)."""
+    untextured floor (weak texture, like the walls); ``framed_walls``: a textured band 0.6 m wide
+    along every wall's edges around its plain middle."""
     import open3d as o3d
 
     _, _, mats = room_mesh()
@@ -107,6 +120,12 @@ def render(K: np.ndarray, R: np.ndarray, t: np.ndarray, w: int, h: int, plain_fl
     col = np.zeros((len(z), 3))
     for key, rgb in WALL_RGB.items():
         col[name == key] = rgb
+    if framed_walls:
+        walls = np.isin(name, list(WALL_RGB))
+        margin = np.minimum(np.minimum(P, ROOM - P), 1e9)  # distance to each pair of walls
+        inner = np.sort(margin, axis=1)[:, 1] > 0.6  # the smallest is the wall the point lies on
+        band = walls & ~inner
+        col[band] *= (0.4 + 0.6 * _smooth_noise(P[band], 0.05))[:, None]
     tex = _hash_noise(P, 0.04)
     checker = ((np.floor(P[:, 0] / 0.25) + np.floor(P[:, 1] / 0.25)) % 2)
     floor = name == "floor"
@@ -166,13 +185,16 @@ def fake_line_cues(cams: list, step: float = 0.05, drop: tuple[int, ...] = ()):
 def make_room_scene(root: Path, n_views: int = 6, w: int = 160, h: int = 120,
                     priors: str = "all", n_sfm: int = 300, n_outliers: int = 30,
                     prior_scale: float = 0.5, prior_shift: float = 0.3, seed: int = 0,
-                    plain_floor: bool = False, pitch: tuple[float, ...] = (-0.35,)) -> Path:
+                    plain_floor: bool = False, pitch: tuple[float, ...] = (-0.35,),
+                    framed_walls: bool = False, poses: list | None = None) -> Path:
     """Write the synthetic room scene to ``root`` and return it.
 
     priors: "all", "none" or "some" (every other image) -- simulated depth priors
     prior = prior_scale * z + prior_shift (+ 2 mm noise), labelled simulated in scene.json.
     n_sfm: SfM points on the textured floor and box (3 mm noise) plus ``n_outliers`` in the air.
     plain_floor: an untextured floor (it gets plane cues, as in the bare rooms).
+    framed_walls: walls textured along their edges, plain in their middle (see :func:`render`).
+    poses: (centre, target) per view instead of the ring of ``n_views`` views looking out.
     pitch: view k looks along (cos yaw, sin yaw, pitch[k % len(pitch)]) (the default looks down at
     the floor; a positive one sees the ceiling).
     """
@@ -185,12 +207,15 @@ def make_room_scene(root: Path, n_views: int = 6, w: int = 160, h: int = 120,
     (root / "images").mkdir(parents=True, exist_ok=True)
     K = np.array([[100.0, 0, w / 2], [0, 100.0, h / 2], [0, 0, 1]]) * np.array([[w / 160], [w / 160], [1]])
     images = []
-    for k in range(n_views):
-        yaw = 2 * np.pi * k / n_views
-        c = np.array([2.0, 1.5, 1.4]) + 0.3 * np.array([np.cos(yaw + 1), np.sin(yaw + 1), 0])
-        target = c + np.array([np.cos(yaw), np.sin(yaw), pitch[k % len(pitch)]])
+    for k in range(n_views if poses is None else len(poses)):
+        if poses is None:
+            yaw = 2 * np.pi * k / n_views
+            c = np.array([2.0, 1.5, 1.4]) + 0.3 * np.array([np.cos(yaw + 1), np.sin(yaw + 1), 0])
+            target = c + np.array([np.cos(yaw), np.sin(yaw), pitch[k % len(pitch)]])
+        else:
+            c, target = (np.asarray(v, float) for v in poses[k])
         R, t = look_at(c, target)
-        rgb, depth, _ = render(K, R, t, w, h, plain_floor)
+        rgb, depth, _ = render(K, R, t, w, h, plain_floor, framed_walls)
         name = f"{k:05d}.png"
         cv2.imwrite(str(root / "images" / name), (rgb[:, :, ::-1] * 255 + 0.5).astype(np.uint8))
         images.append(RawImage(k + 1, 1, name, "PINHOLE", w, h, K, R, t))
