@@ -158,7 +158,7 @@ def mvs(scene: tyro.conf.Positional[Path],
         overwrite: bool = False,
         cfg: tyro.conf.OmitArgPrefixes[MvsConfig] = MvsConfig()) -> int:
     """Weight-free dense depth priors from the posed images (plane-sweep NCC stereo, forward-backward
-    consistency): OUT becomes a scene folder (images, model, GT linked) with priors/depth/*.npy in
+    consistency, textureless holes completed from the planes of the consistent depth): OUT becomes a scene folder (images, model, GT linked) with priors/depth/*.npy in
     metres and priors/depth_conf/*.npy; run `geocues extract OUT` next. An extension (docs/geocues.md).
 
     Args:

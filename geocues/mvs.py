@@ -23,7 +23,7 @@ check (geocues/mvs_fill.py, after ACMP's planar prior).
 
 Output: ``OUT`` is a scene folder (images, sparse, gt linked to the source scene) whose
 ``priors/depth/<stem>.npy`` are the filtered MVS depths in metres (0 = no depth) at image size and
-``priors/depth_conf/<stem>.npy`` their scores in [0, 1]; ``geocues extract OUT`` then aligns them,
+``priors/depth_conf/<stem>.npy`` their scores in [0, 1] (a planar fill's: half of ``min_ncc``, under every swept score); ``geocues extract OUT`` then aligns them,
 builds plane cues from them and `splat train` uses them as depth priors.
 """
 
@@ -75,10 +75,10 @@ class MvsConfig:
     """minimum triangulation angle of a neighbour at the view's median depth."""
     max_angle_deg: float = 40.0
     """maximum angle between the optical axes of a view and its neighbour."""
-    planar_fill: bool = False
+    planar_fill: bool = True
     """complete the textureless pixels from the planes of a Delaunay triangulation of each view's consistent
     depth, then keep a fill only where it passes the same consistency check (geocues/mvs_fill.py; after ACMP's
-    planar prior, an extension)."""
+    planar prior, an extension; docs/geocues.md measures it); --no-planar-fill keeps the sweep's depths alone."""
     fill_stride: int = 8
     """one consistent depth per fill_stride x fill_stride cell is triangulated (pixels at the working size)."""
     fill_max_edge: float = 2.0
@@ -95,7 +95,8 @@ class MvsConfig:
         if not 0 <= self.min_consistent <= self.n_neighbours:
             raise ValueError(f"mvs: min_consistent must be in 0..n_neighbours, got {self.min_consistent}")
         if self.planar_fill and self.min_consistent < 1:
-            raise ValueError("mvs: --planar-fill keeps a fill only where neighbours agree: it needs --min-consistent >= 1")
+            raise ValueError("mvs: the planar fill keeps a fill only where neighbours agree: it needs --min-consistent >= 1 "
+                             "(or pass --no-planar-fill)")
         if self.fill_stride < 1 or not self.fill_max_edge > 0 or not 0 <= self.fill_min_cos < 1:
             raise ValueError(f"mvs: need fill_stride >= 1, fill_max_edge > 0 and 0 <= fill_min_cos < 1 "
                              f"(got {self.fill_stride}, {self.fill_max_edge}, {self.fill_min_cos})")
@@ -347,7 +348,9 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
     filtered = consistency_filter(scene.cameras, depths, neighbours, cfg) if cfg.min_consistent > 0 else depths
     swept_valid = {i: float((d > 0).mean()) for i, d in filtered.items()}
     if cfg.planar_fill:
+        swept = filtered
         filtered = fill_textureless(scene, filtered, images, bounds, neighbours, cfg)
+        conf = {i: np.where(swept[i] > 0, conf[i], max(0.5 * cfg.min_ncc, 1e-3)).astype(np.float32) for i in conf}
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
     if (out_dir / "scene.json").is_file():
         meta = json.loads((out_dir / "scene.json").read_text())

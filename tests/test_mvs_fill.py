@@ -102,7 +102,7 @@ def filled_room(tmp_path_factory):
     # a camera sliding 2 m along the wall y = 3 m, 2.4 m away: its plain middle framed by texture
     poses = [((x, 0.6, 1.3), (x, 3.0, 1.2)) for x in np.linspace(1.0, 3.0, 11)]
     root = make_room_scene(base / "room", w=160, h=120, priors="none", framed_walls=True, poses=poses)
-    plain = run(MvsConfig(max_size=160, n_depths=64), root, base / "plain")
+    plain = run(MvsConfig(max_size=160, n_depths=64, planar_fill=False), root, base / "plain")
     filled = run(MvsConfig(max_size=160, n_depths=64, planar_fill=True), root, base / "filled")
     return root, plain, filled
 
@@ -117,6 +117,9 @@ def test_the_fill_adds_depth_within_a_stated_error_on_a_room(filled_room):
         assert np.array_equal(d1[d0 > 0], d0[d0 > 0])  # the swept depths are kept as they are
         gt = render(cam.K, cam.R, cam.t, cam.width, cam.height, framed_walls=True)[1]
         new = (d1 > 0) & (d0 == 0) & (gt > 0)
+        conf = np.load(filled / "priors" / "depth_conf" / f"{cam.stem}.npy")
+        assert ((conf > 0) == (d1 > 0)).all() and np.allclose(conf[new], 0.25)  # half of min_ncc
+        assert (conf[d0 > 0] >= 0.5).all()  # the swept depths keep their scores
         added.append(new.mean())
         errs.append(np.abs(d1[new] - gt[new]) / gt[new])
     err = np.concatenate(errs)
