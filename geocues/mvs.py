@@ -274,14 +274,17 @@ def fill_textureless(scene: Scene, depths: dict[int, np.ndarray], images: dict[i
     """``depths`` (consistent, per view) with their textureless holes filled by
     :func:`geocues.mvs_fill.planar_fill` where the fills pass :func:`consistency_filter` (checked
     with the swept depths beside them); the swept depths are kept as they are."""
+    from tqdm.auto import tqdm
+
     from geocues.mvs_fill import planar_fill
 
     filled = {}
-    for i, d in depths.items():
+    for i, d in tqdm(depths.items(), desc="mvs: planar fill", unit="view"):
         textureless = (torch.sqrt(patch_stats(images[i], cfg.window)[1])[0, 0] < cfg.min_texture).numpy()
         fill = planar_fill(d, textureless, scene.cameras[i].pixel_rays(), bounds[i], stride=cfg.fill_stride,
                            max_edge=cfg.fill_max_edge, min_cos=cfg.fill_min_cos)
         filled[i] = np.where(d > 0, d, fill).astype(np.float32)
+    log.info("mvs: checking the planar fills against %d views' neighbours", len(filled))
     kept = consistency_filter(scene.cameras, filled, neighbours, cfg)
     return {i: np.where(d > 0, d, kept[i]).astype(np.float32) for i, d in depths.items()}
 
