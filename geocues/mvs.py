@@ -82,7 +82,7 @@ class MvsConfig:
     fill_stride: int = 8
     """one consistent depth per fill_stride x fill_stride cell is triangulated (pixels at the working size)."""
     fill_max_edge: float = 2.0
-    """a triangle whose longest 3D edge exceeds this times its mean depth gives no plane (it spans a depth jump)."""
+    """a triangle whose longest 3D edge exceeds this times its mean depth gives no plane (a long sliver; depth jumps are left to the consistency check)."""
     fill_min_cos: float = 0.25
     """a triangle whose plane the view sees at |cos| below this (grazing) gives no plane."""
 
@@ -166,6 +166,13 @@ def patch_stats(img: torch.Tensor, w: int) -> tuple[torch.Tensor, torch.Tensor]:
     return m, (_box(img * img, w) - m * m).clamp_min(0)
 
 
+def textureless(variance: torch.Tensor, cfg: MvsConfig) -> torch.Tensor:
+    """[H, W] bool: patches whose standard deviation is under ``min_texture`` (``variance``: the
+    [1, 1, H, W] patch variance of :func:`patch_stats`), where NCC is undefined — the sweep gives them
+    no depth, the planar fill completes them."""
+    return torch.sqrt(variance)[0, 0] < cfg.min_texture
+
+
 def _project(cam_src, R_rel: torch.Tensor, t_rel: torch.Tensor, rays: torch.Tensor, d: torch.Tensor):
     """Pixel coordinates [..., 2] and depth [...] in the source view of points d · rays of the reference."""
     X = (d[..., None] * rays) @ R_rel.T + t_rel
@@ -229,8 +236,7 @@ def sweep_view(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float,
                          torch.zeros_like(denom)).clamp(-0.5, 0.5)
     step = (inv[-1] - inv[0]) / (cfg.n_depths - 1)
     depth = 1.0 / (inv[best] + offset * step)
-    texture = torch.sqrt(stats[1])[0, 0]  # std of the reference patch
-    keep = (conf >= cfg.min_ncc) & (texture >= cfg.min_texture) & torch.isfinite(depth) & (depth > 0)
+    keep = (conf >= cfg.min_ncc) & ~textureless(stats[1], cfg) & torch.isfinite(depth) & (depth > 0)
     return (torch.where(keep, depth, torch.zeros_like(depth)).numpy().astype(np.float32),
             conf.clamp(0, 1).numpy().astype(np.float32))
 
@@ -280,8 +286,8 @@ def fill_textureless(scene: Scene, depths: dict[int, np.ndarray], images: dict[i
 
     filled = {}
     for i, d in tqdm(depths.items(), desc="mvs: planar fill", unit="view"):
-        textureless = (torch.sqrt(patch_stats(images[i], cfg.window)[1])[0, 0] < cfg.min_texture).numpy()
-        fill = planar_fill(d, textureless, scene.cameras[i].pixel_rays(), bounds[i], stride=cfg.fill_stride,
+        flat = textureless(patch_stats(images[i], cfg.window)[1], cfg).numpy()
+        fill = planar_fill(d, flat, scene.cameras[i].pixel_rays(), bounds[i], stride=cfg.fill_stride,
                            max_edge=cfg.fill_max_edge, min_cos=cfg.fill_min_cos)
         filled[i] = np.where(d > 0, d, fill).astype(np.float32)
     log.info("mvs: checking the planar fills against %d views' neighbours", len(filled))

@@ -9,15 +9,16 @@ pass:
 1. one consistent depth per ``fill_stride`` × ``fill_stride`` cell is back-projected and the pixels
    are triangulated (Delaunay, in the image);
 2. a triangle gives a plane unless its longest 3D edge exceeds ``fill_max_edge`` × its mean depth
-   (it spans a depth jump) or the plane is seen at a grazing angle (|n · ray| < ``fill_min_cos``
-   at its centre);
+   (a long sliver; at the default 2 it rejects few depth jumps — the check below is the guard) or
+   the plane is seen at a grazing angle (|n · ray| < ``fill_min_cos`` at its centre);
 3. a pixel with no depth whose patch is textureless (the sweep's own ``min_texture`` test) takes the
    depth where its ray meets its triangle's plane, if that lies within the view's sweep bounds.
 
 The filled depths are not trusted on their own: `geocues.mvs.run` then applies the same
 forward-backward consistency check as to the swept depths, so a fill survives only where
 neighbouring views' own fills (their own triangulations) put the surface in the same place. A
-triangle that bridges an occluding edge is seen from elsewhere with another parallax and fails it.
+triangle that bridges an occluding edge is seen from elsewhere with another parallax and should
+fail it (argued, not yet tested with an occluder: tests/test_mvs_fill.py's room is all planar).
 """
 
 from __future__ import annotations
@@ -60,10 +61,15 @@ def planar_fill(depth: np.ndarray, textureless: np.ndarray, rays: np.ndarray, bo
     fewer than three non-collinear depths exist."""
     from scipy.spatial import Delaunay, QhullError
 
+    if depth.ndim != 2:
+        raise ValueError(f"planar_fill: depth must be [H, W], got {depth.shape}")
     H, W = depth.shape
     if rays.shape != (H, W, 3) or textureless.shape != (H, W):
         raise ValueError(f"planar_fill: depth {depth.shape}, textureless {textureless.shape} and rays "
                          f"{rays.shape} must share [H, W] (rays [H, W, 3])")
+    if textureless.dtype != bool or stride < 1 or not bounds[0] < bounds[1]:
+        raise ValueError(f"planar_fill: need a bool textureless mask, stride >= 1 and near < far "
+                         f"(got {textureless.dtype}, {stride}, {bounds})")
     out = np.zeros((H, W), np.float32)
     rows, cols = cell_samples(depth, stride)
     if len(rows) < 3:

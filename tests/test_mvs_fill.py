@@ -83,6 +83,8 @@ def test_grazing_planes_bounds_and_degenerate_samples_give_nothing():
         assert out.shape == (H, W) and np.isfinite(out).all() and (out == 0).all()
     with pytest.raises(ValueError, match="share"):
         planar_fill(depth, np.ones((H, W + 1), bool), rays(), (0.5, 10.0))
+    with pytest.raises(ValueError, match="near < far"):
+        planar_fill(depth, np.ones((H, W)), rays(), (0.5, 10.0))  # a float mask
 
 
 def test_cell_samples_and_triangle_planes():
