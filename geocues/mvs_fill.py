@@ -17,8 +17,9 @@ pass:
 The filled depths are not trusted on their own: `geocues.mvs.run` then applies the same
 forward-backward consistency check as to the swept depths, so a fill survives only where
 neighbouring views' own fills (their own triangulations) put the surface in the same place. A
-triangle that bridges an occluding edge is seen from elsewhere with another parallax and should
-fail it (argued, not yet tested with an occluder: tests/test_mvs_fill.py's room is all planar).
+triangle that bridges an occluding edge is seen from elsewhere with another parallax and fails it:
+tests/test_mvs_fill.py's occluder (a textured box 0.7-1.3 m in front of a plain wall) gets 442 fill
+pixels more than 5 % off the surface with the check skipped, none with it.
 """
 
 from __future__ import annotations
