@@ -270,7 +270,9 @@ class Scene:
         import cv2
 
         cam = self.cameras[i]
-        bgr = cv2.imread(str(cam.image_path), cv2.IMREAD_COLOR)
+        # the stored pixel grid, as COLMAP reads it: an EXIF orientation tag (a phone held upright) is not
+        # applied, or a portrait photo would come out turned against its camera's intrinsics
+        bgr = cv2.imread(str(cam.image_path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if bgr is None:
             raise FileNotFoundError(f"could not read image {cam.image_path}")
         if bgr.shape[:2] != (cam.height, cam.width):

@@ -52,6 +52,23 @@ class TestLoad:
         np.testing.assert_allclose(img, raw / 255.0, atol=1e-6)
         assert len(s.points) == 0 and not s.has_depth_priors and s.gt_mesh_path is None
 
+    def test_exif_orientation_is_not_applied(self, scene_dir: Path):
+        """A phone photo held upright is stored landscape with an EXIF rotation: COLMAP's intrinsics
+        are for the stored pixels, so the image must load as stored, not turned (and then squashed)."""
+        from PIL import Image
+
+        raw = np.zeros((H, W, 3), np.uint8)
+        raw[:8] = 255  # a white top band of the stored pixels
+        exif = Image.Exif()
+        exif[0x0112] = 6  # "rotate 90 degrees clockwise to display"
+        Image.fromarray(raw).save(scene_dir / "images" / "00003.jpg", exif=exif, quality=95)
+        (scene_dir / "images" / "00003.png").unlink()
+        for f in (scene_dir / "sparse" / "0").glob("images.*"):
+            f.write_bytes(f.read_bytes().replace(b"00003.png", b"00003.jpg"))
+        img = Scene.load(scene_dir).load_image(3)
+        assert img.shape == (H, W, 3)
+        assert img[:6].mean() > 0.95 and img[12:].mean() < 0.05  # the band where it is stored
+
     def test_model_folder_given_directly(self, scene_dir: Path):
         s = Scene.load(scene_dir / "sparse" / "0")
         assert s.root == scene_dir and len(s) == 17
