@@ -193,6 +193,12 @@ class Scene:
             S = np.diag([nw / im.width, nh / im.height, 1.0])  # exact under COLMAP pixel centres
             cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path,
                                   width=nw, height=nh, K=S @ im.K, R=im.R, t=im.t))
+        seen: dict[str, str] = {}
+        for c in cameras:  # priors, caches and per-view outputs are named by the file stem
+            if seen.setdefault(c.stem, c.name) != c.name:
+                raise ValueError(f"images {seen[c.stem]} and {c.name} in {model_dir} share the file stem "
+                                 f"'{c.stem}', which names their priors and outputs: rename one (e.g. "
+                                 f"{c.name.replace('/', '_')}) in the images folder and the model")
         points = cls._points_from_raw(raw_points, cameras)
         depth_files = {} if ns is None else {c.index: ns.depth_paths[c.name] for c in cameras
                                               if c.name in ns.depth_paths}

@@ -69,6 +69,19 @@ class TestLoad:
         assert img.shape == (H, W, 3)
         assert img[:6].mean() > 0.95 and img[12:].mean() < 0.05  # the band where it is stored
 
+    def test_two_images_with_one_stem_are_refused(self, tmp_path: Path):
+        """A camera rig's cam0/0001.png and cam1/0001.png would share priors/depth/0001.npy and every
+        per-view output named by the stem."""
+        rng = np.random.default_rng(0)
+        images = []
+        for k, name in enumerate(["cam0/0001.png", "cam1/0001.png"]):
+            (tmp_path / "images" / name).parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(tmp_path / "images" / name), rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+            images.append(RawImage(k + 1, 1, name, "PINHOLE", W, H, K, np.eye(3), rng.normal(size=3)))
+        write_model(tmp_path / "sparse" / "0", images)
+        with pytest.raises(ValueError, match=r"cam0/0001\.png and cam1/0001\.png .* share the file stem '0001'"):
+            Scene.load(tmp_path)
+
     def test_model_folder_given_directly(self, scene_dir: Path):
         s = Scene.load(scene_dir / "sparse" / "0")
         assert s.root == scene_dir and len(s) == 17
