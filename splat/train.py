@@ -53,7 +53,7 @@ from splat.rasterize import render
 from splat.strategy import PAPER_ITERS, IndoorStrategy
 from splat.init_gaussians import initial_gaussians, load_init_cloud  # noqa: F401  (re-exported)
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
-from splat.views import View, ViewSet
+from splat.views import View, ViewSet, warn_large_images
 
 log = logging.getLogger(__name__)
 
@@ -288,6 +288,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     timings: dict[str, float] = {}
 
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
+    warn_large_images(scene, cfg.downscale)
     alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
     plane_depths = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0
     plane_normals = cfg.loss.plane_normals and cfg.loss.use_normal

@@ -164,3 +164,16 @@ class ViewSet:
                     normal_prior=None if n is None else self._dev(n).float(),
                     depth_anchor=None if a is None else self._dev(a).float(), anchor_p90=self._anchor_p90[k],
                     anchor_tight=None if t is None else self._dev(t))
+
+
+def warn_large_images(scene: Scene, downscale: float, limit: int = 1600) -> None:
+    """One warning when the training images are over ``limit`` px on their longer side: a step renders
+    every pixel (a 4032x3024 phone photo is 40x a 640x480 view), and 3DGS trains at most 1600 px wide."""
+    cam = max(scene.cameras, key=lambda c: max(c.width, c.height))
+    side = max(cam.width, cam.height)
+    if side > limit:
+        factor = float(np.ceil(downscale * side / limit * 10) / 10)
+        log.warning("training images are up to %dx%d px (--downscale %g): each step renders every pixel, "
+                    "%.0fx a 640x480 view's work; 3DGS trains at most %d px wide: --downscale %g trains at %dx%d",
+                    cam.width, cam.height, downscale, cam.width * cam.height / (640 * 480), limit, factor,
+                    round(cam.width * downscale / factor), round(cam.height * downscale / factor))

@@ -282,3 +282,21 @@ class TestUndistort:
             run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
         run(UndistortConfig(), tmp_path / "d", tmp_path / "u", overwrite=True)
         assert sorted(p.name for p in (tmp_path / "u").iterdir()) == ["images", "sparse"]
+
+
+def test_training_warns_about_images_over_1600_px(tmp_path: Path, caplog):
+    """A phone capture (4032x3024) trained at --downscale 1 gets one warning that names a --downscale
+    bringing it to at most 1600 px; a 640x480 scene gets none."""
+    from splat.views import warn_large_images
+
+    rng = np.random.default_rng(0)
+    for name, (w, h) in (("big", (4032, 3024)), ("small", (640, 480))):
+        root = tmp_path / name
+        (root / "images").mkdir(parents=True)
+        cv2.imwrite(str(root / "images" / "a.png"), rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+        write_model(root / "sparse" / "0", [RawImage(1, 1, "a.png", "PINHOLE", w, h, K, np.eye(3), np.zeros(3))])
+        caplog.clear()
+        warn_large_images(Scene.load(root), 1.0)
+        assert ("--downscale 2.6 trains at 1551x1163" in caplog.text) == (name == "big"), caplog.text
+    warn_large_images(Scene.load(tmp_path / "big", downscale=2.0), 2.0)
+    assert "--downscale 2.6 trains at 1551x1163" in caplog.text  # the factor is from the full size
