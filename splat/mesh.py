@@ -304,6 +304,15 @@ class TSDFFuser:
             return low
         return thr
 
+    def max_weight(self) -> float:
+        """The largest weight (views fused) of any allocated voxel; 0 when none."""
+        import open3d as o3d
+
+        idx = self.grid.hashmap().active_buf_indices().to(o3d.core.int64)
+        if idx.shape[0] == 0:
+            return 0.0
+        return float(self.grid.attribute("weight")[idx].cpu().numpy().max())
+
     def extract_mesh(self) -> o3d.geometry.TriangleMesh:
         """Marching cubes on the fused TSDF: a legacy Open3D mesh with vertex normals (from the
         TSDF gradient, facing the free space) and, when views had colour, vertex colours in [0, 1].
@@ -318,8 +327,13 @@ class TSDFFuser:
         if not self.with_color:
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.zeros((0, 3)))
         if len(mesh.triangles) == 0:
-            log.warning("TSDF: marching cubes found no surface (%d views, %d blocks, weight > %g)",
-                        self.n_views, self.n_blocks, thr)
+            most = self.max_weight()
+            log.warning("TSDF: marching cubes found no surface (%d views, %d blocks, weight > %g)%s",
+                        self.n_views, self.n_blocks, thr,
+                        f"; no voxel was seen by more than {most:g} view(s) (a sparse capture): "
+                        f"--tsdf.weight-threshold {max(most - 1, 0):g} keeps what {most:g} saw "
+                        f"(`splat mesh RUN --tsdf.weight-threshold {max(most - 1, 0):g}` on a finished run)"
+                        if 0 < most <= thr else "")
         return mesh
 
 

@@ -255,6 +255,20 @@ class TestHardCases:
         back = o3d.io.read_triangle_mesh(str(path))
         assert len(back.vertices) == 0
 
+    def test_a_surface_seen_by_too_few_views_names_the_threshold_that_keeps_it(self, caplog):
+        """Five views, each with depth in its own strip of a plane: every voxel is seen once, the
+        default threshold (> 3 views) keeps nothing, and the warning names the one that does."""
+        views = []
+        for k in range(5):
+            d = np.zeros((60, 80), np.float32)
+            d[:, 16 * k:16 * k + 16] = 2.0
+            views.append((d, None, self.K, np.eye(4)))
+        with caplog.at_level(logging.WARNING, logger="splat.mesh"):
+            assert len(fuse_views(views, TSDFConfig(), progress=False).triangles) == 0
+        assert "no voxel was seen by more than 1 view(s)" in caplog.text
+        assert "--tsdf.weight-threshold 0 keeps" in caplog.text
+        assert len(fuse_views(views, TSDFConfig(weight_threshold=0.0), progress=False).triangles) > 0
+
     def test_nan_inf_negative_depth_are_invalid(self):
         depth = np.full((60, 80), 2.0, np.float32)
         bad = depth.copy()
