@@ -247,6 +247,10 @@ def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
     return alignments, kind  # with lambda_anchor 0 the anchors cost nothing: L_a is skipped
 
 
+def _db(psnr: float | None) -> str:
+    return "none (no test views)" if psnr is None else f"{psnr:.2f} dB"
+
+
 def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, resume: bool = False) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
@@ -454,7 +458,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
                     rel = Path("checkpoints") / f"mesh_{step:06d}.ply"
                     write_mesh(fuse_mesh(params, train_views, sh_degree, cfg, refiner), work / rel)
                     curve[-1]["mesh"] = str(rel)
-                log.info("checkpoint %d: %.1f s training, test PSNR %s", step, train_s, metrics["psnr"])
+                log.info("checkpoint %d: %.1f s training, test PSNR %s", step, train_s, _db(metrics["psnr"]))
             if step % cfg.guard.snapshot_every == 0 or signals.caught or \
                     (cfg.save_every > 0 and train_s - last_save >= cfg.save_every):
                 log_file.flush()
@@ -500,5 +504,5 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         shutil.rmtree(work / "ckpt", ignore_errors=True)
     publish(work, out_dir)
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
-             final["psnr"], len(state["cue_type"]), out_dir)
+             _db(final["psnr"]), len(state["cue_type"]), out_dir)
     return out_dir
