@@ -33,6 +33,11 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     if cfg.init_from != "cues":
         raise ValueError(f"init_from must be 'cues' or 'sfm', got {cfg.init_from!r}")
     cloud = read_cues_ply(cues_ply)
+    share = 1.0 if scene is None else seen_share(cloud.xyz, scene)
+    if share < 0.5:
+        log.warning("only %.0f%% of the cue points of %s lie in front of and inside any view of the scene %s: "
+                    "were the cues extracted from another scene (or the model re-posed since)? Run "
+                    "`geocues extract %s -o CUES` for this one", 100 * share, cues_ply, scene.root, scene.root)
     cloud = cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
     budget = cfg.strategy.max_gaussians
     if not cfg.init.plane_share and budget > 0 and len(cloud) > FULL_INIT * budget:
@@ -41,6 +46,20 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
                     "--init.plane-share %.1f thins the PLANE seeds to leave some", len(cloud),
                     100 * len(cloud) / budget, budget, FULL_INIT)
     return thin_planes(cloud, cfg.init.plane_share, budget, cfg.seed)
+
+
+def seen_share(xyz: np.ndarray, scene: Scene, max_points: int = 5000) -> float:
+    """Share of the points ``xyz`` [N, 3] (an evenly spaced sample of at most ``max_points``) in front
+    of and inside the image of at least one camera of ``scene``; 1 for no points. Cues extracted from
+    the scene's own views are all seen; another scene's mostly are not."""
+    if len(xyz) == 0:
+        return 1.0
+    pts = xyz[np.linspace(0, len(xyz) - 1, min(len(xyz), max_points)).astype(int)]
+    seen = np.zeros(len(pts), bool)
+    for cam in scene.cameras:
+        uv, z = cam.project(pts)
+        seen |= (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    return float(seen.mean())
 
 
 def thin_planes(cloud: CueCloud, share: float, budget: int, seed: int = 0) -> CueCloud:

@@ -244,3 +244,34 @@ def test_init_cloud_over_the_budget_warns_unless_thinned(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="splat"):
         load_init_cloud(cfg, None, tmp_path / "cues.ply")
     assert caplog.text == ""
+
+
+def test_cues_of_another_scene_are_named(tmp_path, caplog):
+    """Cue points that no view of the scene sees (cues of another scene, another frame) get one warning
+    naming both folders; the scene's own cues none."""
+    import logging
+
+    from cues_synth import make_room_scene, render
+    from geocues.cue_io import write_cues_ply
+    from geocues.scene import Scene
+    from splat.init_gaussians import load_init_cloud, seen_share
+    from splat.train_config import TrainConfig
+
+    scene = Scene.load(make_room_scene(tmp_path / "room", n_views=6, priors="none"))
+    rng = np.random.default_rng(0)
+    pts = []  # surface points the views see, as extracted cues are
+    for cam in scene.cameras:
+        depth = render(cam.K, cam.R, cam.t, cam.width, cam.height)[1]
+        i, j = rng.integers(0, cam.height, 300), rng.integers(0, cam.width, 300)
+        ok = depth[i, j] > 0
+        X = cam.rays_at(i[ok], j[ok]) * depth[i[ok], j[ok], None]
+        pts.append((X - cam.t) @ cam.R)  # camera to world
+    inside = np.concatenate(pts)
+    assert seen_share(inside, scene) == 1.0 and seen_share(inside + 50.0, scene) == 0.0
+    for name, xyz, warned in (("own", inside, False), ("other", inside + 50.0, True)):
+        write_cues_ply(tmp_path / name / "cues.ply", CueCloud.make(xyz, np.zeros((len(xyz), 3), np.uint8), CueType.LINE))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="splat"):
+            load_init_cloud(TrainConfig(), scene, tmp_path / name / "cues.ply")
+        assert ("extracted from another scene" in caplog.text) == warned, caplog.text
+    assert str(tmp_path / "other" / "cues.ply") in caplog.text and str(scene.root) in caplog.text
