@@ -27,7 +27,7 @@ RESULTS = REPO / "bench" / "results"
 
 
 def full_row(name: str, row: str = "full") -> tuple[dict, dict, int]:
-    """(mean metrics of the ``row`` row, the floor's final metrics, seeds) of ablation_<name>; the
+    """(mean metrics of the ``row`` row, its floor's final metrics, seeds) of ablation_<name>; the
     metrics also hold ``psnr_300``, the held-out PSNR at the first checkpoint (mean over seeds).
     ``name`` may carry its row as ``NAME:ROW``."""
     if ":" in name:
@@ -42,7 +42,8 @@ def full_row(name: str, row: str = "full") -> tuple[dict, dict, int]:
     first = [run["curve"][0] for run in rows[0]["runs"] if run.get("curve")]
     mean = dict(rows[0]["mean"], psnr_300=sum(c["psnr"] for c in first) / max(len(first), 1),
                 step_300=first[0]["step"] if first else None)
-    return mean, (data.get("floor") or {}).get("final") or {}, int(rows[0]["n_seeds"])
+    floor = (data.get("floors") or {}).get(row) or data.get("floor") or {}  # the row's own meshing's, where it has one
+    return mean, floor.get("final") or {}, int(rows[0]["n_seeds"])
 
 
 def _cell(m: dict, bold: bool = False) -> str:

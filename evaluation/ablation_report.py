@@ -59,7 +59,7 @@ def merge_summaries(old: dict, new: dict) -> dict:
     rows += [r for r in old_rows.values()]  # rows only the earlier ablation ran, in its order
     rows.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
     floor = new_floor if new_floor.get("status") == "done" else old.get("floor")
-    return new | {"rows": rows, "floor": floor}
+    return new | {"rows": rows, "floor": floor, "floors": (old.get("floors") or {}) | (new.get("floors") or {})}
 
 
 def _fmt(value, scale: float = 1.0, digits: int = 3) -> str:
@@ -106,6 +106,12 @@ def ablation_markdown(summary: dict) -> str:
         f = floor["final"]
         lines.append(f"| **floor** (TSDF of exact GT depth, same views) | – | {_fmt(f['chamfer_l1'], 100, 2)} | "
                      f"{_fmt(f['f_score'])} | {_fmt(f['normal_consistency'])} |  |  |  | – | – |")
+    for row, other in (summary.get("floors") or {}).items():
+        if other and other.get("status") == "done":
+            f = other["final"]
+            lines.append(f"| **floor** through `{row}`'s meshing (its TSDF settings) | – | "
+                         f"{_fmt(f['chamfer_l1'], 100, 2)} | {_fmt(f['f_score'])} | "
+                         f"{_fmt(f['normal_consistency'])} |  |  |  | – | – |")
     for r in rows:
         name = f"`{r['row']}` {r['label']}" + (" *(extension)*" if r.get("extension") else "")
         if len(counts) > 1 and r["status"] == "done" and r["n_seeds"] > 1:

@@ -6,7 +6,8 @@ in ``OUT/rows/<row>_s<seed>/train``, and each checkpoint mesh is scored with the
 protocol against the scene's GT mesh. A row is finished when its ``score.json`` exists (written
 atomically, last) with the same configuration key: a re-run skips it, so a killed ablation
 resumes; ``overwrite`` starts again from nothing (OUT's rows, floor and reports removed first). The ``floor`` row fuses the exact GT depth of the same training views
-(splat/floor.py). ``train_args`` are `splat train` options applied to every row, on top of its
+(splat/floor.py) through the default meshing (with ``train_args``), whatever rows the table holds; a
+row whose preset meshes otherwise (`mvs`) also gets the floor of its own meshing (``floors``). ``train_args`` are `splat train` options applied to every row, on top of its
 preset. Rows run one after another (``jobs=1``), in ``jobs`` processes, or as Ray tasks
 (``ray="auto"`` or a cluster address; every node must see OUT, SCENE and CUES at the same paths).
 
@@ -275,7 +276,7 @@ def floor_key(cfg: AblateConfig, example, folder: Path) -> str:
                        "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
 
 
-def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> dict | None:
+def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example, name: str = "floor") -> dict | None:
     from splat.floor import fuse_floor, find_gt_depth_dir
 
     if not cfg.floor:
@@ -285,7 +286,7 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> di
         log.info("floor: %s has no gt/depth and no --gt-depth was given: no floor row", scene_dir)
         return {"status": "n/a", "reason": "no GT depth"}
     key = floor_key(cfg, example, folder)
-    out = out_dir / "floor"
+    out = out_dir / name
     done = _done(out, [key])
     if done is not None:
         return done
@@ -293,7 +294,7 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example) -> di
     mesh = fuse_floor(scene_dir, out / "mesh.ply", gt_depth=folder, png_scale=cfg.gt_depth_png_scale,
                       downscale=example.downscale, test_every=example.test_every,
                       mesh_every=example.mesh_every, tsdf=example.tsdf)
-    result = {"row": "floor", "status": "done", "key": key, "depth_dir": str(folder),
+    result = {"row": name, "status": "done", "key": key, "depth_dir": str(folder),
               "final": score_mesh(mesh, cfg.gt, scene_dir, cfg.metrics), "wall_s": time.perf_counter() - t0}
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
@@ -336,6 +337,29 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
 OUTPUTS = ("rows", "floor", "ablation.json", "report.md", "accuracy_vs_time.png")
 
 
+def run_floors(cfg: AblateConfig, scene_dir: Path, out_dir: Path, train_args: list[str],
+               rows: list[str]) -> tuple[dict | None, dict[str, dict]]:
+    """The floor (exact GT depth through the default meshing with ``train_args``: the same whatever
+    rows a table holds) and, for each row of ``rows`` whose preset meshes otherwise (the `mvs`
+    recipe's TSDF), the floor through that row's meshing, in OUT/floor_<row> (one per meshing)."""
+    from splat.floor import find_gt_depth_dir
+
+    floor = _run_floor(cfg, scene_dir, out_dir, train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))
+    folder = find_gt_depth_dir(scene_dir, cfg.gt_depth) if floor else None
+    if floor is None or floor.get("status") != "done" or folder is None:
+        return floor, {}
+    by_key: dict[str, dict] = {floor["key"]: floor}
+    floors = {}
+    for row in rows:
+        row_cfg = train_config(row, train_args, cfg.iters, 0, cfg.checkpoints)
+        key = floor_key(cfg, row_cfg, folder)
+        if key not in by_key:
+            by_key[key] = _run_floor(cfg, scene_dir, out_dir, row_cfg, name=f"floor_{row}")
+        if key != floor["key"]:
+            floors[row] = by_key[key]
+    return floor, floors
+
+
 def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, train_args: list[str] | None = None) -> Path:
     """Run the ablation, or resume it (finished rows skipped, a killed row continued from its
@@ -350,10 +374,6 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     if overwrite:
         _remove_outputs(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    from splat.train_config import TrainConfig
-
-    example = (config_from_dict(TrainConfig, specs[0]["train_config"]) if specs
-               else train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))
     results: dict[tuple[str, int], dict] = {}
     todo = []
     for spec in specs:
@@ -369,14 +389,14 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     # (`--rows X` after `--rows Y`) and other seeds (`--seeds 1` after `--seeds 2`).
     _add_finished_on_disk(cfg, scene_dir, cues, out_dir, train_args, results, todo)
     shown = [r for r in PRESETS if r in cfg.rows or any(row == r for row, _ in results)]
-    floor = _run_floor(cfg, scene_dir, out_dir, example)
+    floor, floors = run_floors(cfg, scene_dir, out_dir, train_args, shown)
     diverged: dict[tuple[str, int], str] = {}
 
     def summary() -> dict:
         return {"scene": str(scene_dir), "scene_label": cfg.scene_label or scene_dir.name, "cues": str(cues),
                 "config": asdict(cfg) | {"gt": str(cfg.gt) if cfg.gt else None,
                                          "gt_depth": str(cfg.gt_depth) if cfg.gt_depth else None},
-                "train_args": train_args, "floor": floor,
+                "train_args": train_args, "floor": floor, "floors": floors,
                 "rows": [_row_summary(r, [results[k] for k in sorted(results) if k[0] == r], na,
                                       {k[1]: m for k, m in diverged.items() if k[0] == r}) for r in shown]}
 
@@ -435,6 +455,7 @@ def _add_finished_on_disk(cfg: AblateConfig, scene_dir: Path, cues: Path, out_di
 def _remove_outputs(out_dir: Path) -> None:
     """Remove what an earlier ablation wrote into ``out_dir`` (:data:`OUTPUTS`)."""
     gone = [name for name in OUTPUTS if (out_dir / name).exists()]
+    gone += sorted(p.name for p in out_dir.glob("floor_*") if p.is_dir())
     if gone:
         log.warning("--overwrite: removing the earlier ablation's %s from %s", ", ".join(gone), out_dir)
     for name in gone:

@@ -631,3 +631,16 @@ def test_a_diverged_row_is_reported_and_the_other_rows_go_on(tiny, monkeypatch):
     assert rows["full"]["status"] == "done"
     assert rows["no-cues"]["status"] == "diverged" and "step 7" in rows["no-cues"]["reason"]
     assert "diverged (seed 0: training diverged at step 7" in (base / "diverged" / "report.md").read_text()
+
+
+def test_the_floor_does_not_depend_on_the_rows(tiny, ablation):
+    """The floor is the default meshing's whatever rows run (it followed the first row's TSDF
+    settings); `mvs`, whose preset meshes otherwise, also gets the floor of its own meshing."""
+    out = _run(tiny, "mvs_only", ["mvs"], num_threads=1)
+    data = json.loads((out / "ablation.json").read_text())
+    default = json.loads((ablation / "ablation.json").read_text())
+    assert data["floor"]["key"] == default["floor"]["key"] and default["floors"] == {}
+    assert data["floor"]["final"]["chamfer_l1"] == pytest.approx(default["floor"]["final"]["chamfer_l1"], rel=1e-3)
+    mvs = data["floors"]["mvs"]
+    assert mvs["status"] == "done" and mvs["key"] != data["floor"]["key"] and (out / "floor_mvs" / "mesh.ply").is_file()
+    assert "**floor** through `mvs`'s meshing" in (out / "report.md").read_text()

@@ -155,10 +155,10 @@ def test_recipe_table_reads_named_rows_and_scores_fixed_targets(tmp_path, monkey
     def metrics(c, f, n, psnr=30.0, train_s=100.0):
         return {"chamfer_l1": c, "f_score": f, "normal_consistency": n, "psnr": psnr, "train_s": train_s}
 
-    def write(name, rows, floor=(0.02, 0.95, 0.97)):
+    def write(name, rows, floor=(0.02, 0.95, 0.97), floors=None):
         d = tmp_path / f"ablation_{name}"
         d.mkdir()
-        data = {"floor": {"final": metrics(*floor)},
+        data = {"floor": {"final": metrics(*floor)}, "floors": floors or {},
                 "rows": [{"row": r, "status": "done", "n_seeds": 1, "mean": m,
                           "runs": [{"curve": [{"step": 300, "psnr": 20.0}]}]} for r, m in rows.items()]}
         (d / "ablation.json").write_text(json.dumps(data))
@@ -174,6 +174,14 @@ def test_recipe_table_reads_named_rows_and_scores_fixed_targets(tmp_path, monkey
     assert "F of ≤ 3 cm" in row and "misses C-L1 3.10 > 3 cm, NC 0.840 < 0.85" in row
     row = mod.table([("room", "old", "worse:mvs")], "full", "mvs").splitlines()[2]  # against its floor
     assert "misses C-L1 1.55×" in row
+    # a row whose preset meshes otherwise is scored against the floor of its own meshing
+    write("own", {"mvs": metrics(0.031, 0.87, 0.84)}, floors={"mvs": {"status": "done", "final": metrics(0.0155, 0.9, 0.9)}})
+    row = mod.table([("room", "old", "own:mvs")], "full", "mvs").splitlines()[2]
+    assert "| 1.55 / 0.900 / 0.900 |" in row and "misses C-L1 2.00×" in row
+    summary = _bench_script("ablation_summary").scene_table(json.loads((tmp_path / "ablation_own" / "ablation.json").read_text())
+                                                            | {"scene_label": "room", "train_args": [],
+                                                               "config": {"iters": 30, "seeds": 1}})
+    assert "| floor through `mvs`'s meshing | 1.55 |" in summary and "| 2.00 |" in summary
 
 
 def test_collect_with_a_label_names_the_scene_in_json_report_and_merge(tmp_path, monkeypatch):
