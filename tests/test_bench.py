@@ -216,3 +216,13 @@ def test_collect_with_a_label_names_the_scene_in_json_report_and_merge(tmp_path,
     with pytest.raises(SystemExit, match="no ablation.json"):  # not an ablation's OUT: one line, no folder made
         mod.collect(tmp_path / "missing", "y")
     assert not (tmp_path / "results" / "ablation_y").exists()
+
+
+def test_mvs_cues_table_reads_the_committed_results():
+    """bench/mvs_cues_table.py: one row per pair of committed ablations, four figures in each cell."""
+    mod = _bench_script("mvs_cues_table")
+    lines = mod.table().splitlines()
+    assert len(lines) == 2 + len(mod.PAIRS)
+    for line in lines[2:]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert len(cells) == 3 and all(len(c.split(" / ")) == 4 for c in cells[1:]), line
