@@ -17,7 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from evaluation.ablation_report import row_floor  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -63,7 +68,7 @@ def scene_table(data: dict) -> str:
             lines.append(f"| `{name}` | {why} |  |  |  |  |  |  |  |  |")
             continue
         m = r["mean"]
-        its = own.get(name, floor)
+        its = row_floor(data, name)
         ratio = f"{m['chamfer_l1'] / its['chamfer_l1']:.2f}" if its else "–"
         df = f"{m['f_score'] - base['f_score']:+.3f}" if base and name != "no-cues" else ""
         dn = f"{m['normal_consistency'] - base['normal_consistency']:+.3f}" if base and name != "no-cues" else ""
@@ -81,9 +86,6 @@ def collect(out: Path, name: str, replace: bool = False, label: str | None = Non
     Where that folder already holds an ablation of the same setup, the two are merged (rows and seeds
     finished only there stay; ``replace`` drops them) and the report and plot are redrawn. ``label``
     names the scene in the tables instead of the run's ``--scene-label`` (JSON, report and plot alike)."""
-    import sys
-
-    sys.path.insert(0, str(REPO))
     from evaluation.ablation_report import merge_summaries, write_reports
 
     if not (out / "ablation.json").is_file():

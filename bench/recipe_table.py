@@ -20,9 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from evaluation.ablation_report import row_floor  # noqa: E402
+
 RESULTS = REPO / "bench" / "results"
 
 
@@ -42,8 +47,7 @@ def full_row(name: str, row: str = "full") -> tuple[dict, dict, int]:
     first = [run["curve"][0] for run in rows[0]["runs"] if run.get("curve")]
     mean = dict(rows[0]["mean"], psnr_300=sum(c["psnr"] for c in first) / max(len(first), 1),
                 step_300=first[0]["step"] if first else None)
-    floor = (data.get("floors") or {}).get(row) or data.get("floor") or {}  # the row's own meshing's, where it has one
-    return mean, floor.get("final") or {}, int(rows[0]["n_seeds"])
+    return mean, row_floor(data, row) or {}, int(rows[0]["n_seeds"])
 
 
 def _cell(m: dict, bold: bool = False) -> str:

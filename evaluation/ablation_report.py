@@ -34,6 +34,15 @@ def row_stats(runs: list[dict]) -> dict:
             "runs": sorted(runs, key=lambda r: r["seed"])}
 
 
+def row_floor(summary: dict, row: str) -> dict | None:
+    """The final metrics of the floor ``row`` is read against: the floor through its own meshing where
+    its preset meshes otherwise (``floors``), else the table's floor; None where none was fused."""
+    for floor in ((summary.get("floors") or {}).get(row), summary.get("floor")):
+        if floor and floor.get("status", "done") == "done" and floor.get("final"):
+            return floor["final"]
+    return None
+
+
 def merge_summaries(old: dict, new: dict) -> dict:
     """``new`` with the finished runs of ``old`` it lacks: the same ablation continued in another
     OUT (a fresh checkout, another machine). Both must have the same scene label, training options,

@@ -344,12 +344,10 @@ def run_floors(cfg: AblateConfig, scene_dir: Path, out_dir: Path, train_args: li
     """The floor (exact GT depth through the default meshing with ``train_args``: the same whatever
     rows a table holds) and, for each row of ``rows`` whose preset meshes otherwise (the `mvs`
     recipe's TSDF), the floor through that row's meshing, in OUT/floor_<row> (one per meshing)."""
-    from splat.floor import find_gt_depth_dir
-
     floor = _run_floor(cfg, scene_dir, out_dir, train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))
-    folder = find_gt_depth_dir(scene_dir, cfg.gt_depth) if floor else None
-    if floor is None or floor.get("status") != "done" or folder is None:
+    if floor is None or floor.get("status") != "done":
         return floor, {}
+    folder = Path(floor["depth_dir"])
     by_key: dict[str, dict] = {floor["key"]: floor}
     floors = {}
     for row in rows:
