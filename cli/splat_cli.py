@@ -111,8 +111,8 @@ def ablate(scene: tyro.conf.Positional[Path],
     Args:
         scene: scene folder (COLMAP model, images/, optional priors/, gt/mesh.ply or --gt).
         cues: cue folder from `geocues extract`.
-        out: output folder (rows/, floor/, reports).
-        overwrite: start again from nothing: remove OUT's rows, floor and reports first (without it
+        out: output folder (rows/, floor/ and floor_<row>/, reports).
+        overwrite: start again from nothing: remove OUT's rows, floors and reports first (without it
             a re-run resumes).
         cfg: ablation options.
     """

@@ -5,7 +5,7 @@ One stage, one entry: ``run(cfg, scene_dir, cues, out_dir, *, overwrite=False, t
 in ``OUT/rows/<row>_s<seed>/train``, and each checkpoint mesh is scored with the ``evaluate``
 protocol against the scene's GT mesh. A row is finished when its ``score.json`` exists (written
 atomically, last) with the same configuration key: a re-run skips it, so a killed ablation resumes;
-``overwrite`` starts again from nothing (OUT's rows, floor and reports removed first). The ``floor``
+``overwrite`` starts again from nothing (OUT's rows, floors and reports removed first). The ``floor``
 row fuses the exact GT depth of the same training views (splat/floor.py) through the default meshing
 (with ``train_args``), whatever rows the table holds; a row whose preset meshes otherwise (`mvs`)
 also gets the floor of its own meshing (``floors``). ``train_args`` are `splat train` options
