@@ -71,7 +71,7 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     """
     from geocues.scene import Scene
 
-    s = Scene.load(scene, downscale=downscale, test_every=test_every)
+    s = Scene.load(scene, downscale=downscale, test_every=test_every, allow_distorted=True)
     sizes = sorted({(c.width, c.height) for c in s.cameras})
     K = s.cameras[0].K
     pts = s.points
@@ -86,6 +86,9 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
               f"mean reprojection error {pts.error.mean():.3f} px")
     else:
         print("points     0  (run `geocues sfm` to triangulate them)")
+    if s.distorted_models:
+        print(f"warning    distorted camera model {', '.join(s.distorted_models)} (the intrinsics above ignore the "
+              f"distortion): `geocues undistort {s.root} -o OUT` makes the PINHOLE scene the other commands read")
     print(f"priors     depth {n_depth}/{len(s)}" + (f" ({s.depth_kind})" if n_depth else "")
           + f"  normal {n_normal}/{len(s)}" + (f" ({s.normal_axes} axes)" if n_normal else ""))
     away = s.normals_facing_away()

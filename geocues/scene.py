@@ -139,15 +139,19 @@ class Scene:
         self.test_every, self.downscale, self.model_dir = test_every, downscale, model_dir
         self.depth_files = depth_files or {}  # camera index -> depth prior named by the scene file
         self.sources = sources or []  # files outside images/, priors/, sparse/ the scene was read from
+        self.distorted_models: list[str] = []  # COLMAP models with distortion (only with allow_distorted)
 
     # ------------------------------------------------------------------ loading
     @classmethod
     def load(cls, root: str | Path, *, downscale: float = 1.0, test_every: int = 8,
-             images_dir: str | Path | None = None, check_priors: bool = True) -> "Scene":
+             images_dir: str | Path | None = None, check_priors: bool = True,
+             allow_distorted: bool = False) -> "Scene":
         """Read ``root`` (a scene folder, or a nerfstudio transforms.json). ``downscale`` divides
         image size and intrinsics; every ``test_every``-th image in name order (index % test_every
         == 0) is a test view (0 = no test views). Raises FileNotFoundError / ValueError naming the
-        bad path."""
+        bad path. A distorted camera model is refused unless ``allow_distorted`` (then its
+        calibration matrix is kept and the distortion ignored: for a summary, never for geometry;
+        ``Scene.distorted_models`` names them)."""
         root = Path(root)
         if downscale <= 0:
             raise ValueError(f"downscale must be > 0, got {downscale}")
@@ -176,7 +180,7 @@ class Scene:
 
         cameras: list[Camera] = []
         for k, im in enumerate(raw_images):
-            if im.model not in PINHOLE_MODELS:
+            if im.model not in PINHOLE_MODELS and not allow_distorted:
                 raise ValueError(
                     f"image {im.name} in {model_dir} uses the distorted camera model {im.model}; "
                     f"undistort the scene first: `geocues undistort {scene_root} -o OUT`")
@@ -204,6 +208,7 @@ class Scene:
                                               if c.name in ns.depth_paths}
         scene = cls(scene_root, cameras, points, metadata, test_every, downscale, model_dir, depth_files,
                     [] if ns is None else ns.sources)
+        scene.distorted_models = sorted({im.model for im in raw_images} - set(PINHOLE_MODELS))
         if check_priors:
             scene._check_priors(raw_images)
         log.info("scene %s: %d images (%d train / %d test), %d points, priors: depth %d, normal %d",

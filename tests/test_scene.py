@@ -216,6 +216,18 @@ class TestBadInput:
         with pytest.raises(ValueError, match="SIMPLE_RADIAL.*geocues undistort"):
             Scene.load(scene_dir)
 
+    def test_info_summarises_a_distorted_scene_and_names_undistort(self, scene_dir: Path, capsys):
+        """COLMAP's own mapper writes SIMPLE_RADIAL: `geocues info` is the first command a user runs
+        on it, so it summarises the scene and names the step that makes it readable."""
+        from cli.geocues_cli import main
+
+        (scene_dir / "sparse" / "0" / "cameras.txt").write_text(f"1 SIMPLE_RADIAL {W} {H} 60 32 24 0.05\n")
+        assert main(["info", str(scene_dir)]) == 0
+        out = capsys.readouterr().out
+        assert "cameras    " in out and "fx 60.00" in out
+        assert "distorted camera model SIMPLE_RADIAL" in out and f"geocues undistort {scene_dir}" in out
+        assert Scene.load(scene_dir, allow_distorted=True).distorted_models == ["SIMPLE_RADIAL"]
+
     def test_png_depth_without_scale(self, scene_dir: Path):
         (scene_dir / "priors" / "depth").mkdir(parents=True)
         png = scene_dir / "priors" / "depth" / "00000.png"
