@@ -3,8 +3,11 @@ voxels of 2 cm), but an images-only SfM has an arbitrary scale. This module meas
 is from metric and writes a rescaled copy (`geocues rescale`).
 
 ``scene_extent`` is the size of the scene in its own units (the 5th–95th percentile box of the SfM
-points, or of the camera centres without points). A room measures 2–30 m; ``metric_warning`` says
-so when a scene is far outside 0.5–200 units. ``scale_from_priors`` estimates the factor from metric
+points, or of the camera centres without points). A room measures 2–30 m and its photos look at
+surfaces 0.5–5 m away; ``metric_warning`` says so when a scene is far outside 0.5–200 units, when its
+views' median depth is outside 0.2–8 units (an images-only SfM normalised by COLMAP often spans a
+plausible 10 units while every length is 3–6× a metre), or when ``geocues sfm --mode map`` marked it
+(scene.json ``"scale": "arbitrary"``; ``geocues rescale`` removes the mark). ``scale_from_priors`` estimates the factor from metric
 depth priors (a depth sensor, or a metric monocular network a user brings): the median over views of
 median(prior depth at the SfM points) / median(SfM point depth), robust to outliers and holes.
 """
@@ -21,11 +24,12 @@ import numpy as np
 from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import find_model_dir, read_model, write_model
 from geocues.scene import Scene
-from geocues.sfm import link_scene
+from geocues.sfm import ARBITRARY_SCALE, link_scene
 
 log = logging.getLogger(__name__)
 
 ROOM_RANGE = (0.5, 200.0)  # plausible extents (metres) of an indoor capture, with a wide margin
+DEPTH_RANGE = (0.2, 8.0)  # plausible median view depths (metres) of an indoor capture
 
 
 def scene_extent(scene: Scene) -> float:
@@ -36,13 +40,43 @@ def scene_extent(scene: Scene) -> float:
     return float((hi - lo).max())
 
 
-def metric_warning(scene: Scene) -> str | None:
-    """A sentence when the scene's extent is far from an indoor capture's in metres, else None."""
-    ext = scene_extent(scene)
-    if ROOM_RANGE[0] <= ext <= ROOM_RANGE[1] or len(scene.points) < 10:
+def median_view_depth(scene: Scene, max_points: int = 20000) -> float | None:
+    """Median over views of the median depth (scene units) of the SfM points each view sees (its
+    track's points, or, in a model without tracks, those of up to ``max_points`` that project into
+    it); None without 10 points."""
+    if len(scene.points) < 10:
         return None
-    return (f"the scene spans {ext:.3g} units, not the 0.5-200 m of an indoor capture: every threshold here is "
-            f"in metres; make it metric with `geocues rescale SCENE -o OUT --scale S` (or --from-priors)")
+    xyz = scene.points.xyz
+    sub = xyz[np.linspace(0, len(xyz) - 1, min(len(xyz), max_points)).astype(int)]
+    meds = []
+    for i, cam in enumerate(scene.cameras):
+        idx = scene.points.visible_in.get(i)
+        if idx is not None and len(idx):
+            z = xyz[idx] @ cam.R[2] + cam.t[2]
+        else:
+            uv, z = cam.project(sub)
+            z = z[(z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)]
+        if (z > 0).sum() >= 10:
+            meds.append(float(np.median(z[z > 0])))
+    return float(np.median(meds)) if meds else None
+
+
+def metric_warning(scene: Scene) -> str | None:
+    """A sentence when the scene does not look metric (see the module docstring), else None."""
+    ext = scene_extent(scene)
+    fix = "every threshold here is in metres; make it metric with `geocues rescale SCENE -o OUT --scale S` (or --from-priors)"
+    if scene.metadata.get("scale") == ARBITRARY_SCALE:
+        return (f"the scene was mapped from images alone (`geocues sfm --mode map`), so its unit is arbitrary "
+                f"(it spans {ext:.3g} units): {fix}")
+    if len(scene.points) < 10:
+        return None
+    if not ROOM_RANGE[0] <= ext <= ROOM_RANGE[1]:
+        return f"the scene spans {ext:.3g} units, not the 0.5-200 m of an indoor capture: {fix}"
+    depth = median_view_depth(scene)
+    if depth is not None and not DEPTH_RANGE[0] <= depth <= DEPTH_RANGE[1]:
+        return (f"the views' median depth is {depth:.3g} units, not the 0.2-8 m of photos of a room "
+                f"(the scene spans {ext:.3g} units): {fix}")
+    return None
 
 
 def scale_from_priors(scene: Scene, min_points: int = 20) -> tuple[float, int]:
@@ -105,6 +139,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         link_scene(scene_dir, tmp)  # images, priors (metric already), GT
         meta = json.loads((tmp / "scene.json").read_text()) if (tmp / "scene.json").is_file() else {}
         meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used}
+        meta.pop("scale", None)  # metric now: no longer "arbitrary"
         (tmp / "scene.json").write_text(json.dumps(meta, indent=1))
     log.info("rescaled %s by %.6g%s: extent %.3g -> %.3g m", scene_dir, scale,
              f" (from the depth priors of {used} views)" if used else "", scene_extent(scene),

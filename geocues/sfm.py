@@ -98,6 +98,9 @@ def _key(d: dict) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+ARBITRARY_SCALE = "arbitrary"  # scene.json "scale" of a model mapped from images alone
+
+
 def _list_images(image_dir: Path) -> list[str]:
     return sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTS and p.is_file())
 
@@ -125,6 +128,19 @@ def link_scene(scene_dir: Path, out_dir: Path, parts: tuple[str, ...] = ("images
         link.symlink_to(target)
     if (src / "scene.json").is_file():
         shutil.copyfile(src / "scene.json", out_dir / "scene.json")
+
+
+def _mark_arbitrary_scale(scene_json: Path) -> None:
+    """Record in scene.json that the model's unit is arbitrary (read by ``geocues.rescale.metric_warning``;
+    `geocues rescale` removes the mark) and say so once."""
+    meta = json.loads(scene_json.read_text()) if scene_json.is_file() else {}
+    meta["scale"] = ARBITRARY_SCALE
+    with atomic_path(scene_json) as tmp:
+        tmp.write_text(json.dumps(meta, indent=1))
+    log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold of "
+                "geocues and splat is in metres: make it metric with `geocues rescale %s -o OUT --scale S` "
+                "(S = metres per unit, from one known length) or `--from-priors` (metric depth priors)",
+                scene_json.parent)
 
 
 def points_xyz(rec: "pycolmap.Reconstruction") -> np.ndarray:
@@ -312,6 +328,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         report["gt_check"] = distance_to_mesh_stats(points_xyz(rec), gt)
     with atomic_path(root / "sfm_report.json") as tmp_report:
         tmp_report.write_text(json.dumps(report, indent=2))
+    if mode == "map" and ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit
+        _mark_arbitrary_scale(root / "scene.json")
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],
              sum(seconds.values()))

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from cues_synth import make_room_scene, render
-from geocues.rescale import RescaleConfig, metric_warning, run, scale_from_priors, scene_extent
+from geocues.rescale import (DEPTH_RANGE, ROOM_RANGE, RescaleConfig, median_view_depth, metric_warning, run,
+                             scale_from_priors, scene_extent)
 from geocues.scene import Scene
 
 
@@ -37,6 +38,18 @@ def test_extent_and_the_warning(rooms, capsys):
     assert main(["info", str(small)]) == 0
     out = capsys.readouterr().out
     assert "extent" in out and "not the 0.5-200 m" in out
+
+
+def test_a_plausible_extent_with_implausible_depths_is_warned(rooms):
+    """COLMAP normalises an images-only model to about 10 units: a room 8x too large still spans a
+    plausible 16-48 units, but its photos look 12 units far, which no room's do."""
+    base, root, _ = rooms
+    big = Scene.load(root, check_priors=False)
+    x8 = Scene.load(run(RescaleConfig(scale=8.0), root, base / "x8"), check_priors=False)
+    assert ROOM_RANGE[0] <= scene_extent(x8) <= ROOM_RANGE[1]
+    assert median_view_depth(x8) == pytest.approx(8 * median_view_depth(big))
+    assert DEPTH_RANGE[0] <= median_view_depth(big) <= DEPTH_RANGE[1] < median_view_depth(x8)
+    assert metric_warning(big) is None and "median depth" in metric_warning(x8)
 
 
 def test_from_priors_recovers_the_scale_and_round_trips(rooms):

@@ -239,6 +239,7 @@ class TestMap:
         dc = [np.linalg.norm(got[n].center - ref[n].center) for n in got]
         dr = [np.degrees(np.arccos(np.clip((np.trace(got[n].R.T @ ref[n].R) - 1) / 2, -1, 1))) for n in got]
         assert np.median(dc) < 0.02 and max(dr) < 3.0  # 0.6 m trajectory, 320x240 images
+        assert "scale" not in Scene.load(out).metadata  # aligned to the posed model: metric, not marked
 
 
 def test_cli_info_and_sfm(triangulated, capsys, tmp_path: Path):
@@ -258,6 +259,8 @@ def test_cli_info_and_sfm(triangulated, capsys, tmp_path: Path):
 def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
     """No model at all: incremental mapping estimates a SIMPLE_RADIAL camera (focal near ICL's 262.5 at
     320x240); the scene is refused until `geocues undistort` makes it PINHOLE (points kept)."""
+    from geocues.rescale import RescaleConfig, metric_warning
+    from geocues.rescale import run as rescale
     from geocues.undistort import UndistortConfig
     from geocues.undistort import run as undistort
 
@@ -273,3 +276,7 @@ def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
     undistort(UndistortConfig(), tmp_path / "out", tmp_path / "und")
     s = Scene.load(tmp_path / "und")
     assert len(s) == rep["registered_images"] and len(s.points) == rep["points"]
+    # its unit is COLMAP's, not a metre: marked, carried by undistort, named by every metric warning
+    assert s.metadata["scale"] == "arbitrary" and "images alone" in metric_warning(s)
+    back = rescale(RescaleConfig(scale=1.0), tmp_path / "und", tmp_path / "metric")  # the user knows it is
+    assert "scale" not in Scene.load(back).metadata
