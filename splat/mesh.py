@@ -229,6 +229,7 @@ class TSDFFuser:
         self.n_views = 0  # views integrated, including ones without a valid pixel
         self.n_fused = 0  # views with at least one valid pixel
         self.n_valid_pixels = 0
+        self.n_beyond = 0  # otherwise valid depths dropped for lying beyond depth_max
         self.with_color: bool | None = None  # fixed by the first view
 
     @property
@@ -256,7 +257,9 @@ class TSDFFuser:
                              f"came {'with' if self.with_color else 'without'} colour; mix neither")
         self.with_color = with_color
         self.n_views += 1
-        depth[depth > self.cfg.depth_max] = 0.0
+        beyond = depth > self.cfg.depth_max
+        self.n_beyond += int(np.count_nonzero(beyond))
+        depth[beyond] = 0.0
         n_valid = int(np.count_nonzero(depth))
         self.n_valid_pixels += n_valid
         if n_valid == 0:
@@ -293,6 +296,17 @@ class TSDFFuser:
                                 trunc_voxel_multiplier=mult)
         return n_valid
 
+    def _warn_beyond_depth_max(self, share: float = 0.05) -> None:
+        """Say when more than ``share`` of the depths were beyond ``depth_max`` and left out: a room's
+        depths are under 10 m, so that many means a scene in another unit (an images-only SfM) or a
+        hall, and the surfaces they saw are missing from the mesh."""
+        total = self.n_beyond + self.n_valid_pixels
+        if total and self.n_beyond > share * total:
+            log.warning("TSDF: %.0f %% of the depths (%d of %d pixels) lie beyond depth_max %g and were left "
+                        "out, so what they saw is missing from the mesh; if the scene is not in metres "
+                        "(`geocues info SCENE` warns), make it metric with `geocues rescale`, else raise "
+                        "--tsdf.depth-max", 100 * self.n_beyond / total, self.n_beyond, total, self.cfg.depth_max)
+
     def effective_weight_threshold(self) -> float:
         """``weight_threshold``, lowered to ``n_fused - 1`` when no voxel could exceed it (a voxel's
         weight is at most the number of views with valid depth)."""
@@ -318,6 +332,7 @@ class TSDFFuser:
         TSDF gradient, facing the free space) and, when views had colour, vertex colours in [0, 1].
         Empty (with a warning) when nothing valid was fused."""
         import open3d as o3d
+        self._warn_beyond_depth_max()
         if self.n_blocks == 0:
             log.warning("TSDF: no valid depth in %d view(s); the mesh is empty", self.n_views)
             return o3d.geometry.TriangleMesh()

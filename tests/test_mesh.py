@@ -288,6 +288,22 @@ class TestHardCases:
         mesh = _fuse_one(np.full((60, 80), 5.0, np.float32), self.K, np.eye(4), depth_max=4.0)
         assert len(mesh.vertices) == 0
 
+    def test_many_depths_beyond_depth_max_are_named(self, caplog):
+        """A scene in another unit (an images-only SfM: 6 units per metre) puts half a room beyond
+        depth_max; the surfaces are silently missing unless the log says so."""
+        d = np.full((60, 80), 3.0, np.float32)
+        d[:, 40:] = 12.0  # the far half of the view
+        views = [(d, None, self.K, np.eye(4))] * 2
+        with caplog.at_level(logging.WARNING, logger="splat.mesh"):
+            fuse_views(views, TSDFConfig(weight_threshold=0.0), progress=False)
+        assert "50 % of the depths (4800 of 9600 pixels) lie beyond depth_max 10" in caplog.text
+        assert "geocues rescale" in caplog.text and "--tsdf.depth-max" in caplog.text
+        caplog.clear()
+        d[:, 40:] = 9.0
+        with caplog.at_level(logging.WARNING, logger="splat.mesh"):
+            fuse_views([(d, None, self.K, np.eye(4))] * 2, TSDFConfig(weight_threshold=0.0), progress=False)
+        assert "depth_max" not in caplog.text
+
 
 class TestInputs:
     K = _K(80, 60, 50.0)
