@@ -182,14 +182,15 @@ def rescale(scene: tyro.conf.Positional[Path],
             overwrite: bool = False,
             cfg: tyro.conf.OmitArgPrefixes[RescaleConfig] = RescaleConfig()) -> int:
     """Make a scene metric: OUT is SCENE with camera translations and SfM points multiplied by --scale,
-    or by the factor its metric depth priors give (--from-priors); images, priors and GT linked.
+    by the factor its metric depth priors give (--from-priors), or by the one that puts the views'
+    median depth at --median-depth metres (a guess); images, priors and GT linked.
     `geocues info` shows a scene's extent and warns when it is far from metric.
 
     Args:
         scene: scene folder with a COLMAP model.
         out: the new scene folder.
         overwrite: replace an existing OUT.
-        cfg: the factor (--scale S or --from-priors).
+        cfg: the factor (--scale S, --from-priors or --median-depth M).
     """
     from geocues.rescale import run
 

@@ -139,8 +139,8 @@ def _mark_arbitrary_scale(scene_json: Path) -> None:
         tmp.write_text(json.dumps(meta, indent=1))
     log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold of "
                 "geocues and splat is in metres: make it metric with `geocues rescale %s -o OUT --scale S` "
-                "(S = metres per unit, from one known length) or `--from-priors` (metric depth priors)",
-                scene_json.parent)
+                "(S = metres per unit, from one known length), --from-priors (metric depth priors) or, as a "
+                "guess, --median-depth 2 (photos taken about 2 m from what they show)", scene_json.parent)
 
 
 def points_xyz(rec: "pycolmap.Reconstruction") -> np.ndarray:

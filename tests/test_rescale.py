@@ -50,6 +50,10 @@ def test_a_plausible_extent_with_implausible_depths_is_warned(rooms):
     assert median_view_depth(x8) == pytest.approx(8 * median_view_depth(big))
     assert DEPTH_RANGE[0] <= median_view_depth(big) <= DEPTH_RANGE[1] < median_view_depth(x8)
     assert metric_warning(big) is None and "median depth" in metric_warning(x8)
+    # nothing known: a guess of the views' median depth makes it metric to within the guess
+    guess = Scene.load(run(RescaleConfig(median_depth=2.0), base / "x8", base / "guess"), check_priors=False)
+    assert median_view_depth(guess) == pytest.approx(2.0, rel=1e-6) and metric_warning(guess) is None
+    assert "--median-depth 2" in metric_warning(x8)
 
 
 def test_from_priors_recovers_the_scale_and_round_trips(rooms):
@@ -67,8 +71,11 @@ def test_from_priors_recovers_the_scale_and_round_trips(rooms):
 
 def test_bad_options_are_named(rooms, tmp_path):
     _, root, _ = rooms
-    with pytest.raises(ValueError, match="either --scale S or --from-priors"):
-        run(RescaleConfig(), root, tmp_path / "x")
+    for cfg in (RescaleConfig(), RescaleConfig(scale=2.0, median_depth=2.0), RescaleConfig(scale=2.0, from_priors=True)):
+        with pytest.raises(ValueError, match="one of --scale S, --from-priors or --median-depth M"):
+            run(cfg, root, tmp_path / "x")
+    with pytest.raises(ValueError, match="--median-depth must be a positive"):
+        run(RescaleConfig(median_depth=0.0), root, tmp_path / "x")
     with pytest.raises(ValueError, match="positive"):
         run(RescaleConfig(scale=-2.0), root, tmp_path / "x")
     plain = make_room_scene(tmp_path / "plain", n_views=4, w=64, h=48, priors="none")
