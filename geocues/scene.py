@@ -37,6 +37,18 @@ log = logging.getLogger(__name__)
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".PNG", ".JPEG")
 
 
+def no_images_folder(image_dir: Path) -> FileNotFoundError:
+    """The error for a scene without ``images/``, with the fix when the scene folder holds the photos itself."""
+    image_dir = Path(image_dir)
+    own = [p for p in image_dir.parent.iterdir() if p.suffix in IMAGE_EXTS] if image_dir.parent.is_dir() else []
+    given = image_dir.parent
+    fix = (f"pass the scene folder above it, {given.parent}" if given.name == "images"
+           else f"move them into {image_dir}/ and pass {given}")
+    hint = f"; {given} holds {len(own)} images itself, but a scene keeps them in images/ (COLMAP's layout): {fix}"
+    hint = hint if own else ""
+    return FileNotFoundError(f"no images folder at {image_dir}{hint}")
+
+
 @dataclass
 class Camera:
     """One posed view. Intrinsics are for the (possibly downscaled) size ``width`` x ``height``."""
@@ -172,7 +184,7 @@ class Scene:
             raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
         img_dir = Path(images_dir) if images_dir is not None else scene_root / "images"
         if not img_dir.is_dir() and (ns is None or images_dir is not None):
-            raise FileNotFoundError(f"no images folder at {img_dir}")
+            raise no_images_folder(img_dir)
         meta_path = scene_root / "scene.json"
         metadata = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
         if ns is not None and ns.depth_paths and "depth_png_scale" not in metadata:

@@ -35,7 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir
-from geocues.scene import IMAGE_EXTS
+from geocues.scene import IMAGE_EXTS, no_images_folder
 
 if TYPE_CHECKING:  # pragma: no cover
     import pycolmap
@@ -200,7 +200,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     scene_dir = Path(scene_dir)
     image_dir = scene_dir / "images"
     if not image_dir.is_dir():
-        raise FileNotFoundError(f"no images folder at {image_dir}")
+        raise no_images_folder(image_dir)
     if cfg.mode not in ("auto", "triangulate", "map"):
         raise ValueError(f"mode must be auto, triangulate or map, got {cfg.mode!r}")
     if cfg.verification not in ("poses", "ransac"):

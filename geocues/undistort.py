@@ -16,6 +16,7 @@ from pathlib import Path
 
 from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import PINHOLE_MODELS, find_model_dir
+from geocues.scene import no_images_folder
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +42,7 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
     model_dir = find_model_dir(scene_dir)
     image_dir = scene_dir / "images"
     if not image_dir.is_dir():
-        raise FileNotFoundError(f"no images folder at {image_dir}")
+        raise no_images_folder(image_dir)
     if out_dir.resolve() == scene_dir.resolve():
         raise ValueError(f"undistort writes a new scene: OUT must differ from SCENE ({scene_dir})")
     if (out_dir / "sparse").exists() and not overwrite:

@@ -133,6 +133,18 @@ class TestBadInput:
         with pytest.raises(FileNotFoundError, match=str(tmp_path / "images")):
             run(SfmConfig(), tmp_path)
 
+    def test_a_folder_of_photos_is_told_the_scene_layout(self, tmp_path: Path):
+        """The first thing a user tries: the folder of photos itself, or its images/ folder."""
+        photos = tmp_path / "photos"
+        photos.mkdir()
+        for k in range(3):
+            cv2.imwrite(str(photos / f"{k}.jpg"), np.zeros((8, 8, 3), np.uint8))
+        with pytest.raises(FileNotFoundError, match=f"{photos} holds 3 images itself.*move them into {photos / 'images'}/"):
+            run(SfmConfig(), photos)
+        photos.rename(tmp_path / "images")
+        with pytest.raises(FileNotFoundError, match=f"pass the scene folder above it, {tmp_path}$"):
+            run(SfmConfig(), tmp_path / "images")
+
     def test_triangulate_without_model(self, tmp_path: Path):
         (tmp_path / "images").mkdir()
         with pytest.raises(FileNotFoundError, match=r"needs a posed model.*cameras\.txt"):
