@@ -36,6 +36,7 @@ from tqdm import tqdm
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.plane_anchors import load_plane_anchors
+from geocues.rescale import metric_warning
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat import checkpoint, compiled
@@ -293,6 +294,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
 
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     warn_large_images(scene, cfg.downscale)
+    if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
+        log.warning("%s", far)
     alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
     plane_depths = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0
     plane_normals = cfg.loss.plane_normals and cfg.loss.use_normal

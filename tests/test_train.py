@@ -142,6 +142,24 @@ def test_bad_inputs_name_the_problem(tmp_path):
         run(TrainConfig(iters=2, cue_types=("WALL",)), root, tmp_path / "cues.ply", tmp_path / "out")
 
 
+def test_a_scene_that_is_not_metric_is_named_by_the_training(tmp_path, caplog):
+    """The TSDF's depth_max and voxels and the hole seeds are in metres: a model mapped from images
+    alone (scene.json "scale": "arbitrary") gets the warning that names `geocues rescale`."""
+    import logging
+
+    from splat.train import TrainConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=40, h=30, priors="none", n_sfm=20)
+    write_cues_ply(tmp_path / "cues.ply", surface_cues(root, n_plane=50))
+    with caplog.at_level(logging.WARNING):
+        run(TrainConfig(iters=2, mesh=False), root, tmp_path / "cues.ply", tmp_path / "a")
+    assert "geocues rescale" not in caplog.text
+    (root / "scene.json").write_text(json.dumps({"scale": "arbitrary"}))
+    with caplog.at_level(logging.WARNING):
+        run(TrainConfig(iters=2, mesh=False), root, tmp_path / "cues.ply", tmp_path / "b")
+    assert "mapped from images alone" in caplog.text and f"geocues rescale {root}" in caplog.text
+
+
 def test_evaluate_cli_reports_mesh_and_held_out_views(trained, tmp_path, capsys):
     """`evaluate MESH SCENE --renders OUT/test_renders` gives the trainer's test PSNR (PNG-rounded)."""
     from cli.evaluate_cli import main
