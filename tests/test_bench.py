@@ -226,3 +226,18 @@ def test_mvs_cues_table_reads_the_committed_results():
     for line in lines[2:]:
         cells = [c.strip() for c in line.strip("|").split("|")]
         assert len(cells) == 3 and all(len(c.split(" / ")) == 4 for c in cells[1:]), line
+
+
+def test_images_only_scale_table_prints_one_row_per_unit_and_seed(tmp_path, capsys):
+    """bench/images_only_scale_table.py: rows in the order mapped, guess, exact, seeds from the names."""
+    mod = _bench_script("images_only_scale_table")
+    ev = lambda c: {"chamfer_l1": c, "f_score": 0.5, "normal_consistency": 0.8}  # noqa: E731
+    res = {"variants": {v: {"m_per_unit": m, "metres_per_unit_error": m / 0.2 - 1, "median_view_depth_units": 1.7 * 0.2 / m,
+                            "no-icp": ev(0.1), "icp": ev(0.05), "test_psnr": 30.0, "gaussians_init": {"SFM": 3, "PLANE": 4},
+                            "train_s": 100.0} for v, m in (("mapped", 1.0), ("guess", 0.23), ("exact", 0.2))}}
+    for name in ("icl_images_only_scale.json", "icl_images_only_scale_seed1.json"):
+        (tmp_path / name).write_text(json.dumps(res))
+    assert mod.main(sorted(str(p) for p in tmp_path.glob("*.json"))) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 + 6 and "as mapped" in lines[2] and "(+400 %)" in lines[2] and "(+15 %)" in lines[3]
+    assert "10.00 / 0.500 / 0.800 | 5.00 / 0.500 / 0.800" in lines[4] and "seed 1" in lines[7] and "| 7 |" in lines[4]
