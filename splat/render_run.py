@@ -126,6 +126,16 @@ def depth_range(*maps: np.ndarray | None) -> tuple[float, float]:
     return float(np.percentile(valid, 1)), float(np.percentile(valid, 99))
 
 
+def titled(img: np.ndarray, title: str) -> np.ndarray:
+    """``img`` (uint8 [H, W, 3]) under an 18-px black strip with ``title`` in white (OpenCV's Hershey
+    font), so a panel's columns name themselves."""
+    import cv2
+
+    strip = np.zeros((18, img.shape[1], 3), np.uint8)
+    cv2.putText(strip, title, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.concatenate([strip, img], axis=0)
+
+
 def _u8(img: np.ndarray) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
@@ -224,13 +234,18 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
                      "normal": _normal_u8(r["normal"]), "alpha": np.repeat(_u8(r["alpha"])[..., None], 3, -1)}
             for sub, img in tiles.items():
                 iio.imwrite(tmp / sub / f"{v.name}.png", img)
-            panel = ([_u8(gt_img)] if gt_img is not None else []) + list(tiles.values())
+            render_title = "render"
+            if gt_img is not None and gt_img.shape == r["rgb"].shape:
+                mse = float(np.mean((np.clip(r["rgb"], 0, 1) - gt_img) ** 2))
+                render_title += f"  {10 * np.log10(1 / max(mse, 1e-10)):.2f} dB"
+            panel = ([titled(_u8(gt_img), "GT")] if gt_img is not None else []) + [
+                titled(img, t) for img, t in zip(tiles.values(), (render_title, "depth", "normals", "alpha"))]
             if gt_d is not None:
-                panel.append(colorize_depth(gt_d, lo, hi))
+                panel.append(titled(colorize_depth(gt_d, lo, hi), "GT depth"))
             if prior_d is not None:
-                panel.append(colorize_depth(prior_d, *depth_range(prior_d)))
+                panel.append(titled(colorize_depth(prior_d, *depth_range(prior_d)), "depth prior (own range)"))
             if prior_n is not None:
-                panel.append(_normal_u8(prior_n))
+                panel.append(titled(_normal_u8(prior_n), "normal prior"))
             iio.imwrite(tmp / "panels" / f"{v.name}.png", np.concatenate(panel, axis=1))
         if cfg.video:
             _write_video(tmp / "video.mp4", camera_path(views, cfg.frames), draw, cfg.fps)

@@ -56,7 +56,12 @@ def test_views_panels_and_video(fake_run, capsys):
              scene.normal_prior_path(i) is not None]
     assert extra[1], "the fixture scene has depth priors"
     panel = iio.imread(out / "panels" / f"{names[0]}.png")
-    assert panel.shape == (H, W * (5 + sum(extra)), 3)
+    n_tiles = 5 + sum(extra)
+    assert panel.shape == (H + 18, W * n_tiles, 3)  # an 18-px strip names each column
+    for k in range(n_tiles):  # white title text over black in every column's strip, the tile below it
+        strip = panel[:18, k * W:(k + 1) * W]
+        assert strip.max() > 200 and np.median(strip) == 0, k
+    np.testing.assert_array_equal(panel[18:, W:2 * W], iio.imread(out / "rgb" / f"{names[0]}.png"))
     assert iio.imread(out / "rgb" / f"{names[0]}.png").std() > 5  # the Gaussians are in view
     frames = iio.imread(out / "video.mp4")  # every frame, decoded by ffmpeg
     assert frames.shape == (10, H, 2 * W, 3)
@@ -79,7 +84,7 @@ def test_views_from_a_cameras_json(fake_run, tmp_path):
         assert (c.width, c.height) == (W, H)
     out = run(RenderConfig(views=str(path)), run_dir, tmp_path / "out")
     assert len(list((out / "rgb").glob("*.png"))) == 3
-    assert iio.imread(out / "panels" / f"{cams[0]['img_name']}.png").shape == (H, 4 * W, 3)  # no GT: 4 tiles
+    assert iio.imread(out / "panels" / f"{cams[0]['img_name']}.png").shape == (H + 18, 4 * W, 3)  # no GT: 4 tiles
 
 
 def test_camera_path_hits_its_keys_and_stays_a_rotation():
