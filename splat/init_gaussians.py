@@ -115,4 +115,11 @@ def _with_hole_seeds(cfg: TrainConfig, cloud: CueCloud, params: dict[str, Tensor
     if len(extra) == 0:
         log.info("--init.fill-holes: no training view has an L_a anchor, so no hole seeds")
         return params, cue_type
+    budget, room = cfg.strategy.max_gaussians, cfg.strategy.max_gaussians - len(cloud)
+    if budget > 0 and len(extra) > room:  # the budget holds from the first step, as densification keeps it
+        keep = np.zeros(len(extra), bool)
+        keep[np.random.default_rng(cfg.seed).choice(len(extra), max(room, 0), replace=False)] = True
+        log.info("--init.fill-holes: %d of %d hole seeds kept, within --strategy.max-gaussians %d",
+                 int(keep.sum()), len(extra), budget)
+        extra = extra.select(keep)
     return init_from_cues(CueCloud.concat([cloud, extra]), cfg.sh_degree, cfg.init)

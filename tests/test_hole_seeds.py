@@ -117,3 +117,28 @@ def test_views_without_anchors_seed_nothing(sparse_room):
     scene, params, _ = sparse_room
     views = ViewSet(scene, scene.train_indices)  # no alignments: no L_a anchor
     assert len(hole_seeds(params, views)) == 0
+
+
+def test_seeds_stay_within_the_gaussian_budget(sparse_room, caplog):
+    """--strategy.max-gaussians N holds from the first step: seeds beyond the room the cues leave are
+    dropped at random (a scene in another unit made 23k seeds on top of a 135k init under a 150k cap)."""
+    import logging
+
+    from splat.init_gaussians import _with_hole_seeds
+    from splat.strategy import IndoorStrategyConfig
+    from splat.train_config import InitConfig, TrainConfig
+    from splat.views import ViewSet
+
+    scene, params, cloud = sparse_room
+    views = ViewSet(scene, scene.train_indices,
+                    alignments={scene.cameras[i].name: ExactAlignment() for i in scene.train_indices})
+    n_seeds = len(hole_seeds(params, views))
+    free = TrainConfig(init=InitConfig(fill_holes=True))
+    p_free, _ = _with_hole_seeds(free, cloud, params, torch.zeros(len(cloud)), views)
+    assert len(p_free["means"]) == len(cloud) + n_seeds
+    cap = len(cloud) + n_seeds // 3
+    tight = TrainConfig(init=InitConfig(fill_holes=True), strategy=IndoorStrategyConfig(max_gaussians=cap))
+    with caplog.at_level(logging.INFO, logger="splat.init_gaussians"):
+        p_tight, types = _with_hole_seeds(tight, cloud, params, torch.zeros(len(cloud)), views)
+    assert len(p_tight["means"]) == cap == len(types)
+    assert f"{n_seeds // 3} of {n_seeds} hole seeds kept" in caplog.text
