@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from geocues.atomic import atomic_dir, check_output_dir
-from geocues.colmap_io import find_model_dir, read_model, write_model
+from geocues.colmap_io import find_model_dir
 from geocues.scene import Scene
 from geocues.sfm import ARBITRARY_SCALE, link_scene
 
@@ -142,12 +142,15 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         if depth is None:
             raise ValueError(f"--median-depth: {scene_dir} has fewer than 10 SfM points in its views (run `geocues sfm`)")
         scale = cfg.median_depth / depth
-    images, points = read_model(find_model_dir(scene_dir))
-    for im in images:
-        im.t = im.t * scale
-    points.xyz = points.xyz * scale
+    import pycolmap
+
+    model_dir = find_model_dir(scene_dir)
+    rec = pycolmap.Reconstruction(str(model_dir))  # tracks, 2D points and camera models kept as they are
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
+    binary = (model_dir / "images.bin").is_file()
     with atomic_dir(out_dir) as tmp:
-        write_model(tmp / "sparse" / "0", images, points)
+        (tmp / "sparse" / "0").mkdir(parents=True)
+        (rec.write_binary if binary else rec.write_text)(str(tmp / "sparse" / "0"))
         link_scene(scene_dir, tmp)  # images, priors (metric already), GT
         meta = json.loads((tmp / "scene.json").read_text()) if (tmp / "scene.json").is_file() else {}
         meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used,

@@ -291,4 +291,11 @@ def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
     # its unit is COLMAP's, not a metre: marked, carried by undistort, named by every metric warning
     assert s.metadata["scale"] == "arbitrary" and "images alone" in metric_warning(s)
     back = rescale(RescaleConfig(scale=1.0), tmp_path / "und", tmp_path / "metric")  # the user knows it is
-    assert "scale" not in Scene.load(back).metadata
+    m = Scene.load(back)
+    assert "scale" not in m.metadata
+    # rescaling keeps the model whole: tracks (SOR, the visibility of each view) and positions
+    assert (m.points.track_length >= 2).all() and np.array_equal(m.points.track_length, s.points.track_length)
+    np.testing.assert_allclose(m.points.xyz, s.points.xyz, atol=1e-9)
+    twice = Scene.load(rescale(RescaleConfig(scale=2.0), tmp_path / "und", tmp_path / "x2"))
+    np.testing.assert_allclose(twice.points.xyz, 2 * s.points.xyz, atol=1e-9)
+    np.testing.assert_allclose([c.center for c in twice.cameras], [2 * c.center for c in s.cameras], atol=1e-9)
