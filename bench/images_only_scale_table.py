@@ -1,7 +1,8 @@
 """Markdown table of bench/results/icl_images_only_scale*.json (bench/icl_images_only_scale.sh): the
 photos-only recipe on an images-only ICL model in its mapped unit, a guessed one and the exact one.
 
-Usage: python bench/images_only_scale_table.py [RESULTS.json ...]
+Usage: python bench/images_only_scale_table.py [--write] [RESULTS.json ...]
+(--write: the table into docs/training.md between its <!-- images-only-scale --> markers.)
 """
 
 from __future__ import annotations
@@ -31,13 +32,28 @@ def table(results: list[tuple[int, dict]]) -> str:
     return "\n".join(lines)
 
 
+def write(doc: Path, text: str, marker: str = "images-only-scale") -> None:
+    """Replace what lies between ``<!-- marker -->`` and ``<!-- /marker -->`` in ``doc``."""
+    start, end = f"<!-- {marker} -->", f"<!-- /{marker} -->"
+    body = doc.read_text()
+    if start not in body or end not in body:
+        raise SystemExit(f"{doc} has no {start} ... {end} markers")
+    head, rest = body.split(start, 1)
+    doc.write_text(f"{head}{start}\n{text.rstrip()}\n{end}{rest.split(end, 1)[1]}")
+
+
 def main(argv: list[str]) -> int:
+    do_write = "--write" in argv
+    argv = [a for a in argv if a != "--write"]
     paths = [Path(p) for p in argv] or sorted(Path("bench/results").glob("icl_images_only_scale*.json"))
     if not paths:
         print("no bench/results/icl_images_only_scale*.json: run bash bench/icl_images_only_scale.sh", file=sys.stderr)
         return 1
-    print(table([(int(p.stem.rpartition("_seed")[2]) if "_seed" in p.stem else 0, json.loads(p.read_text()))
-                 for p in paths]))
+    text = table([(int(p.stem.rpartition("_seed")[2]) if "_seed" in p.stem else 0, json.loads(p.read_text()))
+                  for p in paths])
+    print(text)
+    if do_write:
+        write(Path(__file__).resolve().parents[1] / "docs" / "training.md", text)
     return 0
 
 

@@ -6,10 +6,11 @@ is from metric and writes a rescaled copy (`geocues rescale`).
 points, or of the camera centres without points). A room measures 2–30 m and its photos look at
 surfaces 0.5–5 m away; ``metric_warning`` says so when a scene is far outside 0.5–200 units, when its
 views' median depth is outside 0.2–8 units (an images-only SfM normalised by COLMAP often spans a
-plausible 10 units while every length is 3–6× a metre), or when ``geocues sfm --mode map`` marked it
-(scene.json ``"scale": "arbitrary"``; ``geocues rescale`` removes the mark). ``scale_from_priors`` estimates the factor from metric
-depth priors (a depth sensor, or a metric monocular network a user brings): the median over views of
-median(prior depth at the SfM points) / median(SfM point depth), robust to outliers and holes.
+plausible 10 units while every length is 3–6× a metre), or when ``geocues sfm --mode map`` marked
+it (scene.json ``"scale": "arbitrary"``; ``geocues rescale`` removes the mark). ``scale_from_priors``
+estimates the factor from metric depth priors (a depth sensor, or a metric monocular network a user
+brings): the median over views of median(prior depth at the SfM points) / median(SfM point depth),
+robust to outliers and holes; ``--median-depth M`` guesses it from how far the photos were taken.
 """
 
 from __future__ import annotations
@@ -124,8 +125,10 @@ class RescaleConfig:
 
 def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Write ``out_dir``: the scene with camera translations and SfM points multiplied by the factor
-    (``cfg.scale``, estimated ``cfg.from_priors``, or guessed from ``cfg.median_depth``); images, priors and GT linked (priors and GT
-    are already metric). OUT is built in a temporary sibling and renamed into place. Returns ``out_dir``."""
+    (``cfg.scale``, estimated ``cfg.from_priors``, or guessed from ``cfg.median_depth``), through
+    pycolmap so tracks, 2D points and camera models stay whole; images, priors and GT linked (priors
+    and GT are already metric). OUT is built in a temporary sibling and renamed into place. Returns
+    ``out_dir``."""
     cfg.validate()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     if out_dir.exists() and out_dir.resolve() == scene_dir.resolve():
