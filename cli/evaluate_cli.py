@@ -68,6 +68,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
     else:
         if icp:
             raise ValueError("--icp refines an --align-to alignment; pass --align-to GT_SCENE")
+        _warn_own_frame(scene)
         result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
     print(format_table(result))
     images = None
@@ -81,6 +82,20 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         save_json(result, json, {"images": images} if images is not None else None)  # atomic
         print(f"wrote {json}")
     return 0
+
+
+def _warn_own_frame(scene: Path | None) -> None:
+    """One warning when SCENE was mapped from images alone (`geocues sfm --mode map` marks scene.json):
+    its mesh is in its own frame, so scoring it against a GT mesh needs --align-to."""
+    import json as _json
+
+    from geocues.scene import OWN_FRAME
+
+    meta = Path(scene) / "scene.json" if scene is not None else None
+    if meta is not None and meta.is_file() and _json.loads(meta.read_text()).get("frame") == OWN_FRAME:
+        print(f"warning: {scene} was mapped from images alone, so its mesh is in its own frame (origin, axes, "
+              "unit), not the ground truth's: pass --align-to GT_SCENE (a scene in the GT's frame with the same "
+              "image names) to score it", file=sys.stderr)
 
 
 def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CUES")],

@@ -24,8 +24,8 @@ import numpy as np
 
 from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import find_model_dir
-from geocues.scene import Scene
-from geocues.sfm import ARBITRARY_SCALE, link_scene
+from geocues.scene import ARBITRARY_SCALE, Scene
+from geocues.sfm import link_scene
 
 log = logging.getLogger(__name__)
 

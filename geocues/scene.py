@@ -35,6 +35,8 @@ from geocues.nerfstudio_io import find_transforms, read_transforms
 log = logging.getLogger(__name__)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".JPG", ".PNG", ".JPEG")
+ARBITRARY_SCALE = "arbitrary"  # scene.json "scale" of a model mapped from images alone (rescale removes it)
+OWN_FRAME = "mapped from images"  # scene.json "frame" of such a model: origin and axes its own (kept)
 
 
 def no_images_folder(image_dir: Path) -> FileNotFoundError:

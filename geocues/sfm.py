@@ -35,7 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir
-from geocues.scene import IMAGE_EXTS, no_images_folder
+from geocues.scene import ARBITRARY_SCALE, IMAGE_EXTS, OWN_FRAME, no_images_folder
 
 if TYPE_CHECKING:  # pragma: no cover
     import pycolmap
@@ -98,9 +98,6 @@ def _key(d: dict) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-ARBITRARY_SCALE = "arbitrary"  # scene.json "scale" of a model mapped from images alone
-
-
 def _list_images(image_dir: Path) -> list[str]:
     return sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTS and p.is_file())
 
@@ -132,9 +129,10 @@ def link_scene(scene_dir: Path, out_dir: Path, parts: tuple[str, ...] = ("images
 
 def _mark_arbitrary_scale(scene_json: Path) -> None:
     """Record in scene.json that the model's unit is arbitrary (read by ``geocues.rescale.metric_warning``;
-    `geocues rescale` removes the mark) and say so once."""
+    `geocues rescale` removes the mark) and its frame its own (read by `evaluate`), and say so once."""
     meta = json.loads(scene_json.read_text()) if scene_json.is_file() else {}
     meta["scale"] = ARBITRARY_SCALE
+    meta["frame"] = OWN_FRAME  # kept by rescale: `evaluate` needs --align-to for such a scene
     with atomic_path(scene_json) as tmp:
         tmp.write_text(json.dumps(meta, indent=1))
     log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold of "

@@ -110,6 +110,20 @@ def test_scene_culls_to_its_cameras(tmp_path):
     assert culled["protocol"]["gt_mesh"].endswith("mesh.ply")
 
 
+def test_a_scene_mapped_from_images_is_told_to_align(tmp_path, capsys):
+    """A mesh of an images-only model (`geocues sfm --mode map` marks scene.json; `geocues rescale`
+    keeps the mark) is in its own frame: scored without --align-to it gets one warning naming it."""
+    scene = make_scene(tmp_path / "scene")
+    pred = write_mesh(tmp_path / "pred.ply", *rects((-1, 1, -1, 1, 2.0)))
+    args = ["--n-samples", "2000", "--mode", "surface"]
+    assert main([str(pred), str(scene), *args]) == 0
+    assert "--align-to" not in capsys.readouterr().err
+    (scene / "scene.json").write_text(json.dumps({"frame": "mapped from images"}))
+    assert main([str(pred), str(scene), *args]) == 0
+    err = capsys.readouterr().err
+    assert f"{scene} was mapped from images alone" in err and "pass --align-to GT_SCENE" in err
+
+
 def test_no_gt_anywhere(tmp_path, capsys):
     scene = make_scene(tmp_path / "scene")
     (scene / "gt" / "mesh.ply").unlink()

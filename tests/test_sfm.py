@@ -292,7 +292,7 @@ def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
     assert s.metadata["scale"] == "arbitrary" and "images alone" in metric_warning(s)
     back = rescale(RescaleConfig(scale=1.0), tmp_path / "und", tmp_path / "metric")  # the user knows it is
     m = Scene.load(back)
-    assert "scale" not in m.metadata
+    assert "scale" not in m.metadata and m.metadata["frame"] == "mapped from images"  # still its own frame
     # rescaling keeps the model whole: tracks (SOR, the visibility of each view) and positions
     assert (m.points.track_length >= 2).all() and np.array_equal(m.points.track_length, s.points.track_length)
     np.testing.assert_allclose(m.points.xyz, s.points.xyz, atol=1e-9)
