@@ -17,7 +17,7 @@ ROWS = {"mapped": "as mapped (COLMAP's unit)", "guess": "`--median-depth 2` (a g
 
 def table(results: list[tuple[int, dict]]) -> str:
     """One row per unit and training seed: ``results`` are (seed, results file contents)."""
-    lines = ["| unit | m per unit (error) | median view depth (units) | C-L1 cm / F / NC | with ICP | "
+    lines = ["| unit | one unit taken as (m; error) | median view depth (units) | C-L1 cm / F / NC | with ICP | "
              "held-out PSNR dB | Gaussians at start | train s |",
              "|---|---:|---:|---|---|---:|---:|---:|"]
     for seed, res in results:
