@@ -127,6 +127,16 @@ def link_scene(scene_dir: Path, out_dir: Path, parts: tuple[str, ...] = ("images
         shutil.copyfile(src / "scene.json", out_dir / "scene.json")
 
 
+def _warn_unregistered(names: list[str], rec: "pycolmap.Reconstruction") -> None:
+    """Say which images the kept model lacks: the scene and everything after it leave them out."""
+    reg = {rec.images[i].name for i in rec.reg_image_ids()}
+    missing = [n for n in names if n not in reg]
+    if missing:
+        log.warning("sfm: %d of %d images are not in the model (%s%s): the scene leaves them out; more overlap "
+                    "between neighbouring photos, or --max-num-features / a lower --peak-threshold, may bring them in",
+                    len(missing), len(names), ", ".join(missing[:5]), ", ..." if len(missing) > 5 else "")
+
+
 def _mark_arbitrary_scale(scene_json: Path) -> None:
     """Record in scene.json that the model's unit is arbitrary (read by ``geocues.rescale.metric_warning``;
     `geocues rescale` removes the mark) and its frame its own (read by `evaluate`), and say so once."""
@@ -328,6 +338,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         tmp_report.write_text(json.dumps(report, indent=2))
     if mode == "map" and ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit
         _mark_arbitrary_scale(root / "scene.json")
+    _warn_unregistered(names, rec)
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],
              sum(seconds.values()))

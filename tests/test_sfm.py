@@ -268,7 +268,7 @@ def test_cli_info_and_sfm(triangulated, capsys, tmp_path: Path):
     assert printed["mode"] == "triangulate" and "gt_check" not in printed
 
 
-def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
+def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path, caplog):
     """No model at all: incremental mapping estimates a SIMPLE_RADIAL camera (focal near ICL's 262.5 at
     320x240); the scene is refused until `geocues undistort` makes it PINHOLE (points kept)."""
     from geocues.rescale import RescaleConfig, metric_warning
@@ -278,8 +278,12 @@ def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path):
 
     scene = make_tiny_icl(icl_dir, tmp_path / "s")
     shutil.rmtree(scene / "sparse")
-    rep = _report(run(SfmConfig(check_gt=False), scene, tmp_path / "out"))
-    assert rep["mode"] == "map" and rep["registered_images"] >= 9 and rep["points"] > 300
+    cv2.imwrite(str(scene / "images" / "zz_lens_cap.png"), np.full((240, 320, 3), 40, np.uint8))  # no features
+    with caplog.at_level(logging.WARNING, logger="geocues.sfm"):
+        rep = _report(run(SfmConfig(check_gt=False), scene, tmp_path / "out"))
+    assert rep["mode"] == "map" and 9 <= rep["registered_images"] < rep["images"] == 11 and rep["points"] > 300
+    assert f"{11 - rep['registered_images']} of 11 images are not in the model (" in caplog.text
+    assert "zz_lens_cap.png" in caplog.text
     rec = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
     (cam,) = rec.cameras.values()
     assert cam.model.name == "SIMPLE_RADIAL" and abs(cam.params[0] / 262.5 - 1) < 0.05
