@@ -23,6 +23,18 @@ def icl_dir() -> Path:
     return ICL
 
 
+@pytest.fixture
+def restore_log_handlers():
+    """The CLI attaches a handler to the (captured) stderr of the test that calls it; drop it after."""
+    import logging
+
+    names = ("geocues", "splat", "evaluation")
+    before = {n: list(logging.getLogger(n).handlers) for n in names}
+    yield
+    for n in names:
+        logging.getLogger(n).handlers = before[n]
+
+
 @pytest.fixture(autouse=True)
 def _seed_global_rngs():
     """Every test draws the same global torch/numpy randoms on every run (no flaky tolerances)."""

@@ -6,7 +6,6 @@ the guessed unit must land near metres; the short training's mesh must lie on th
 from __future__ import annotations
 
 import json
-import logging
 from pathlib import Path
 
 import cv2
@@ -15,13 +14,7 @@ import pytest
 FRAMES = list(range(0, 120, 10))  # 12 frames along ~1.5 m of the ICL trajectory
 
 
-@pytest.fixture(autouse=True)
-def _restore_log_handlers():
-    names = ("geocues", "splat", "evaluation")
-    before = {n: list(logging.getLogger(n).handlers) for n in names}
-    yield
-    for n in names:
-        logging.getLogger(n).handlers = before[n]
+pytestmark = pytest.mark.usefixtures("restore_log_handlers")  # conftest.py
 
 
 def test_a_folder_of_photos_to_a_scored_mesh(icl_dir: Path, tmp_path: Path, capsys):

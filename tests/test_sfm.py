@@ -40,14 +40,7 @@ def make_tiny_icl(icl: Path, root: Path, frames: list[int] = FRAMES, scale: int 
     return root
 
 
-@pytest.fixture(autouse=True)
-def _restore_log_handlers():
-    """The CLI attaches a handler to the (captured) stderr of the test that calls it; drop it after."""
-    names = ("geocues", "splat", "evaluation")
-    before = {n: list(logging.getLogger(n).handlers) for n in names}
-    yield
-    for n in names:
-        logging.getLogger(n).handlers = before[n]
+pytestmark = pytest.mark.usefixtures("restore_log_handlers")  # conftest.py
 
 
 def _report(scene: Path) -> dict:
