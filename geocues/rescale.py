@@ -24,7 +24,7 @@ import numpy as np
 
 from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import find_model_dir
-from geocues.scene import ARBITRARY_SCALE, Scene
+from geocues.scene import ARBITRARY_SCALE, Scene, rescale_hint
 from geocues.sfm import link_scene
 
 log = logging.getLogger(__name__)
@@ -47,14 +47,15 @@ def median_view_depth(scene: Scene, max_points: int = 20000) -> float | None:
     it); None without 10 points."""
     if len(scene.points) < 10:
         return None
-    xyz = scene.points.xyz
-    sub = xyz[np.linspace(0, len(xyz) - 1, min(len(xyz), max_points)).astype(int)]
+    xyz, sub = scene.points.xyz, None
     meds = []
     for i, cam in enumerate(scene.cameras):
         idx = scene.points.visible_in.get(i)
         if idx is not None and len(idx):
             z = xyz[idx] @ cam.R[2] + cam.t[2]
         else:
+            if sub is None:
+                sub = xyz[np.linspace(0, len(xyz) - 1, min(len(xyz), max_points)).astype(int)]
             uv, z = cam.project(sub)
             z = z[(z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)]
         if (z > 0).sum() >= 10:
@@ -65,9 +66,7 @@ def median_view_depth(scene: Scene, max_points: int = 20000) -> float | None:
 def metric_warning(scene: Scene) -> str | None:
     """A sentence when the scene does not look metric (see the module docstring), else None."""
     ext = scene_extent(scene)
-    fix = (f"every threshold here is in metres; make it metric with `geocues rescale {scene.root} -o OUT --scale S` "
-           "(metres per unit), --from-priors (metric depth priors) or, as a guess, --median-depth 2 (photos "
-           "taken about 2 m from what they show)")
+    fix = f"every threshold here is in metres; {rescale_hint(scene.root)}"
     if scene.metadata.get("scale") == ARBITRARY_SCALE:
         return (f"the scene was mapped from images alone (`geocues sfm --mode map`), so its unit is arbitrary "
                 f"(it spans {ext:.3g} units): {fix}")

@@ -42,13 +42,20 @@ OWN_FRAME = "mapped from images"  # scene.json "frame" of such a model: origin a
 def no_images_folder(image_dir: Path) -> FileNotFoundError:
     """The error for a scene without ``images/``, with the fix when the scene folder holds the photos itself."""
     image_dir = Path(image_dir)
-    own = [p for p in image_dir.parent.iterdir() if p.suffix in IMAGE_EXTS] if image_dir.parent.is_dir() else []
     given = image_dir.parent
+    own = [p for p in given.iterdir() if p.suffix in IMAGE_EXTS] if given.is_dir() else []
+    if not own:
+        return FileNotFoundError(f"no images folder at {image_dir}")
     fix = (f"pass the scene folder above it, {given.parent}" if given.name == "images"
            else f"move them into {image_dir}/ and pass {given}")
-    hint = f"; {given} holds {len(own)} images itself, but a scene keeps them in images/ (COLMAP's layout): {fix}"
-    hint = hint if own else ""
-    return FileNotFoundError(f"no images folder at {image_dir}{hint}")
+    return FileNotFoundError(f"no images folder at {image_dir}; {given} holds {len(own)} images itself, but a "
+                             f"scene keeps them in images/ (COLMAP's layout): {fix}")
+
+
+def rescale_hint(root: Path) -> str:
+    """How to make the scene at ``root`` metric (the end of every not-metric warning)."""
+    return (f"make it metric with `geocues rescale {root} -o OUT --scale S` (metres per unit), --from-priors "
+            "(metric depth priors) or, as a guess, --median-depth 2 (photos taken about 2 m from what they show)")
 
 
 @dataclass

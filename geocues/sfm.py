@@ -35,7 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir
-from geocues.scene import ARBITRARY_SCALE, IMAGE_EXTS, OWN_FRAME, no_images_folder
+from geocues.scene import ARBITRARY_SCALE, IMAGE_EXTS, OWN_FRAME, no_images_folder, rescale_hint
 
 if TYPE_CHECKING:  # pragma: no cover
     import pycolmap
@@ -146,9 +146,7 @@ def _mark_arbitrary_scale(scene_json: Path) -> None:
     with atomic_path(scene_json) as tmp:
         tmp.write_text(json.dumps(meta, indent=1))
     log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold of "
-                "geocues and splat is in metres: make it metric with `geocues rescale %s -o OUT --scale S` "
-                "(S = metres per unit, from one known length), --from-priors (metric depth priors) or, as a "
-                "guess, --median-depth 2 (photos taken about 2 m from what they show)", scene_json.parent)
+                "geocues and splat is in metres: %s", rescale_hint(scene_json.parent))
 
 
 def points_xyz(rec: "pycolmap.Reconstruction") -> np.ndarray:
@@ -334,10 +332,10 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     gt = root / "gt" / "mesh.ply"
     if cfg.check_gt and gt.is_file() and report["points"] > 0:
         report["gt_check"] = distance_to_mesh_stats(points_xyz(rec), gt)
+    if mode == "map" and ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit
+        _mark_arbitrary_scale(root / "scene.json")  # before the report that marks the run finished
     with atomic_path(root / "sfm_report.json") as tmp_report:
         tmp_report.write_text(json.dumps(report, indent=2))
-    if mode == "map" and ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit
-        _mark_arbitrary_scale(root / "scene.json")
     _warn_unregistered(names, rec)
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],

@@ -192,6 +192,7 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
     import torch
     from tqdm.auto import tqdm
 
+    from evaluation.image_metrics import psnr
     from splat.camera import Camera
     from splat.rasterize import render
 
@@ -236,8 +237,8 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
                 iio.imwrite(tmp / sub / f"{v.name}.png", img)
             render_title = "render"
             if gt_img is not None and gt_img.shape == r["rgb"].shape:
-                mse = float(np.mean((np.clip(r["rgb"], 0, 1) - gt_img) ** 2))
-                render_title += f"  {10 * np.log10(1 / max(mse, 1e-10)):.2f} dB"
+                db = psnr(torch.from_numpy(np.clip(r["rgb"], 0, 1)), torch.from_numpy(gt_img))
+                render_title += f"  {db:.2f} dB"
             panel = ([titled(_u8(gt_img), "GT")] if gt_img is not None else []) + [
                 titled(img, t) for img, t in zip(tiles.values(), (render_title, "depth", "normals", "alpha"))]
             if gt_d is not None:
