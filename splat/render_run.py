@@ -9,7 +9,8 @@ One stage, one entry: ``run(cfg, run_dir, out=None, *, overwrite=False) -> Path`
     OUT/normal/<name>.png   rendered normals, camera frame, (1 - n) / 2 as in the contact sheets
     OUT/alpha/<name>.png    accumulated opacity, grey
     OUT/panels/<name>.png   GT | render | depth | normals | alpha, then GT depth, depth prior and normal
-                            prior where the scene has them
+                            prior where the scene has them, each under a strip naming it (the
+                            render's with its PSNR against GT)
 
 and with ``video`` an MP4 (H.264 through imageio-ffmpeg, render | depth side by side) along the
 chosen views in capture order: positions interpolated linearly, rotations by slerp, the first view's
