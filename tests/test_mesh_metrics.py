@@ -11,8 +11,8 @@ from scipy import integrate
 
 from evaluation.culling import CameraSet, in_frustum, raycasting_scene, unoccluded, visible_mask
 from evaluation.mesh_metrics import (METRIC_KEYS, MeshMetricsConfig, TriMesh, evaluate_mesh_files,
-                                     evaluate_meshes, load_mesh, nearest_sample_distances,
-                                     sample_surface)
+                                     evaluate_meshes, frame_mismatch, load_mesh,
+                                     nearest_sample_distances, sample_surface)
 
 
 def box(shift=(0.0, 0.0, 0.0)) -> TriMesh:
@@ -154,6 +154,44 @@ class TestKnownCases:
         full = evaluate_meshes(pred, gt, MeshMetricsConfig(n_samples=10_000, mode="surface",
                                                            crop_to_gt_bounds=False))
         assert within_binomial(full.precision, 4 / 5, 10_000)
+
+
+class TestFrameCheck:
+    """A mesh in another frame or unit is named (cropping would score it without a word)."""
+
+    @staticmethod
+    def room(scale=1.0, shift=(0.0, 0.0, 0.0)) -> TriMesh:
+        """A 4 x 3 x 2.5 m box room, scaled about the origin and moved."""
+        m = box()
+        return TriMesh(m.vertices * np.array([4.0, 3.0, 2.5]) * scale + np.asarray(shift), m.faces, name="room")
+
+    def test_same_frame_passes(self):
+        gt = self.room()
+        assert frame_mismatch(self.room(shift=(0.03, -0.02, 0.01)), gt) is None
+        half = merge(rect(0, 2, 0, 3, 0.0), rect(0, 2, 0, 3, 2.5))  # floor and ceiling of half the room
+        assert frame_mismatch(half, gt) is None
+        floater = rect(5.0, 5.6, 0, 1, 1.0)  # 0.6 m^2 outside, against 12 m^2 inside
+        assert frame_mismatch(merge(rect(0, 4, 0, 3, 0.0), floater), gt) is None
+        r = evaluate_meshes(self.room(shift=(0.03, 0, 0)), gt, MeshMetricsConfig(n_samples=5_000))
+        assert r.protocol["frame_warning"] is None
+
+    def test_another_unit_is_named(self, caplog):
+        gt = self.room()
+        six = self.room(scale=6.0, shift=(1.0, -5.0, -5.0))  # COLMAP's unit, a wall through the GT's box
+        msg = frame_mismatch(six, gt)
+        assert msg is not None and "6 times" in msg and "--align-to" in msg
+        with caplog.at_level("WARNING", logger="evaluation.mesh_metrics"):
+            r = evaluate_meshes(six, gt, MeshMetricsConfig(n_samples=5_000))
+        assert r.protocol["frame_warning"] == msg
+        assert sum(msg in rec.getMessage() for rec in caplog.records) == 1
+
+    def test_another_origin_is_named_in_the_crop_error(self):
+        gt = self.room()
+        moved = self.room(shift=(20.0, 0.0, 0.0))  # same unit, nothing inside the GT's box
+        msg = frame_mismatch(moved, gt)
+        assert msg is not None and msg.startswith("100 % of room lies outside")
+        with pytest.raises(ValueError, match="none kept.*100 % of room lies outside.*--align-to"):
+            evaluate_meshes(moved, gt, MeshMetricsConfig(n_samples=5_000))
 
 
 class TestSampling:
