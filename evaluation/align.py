@@ -124,8 +124,8 @@ def evaluate_aligned(pred_path: str | Path, pred_scene: str | Path, gt_scene: st
     """Score the mesh ``pred_path`` (in the frame of ``pred_scene``) against the GT of ``gt_scene``
     after :func:`align_scenes` and, with ``icp``, a similarity ICP refinement (correspondences
     within twice the F-score threshold). The returned metrics' protocol holds the alignment."""
-    from evaluation.mesh_metrics import (MeshMetricsConfig, TriMesh, evaluate_meshes, load_mesh,
-                                         sample_surface, scene_cameras_and_gt)
+    from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_meshes, scene_cameras_and_gt
+    from evaluation.surfaces import TriMesh, load_mesh, sample_surface
 
     cfg = cfg or MeshMetricsConfig()
     cameras, scene_gt = scene_cameras_and_gt(gt_scene)

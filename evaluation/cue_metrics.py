@@ -49,7 +49,7 @@ class GroundTruth:
 
     def __init__(self, gt_path: str | Path, cameras: list, cfg: CueMetricsConfig):
         from evaluation.culling import CameraSet, raycasting_scene, visible_mask
-        from evaluation.mesh_metrics import load_mesh, sample_kept_surface
+        from evaluation.surfaces import load_mesh, sample_kept_surface
 
         self.path = Path(gt_path)
         mesh = load_mesh(self.path)
@@ -61,14 +61,14 @@ class GroundTruth:
 
     def distances(self, points: np.ndarray) -> np.ndarray:
         """Exact distance of each point [N, 3] to the GT surface, [N]."""
-        from evaluation.mesh_metrics import surface_distances
+        from evaluation.surfaces import surface_distances
 
         return surface_distances(np.asarray(points, np.float64), self.scene)[0] if len(points) else np.zeros(0)
 
 
 def coverage(points: np.ndarray, gt_samples: np.ndarray, dist: float) -> float:
     """Share of GT samples with a point within ``dist`` (0 when there are no points)."""
-    from evaluation.mesh_metrics import nearest_sample_distances
+    from evaluation.surfaces import nearest_sample_distances
 
     if len(points) == 0:
         return 0.0

@@ -1,0 +1,165 @@
+"""Triangle meshes as numpy arrays, read with Open3D, sampled uniformly on their surface, and the
+distances between samples and surfaces: what the mesh metrics (``evaluation.mesh_metrics``) and the
+cue metrics (``evaluation.cue_metrics``) measure with."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import open3d as o3d
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TriMesh:
+    """A triangle mesh as numpy arrays (metres)."""
+
+    vertices: np.ndarray  # [V, 3] float64
+    faces: np.ndarray  # [F, 3] int64
+    name: str = "mesh"
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, dtype=np.float64)
+        self.faces = np.asarray(self.faces, dtype=np.int64)
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
+            raise ValueError(f"{self.name}: vertices must be [V, 3], got {self.vertices.shape}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
+            raise ValueError(f"{self.name}: mesh has no triangles (faces shape {self.faces.shape})")
+        if self.faces.min() < 0 or self.faces.max() >= len(self.vertices):
+            raise ValueError(f"{self.name}: face indices outside [0, {len(self.vertices)})")
+        if not np.isfinite(self.vertices[self.faces]).all():
+            raise ValueError(f"{self.name}: mesh has non-finite vertex coordinates")
+        tri = self.vertices[self.faces]  # [F, 3, 3]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3]
+        norm = np.linalg.norm(cross, axis=1)  # [F]
+        self.areas = 0.5 * norm  # [F] m^2
+        self.face_normals = cross / np.maximum(norm, 1e-300)[:, None]  # [F, 3], zero-area faces: 0
+        if not self.areas.sum() > 0:
+            raise ValueError(f"{self.name}: mesh has zero surface area")
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounds (lower [3], upper [3]) of the vertices used by faces."""
+        used = self.vertices[np.unique(self.faces)]
+        return used.min(axis=0), used.max(axis=0)
+
+
+def _ply_header_counts(path: Path) -> dict[str, int]:
+    """Element counts declared in a PLY header ({"vertex": n, "face": m, ...})."""
+    counts = {}
+    with open(path, "rb") as f:
+        for _ in range(10_000):
+            line = f.readline()
+            if not line or line.strip() == b"end_header":
+                break
+            parts = line.split()
+            if len(parts) == 3 and parts[0] == b"element":
+                counts[parts[1].decode(errors="replace")] = int(parts[2])
+    return counts
+
+
+def load_mesh(path: str | Path) -> TriMesh:
+    """Read a triangle mesh (PLY/OBJ/OFF/...) with Open3D; errors name the path."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(filename=str(path))
+    faces = np.asarray(mesh.triangles)
+    if len(faces) == 0:
+        raise ValueError(f"{path}: no triangles in this file (empty mesh, point cloud or unreadable)")
+    if path.suffix.lower() == ".ply":  # Open3D returns what it read of a truncated file without error
+        want = _ply_header_counts(path)
+        got = {"vertex": len(mesh.vertices), "face": len(faces)}
+        short = {k: (got[k], want[k]) for k in got if k in want and got[k] < want[k]}
+        if short:
+            raise ValueError(f"{path} is truncated or damaged: read " + ", ".join(
+                f"{g} of {w} {k} elements" for k, (g, w) in short.items()))
+    return TriMesh(np.asarray(mesh.vertices), faces, name=str(path))
+
+
+def sample_surface(mesh: TriMesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Sample ``n`` points uniformly on the surface (area-weighted triangle, uniform barycentric).
+
+    Returns points [n, 3] and the index [n] of the triangle each lies on.
+    """
+    cdf = np.cumsum(mesh.areas)  # [F]
+    face = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+    face = np.minimum(face, len(cdf) - 1)  # [n]
+    r1 = np.sqrt(rng.random(n))[:, None]  # [n, 1]
+    r2 = rng.random(n)[:, None]  # [n, 1]
+    a, b, c = (mesh.vertices[mesh.faces[face, k]] for k in range(3))  # [n, 3] each
+    points = (1.0 - r1) * a + r1 * (1.0 - r2) * b + r1 * r2 * c  # [n, 3]
+    return points, face
+
+
+def sample_kept_surface(mesh: TriMesh, n: int, rng: np.random.Generator,
+                        keep: Callable[[np.ndarray], np.ndarray] | None = None,
+                        max_rounds: int = 30) -> tuple[np.ndarray, np.ndarray, float]:
+    """Sample ``n`` points uniformly on the part of the surface where ``keep(points)`` is True.
+
+    Rejection sampling: uniform samples on the whole surface, those failing ``keep`` dropped,
+    repeated until ``n`` remain. Returns points [n, 3], triangle indices [n] and the estimated
+    fraction of the surface area that is kept.
+    """
+    if keep is None:
+        points, face = sample_surface(mesh, n, rng)
+        return points, face, 1.0
+    kept_p, kept_f, drawn, kept = [], [], 0, 0
+    batch = n
+    for _ in range(max_rounds):
+        points, face = sample_surface(mesh, batch, rng)
+        mask = keep(points)
+        kept_p.append(points[mask])
+        kept_f.append(face[mask])
+        drawn += batch
+        kept += int(mask.sum())
+        if kept >= n or (kept == 0 and drawn >= max(20 * n, 1_000_000)):
+            break  # nothing kept in 20 n draws: less than ~1/(20 n) of the surface, not worth 30 rounds
+        rate = max(kept / drawn, 1e-4)
+        batch = int(min(np.ceil((n - kept) / rate * 1.1) + 16, 4_000_000))
+    if kept == 0:
+        raise ValueError(f"{mesh.name}: no part of the surface survives culling/cropping "
+                         f"({drawn} samples drawn, none kept)")
+    if kept < n:
+        log.warning("%s: only %d of %d samples kept after %d rounds", mesh.name, kept, n, max_rounds)
+    points = np.concatenate(kept_p)[:n]
+    face = np.concatenate(kept_f)[:n]
+    return points, face, kept / drawn
+
+
+def nearest_sample_distances(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from each src point [N, 3] to its nearest dst point [M, 3], and its index [N].
+
+    Exact nearest neighbours in float64 from Open3D's KD-tree (nanoflann). scipy 1.17's cKDTree
+    gives the same answers but degenerates on this geometry -- samples on a few thin surfaces,
+    queries far from them (a small or partial predicted mesh inside a room's GT): 0.5-5 ms per query
+    with any of its tree options, minutes for 200k samples, against seconds here (measured).
+    """
+    src = np.ascontiguousarray(src, np.float64).reshape(-1, 3)
+    dst = np.ascontiguousarray(dst, np.float64).reshape(-1, 3)
+    if len(dst) == 0:
+        raise ValueError("nearest_sample_distances: no points to search (dst is empty)")
+    if len(src) == 0:
+        return np.zeros(0), np.zeros(0, np.int64)
+    nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(dst))
+    nns.knn_index()
+    idx, dist2 = nns.knn_search(o3d.core.Tensor(src), 1)  # [N, 1] each, squared distances
+    return np.sqrt(dist2.numpy()[:, 0]), idx.numpy()[:, 0].astype(np.int64)
+
+
+def surface_distances(src: np.ndarray, scene: o3d.t.geometry.RaycastingScene) -> tuple[np.ndarray, np.ndarray]:
+    """Exact distance from each src point [N, 3] to a triangle surface, and the closest triangle."""
+    ans = scene.compute_closest_points(query_points=o3d.core.Tensor(src.astype(np.float32)))
+    closest = ans["points"].numpy().astype(np.float64)  # [N, 3]
+    face = ans["primitive_ids"].numpy().astype(np.int64)  # [N]
+    return np.linalg.norm(src - closest, axis=1), face
+
+
+__all__ = ["TriMesh", "load_mesh", "sample_surface", "sample_kept_surface",
+           "nearest_sample_distances", "surface_distances"]
