@@ -124,6 +124,25 @@ def test_a_scene_mapped_from_images_is_told_to_align(tmp_path, capsys):
     assert f"{scene} was mapped from images alone" in err and "pass --align-to GT_SCENE" in err
 
 
+def test_a_mesh_in_another_unit_or_place_is_named_without_a_scene(tmp_path, capsys):
+    """Without SCENE there is no mark to read: the mesh's own extent against the GT's tells."""
+    box = o3d.geometry.TriangleMesh.create_box()
+    v, f = np.asarray(box.vertices), np.asarray(box.triangles)
+    gt = write_mesh(tmp_path / "gt.ply", v, f)
+    six = write_mesh(tmp_path / "six.ply", 6.0 * v + [0.5, -2.0, -2.0], f)  # a wall through the GT's box
+    out = tmp_path / "six.json"
+    assert main([str(six), "--gt", str(gt), "--n-samples", "2000", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "6 times the GT's size" in err and "--align-to GT_SCENE" in err
+    assert "6 times" in json.loads(out.read_text())["protocol"]["frame_warning"]
+    away = write_mesh(tmp_path / "away.ply", v + [30.0, 0, 0], f)  # nothing left after the crop
+    assert main([str(away), "--gt", str(gt), "--n-samples", "2000"]) == 1
+    err = capsys.readouterr().err
+    assert "none kept" in err and "100 % of" in err and "--align-to" in err and "Traceback" not in err
+    assert main([str(gt), "--gt", str(gt), "--n-samples", "2000"]) == 0
+    assert "GT's size" not in capsys.readouterr().err
+
+
 def test_no_gt_anywhere(tmp_path, capsys):
     scene = make_scene(tmp_path / "scene")
     (scene / "gt" / "mesh.ply").unlink()
