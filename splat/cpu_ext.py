@@ -16,6 +16,10 @@ width); elsewhere, with ``INDOORGS_CPU_SIMD=baseline``, or when that build fails
 the baseline build (``indoorgs_cpu``, SSE4.2) is used. Each build has its own cache folder, so a
 cache moved to an older x86-64 machine stays valid. :func:`baseline_ext` gives the baseline build
 in any case (tests compare the two).
+
+The kernels' threads are OpenMP's. A compiler without it (Apple's clang has no ``-fopenmp``), or
+``INDOORGS_CPU_OPENMP=0``, gets the same kernels built for one thread (``indoorgs_cpu_serial``,
+``csrc/omp_compat.h``; a warning says so) instead of the torch backend, 8-14x slower on 2 cores.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ AVX2_EXT_NAME = "indoorgs_cpu_avx2"
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = (CSRC / "composite_cpu.cpp", CSRC / "project_cpu.cpp", CSRC / "losses_cpu.cpp", CSRC / "maps_cpu.cpp",
            CSRC / "bindings.cpp")
-HEADERS = (CSRC / "composite_cpu.h", CSRC / "kernels.h")
+HEADERS = (CSRC / "composite_cpu.h", CSRC / "kernels.h", CSRC / "omp_compat.h")
 # -ffp-contract=off: forward and backward must evaluate alpha bit-identically (same skip decisions).
 # SSE4.2 (every x86-64 CPU since ~2009) gives inline floor/ceil; not -march=native, so that a cached
 # build stays valid when the repository moves to another x86-64 machine.
@@ -63,42 +67,68 @@ def selected_simd() -> str:
     return "avx2" if choice != "baseline" and cpu_has_avx2() else "baseline"
 
 
-def ext_name(simd: str | None = None) -> str:
-    """The extension's name for a build ("avx2" or "baseline"; default: the one this machine uses)."""
-    return AVX2_EXT_NAME if (simd or selected_simd()) == "avx2" else EXT_NAME
+def openmp_wanted() -> bool:
+    """False when ``INDOORGS_CPU_OPENMP=0`` asks for the one-thread build."""
+    return os.environ.get("INDOORGS_CPU_OPENMP", "1") != "0"
 
 
-def build_dir(simd: str | None = None) -> Path:
-    """``$INDOORGS_CACHE`` (or ``<repo>/.cache``) / torch_extensions / <name> / <hash of sources+flags>."""
+def ext_name(simd: str | None = None, openmp: bool = True) -> str:
+    """The extension's name for a build ("avx2" or "baseline"; default: the one this machine uses),
+    with OpenMP threads or (``openmp=False``) for one thread."""
+    name = AVX2_EXT_NAME if (simd or selected_simd()) == "avx2" else EXT_NAME
+    return name if openmp else f"{name}_serial"
+
+
+def build_flags(simd: str | None = None, openmp: bool = True) -> list[str]:
+    """Compiler flags of a build: without OpenMP, no -fopenmp and its pragmas ignored quietly."""
     flags = AVX2_CFLAGS if ext_name(simd) == AVX2_EXT_NAME else CFLAGS
-    return cache_dir(ext_name(simd), (*SOURCES, *HEADERS), flags + [torch.__version__])
+    return flags if openmp else [f for f in flags if f != "-fopenmp"] + ["-Wno-unknown-pragmas"]
 
 
-def _build(simd: str | None = None) -> ModuleType:
+def build_dir(simd: str | None = None, openmp: bool = True) -> Path:
+    """``$INDOORGS_CACHE`` (or ``<repo>/.cache``) / torch_extensions / <name> / <hash of sources+flags>."""
+    return cache_dir(ext_name(simd, openmp), (*SOURCES, *HEADERS), build_flags(simd, openmp) + [torch.__version__])
+
+
+def _build(simd: str | None = None, openmp: bool = True) -> ModuleType:
     """Load the cached build or compile the extension; ImportError with the compiler output on failure."""
     avx2 = ext_name(simd) == AVX2_EXT_NAME
-    return build_or_load(ext_name(simd), SOURCES, build_dir(simd),
-                         "C++ rasterizer kernels" + (" for AVX2" if avx2 else ""),
-                         cflags=AVX2_CFLAGS if avx2 else CFLAGS, ldflags=["-fopenmp"])
+    return build_or_load(ext_name(simd, openmp), SOURCES, build_dir(simd, openmp),
+                         "C++ rasterizer kernels" + (" for AVX2" if avx2 else "") + ("" if openmp else " for one thread"),
+                         cflags=build_flags(simd, openmp), ldflags=["-fopenmp"] if openmp else [])
 
 
-def _build_selected() -> tuple[ModuleType, str]:
+def _build_selected() -> tuple[ModuleType, str, bool]:
+    """The first build that compiles: this CPU's SIMD with OpenMP, the baseline with OpenMP, then the
+    baseline for one thread; (module, simd, openmp). The last failure's ImportError if none does."""
     simd = selected_simd()
-    if simd == "avx2":
+    tries = [(simd, True), ("baseline", True)] if simd == "avx2" else [("baseline", True)]
+    tries = [t for t in tries if t[1] and openmp_wanted()] + [("baseline", False)]
+    errors = []
+    for build_simd, openmp in tries:
         try:
-            return _build("avx2"), "avx2"
+            module = _build(build_simd, openmp)
         except ImportError as exc:
-            log.warning("the AVX2 build of the C++ kernels failed (%s); using the baseline build",
-                        str(exc).splitlines()[0])
-    return _build("baseline"), "baseline"
+            errors.append(f"{ext_name(build_simd, openmp)} did not build ({str(exc).splitlines()[0]})")
+            if len(errors) == len(tries):
+                raise
+            continue
+        if errors:
+            log.warning("using the %s build of the C++ kernels: %s", ext_name(build_simd, openmp), "; ".join(errors))
+        if not openmp:
+            log.warning("the C++ kernels run on one thread (built without OpenMP%s): training is about as many "
+                        "times slower as there are cores; a compiler with OpenMP (gcc, or clang with libomp) "
+                        "gives the threaded build", "" if openmp_wanted() else ": INDOORGS_CPU_OPENMP=0")
+        return module, build_simd, openmp
+    raise AssertionError("unreachable")
 
 
 @functools.cache
 def baseline_ext() -> ModuleType:
     """The baseline (SSE4.2, 4 float lanes) build: :data:`ext` itself, or built on first call."""
-    return ext if SIMD == "baseline" else _build("baseline")
+    return ext if SIMD == "baseline" else _build("baseline")  # an AVX2 build is an OpenMP one
 
 
-ext, SIMD = _build_selected()
+ext, SIMD, OPENMP = _build_selected()
 #: lanes of the float compositing loops in the build in use
 COMPOSITE_LANES = 8 if SIMD == "avx2" else 4

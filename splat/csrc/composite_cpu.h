@@ -9,7 +9,7 @@
 
 #include <torch/extension.h>
 
-#include <omp.h>
+#include "omp_compat.h"
 
 #include <algorithm>
 #include <climits>

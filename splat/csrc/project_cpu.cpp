@@ -13,7 +13,7 @@
 #include <torch/extension.h>
 #include "kernels.h"
 
-#include <omp.h>
+#include "omp_compat.h"
 
 #include <algorithm>
 #include <cmath>
