@@ -258,12 +258,13 @@ def time_composite(params: dict[str, torch.Tensor], camera, backend: str, n_iter
 
 
 def _cpu_build() -> str | None:
-    """Which build of the C++ extension the `cpu` backend uses here ("avx2" or "baseline"; None if none)."""
+    """Which build of the C++ extension the `cpu` backend uses here ("avx2", "baseline" or, built
+    without OpenMP, "baseline-serial"; None if none)."""
     try:
-        from splat.cpu_ext import SIMD
+        from splat.cpu_ext import OPENMP, SIMD
     except ImportError:
         return None
-    return SIMD
+    return SIMD if OPENMP else f"{SIMD}-serial"
 
 
 def time_config(backend: str, width: int, height: int, n: int, cfg: BenchConfig) -> dict:
