@@ -98,6 +98,15 @@ def _build(simd: str | None = None, openmp: bool = True) -> ModuleType:
                          cflags=build_flags(simd, openmp), ldflags=["-fopenmp"] if openmp else [])
 
 
+def compiler_error(exc: Exception, width: int = 200) -> str:
+    """The compiler's first error line in a failed build's message (ninja's first line is the whole
+    command), else the message's first line; at most ``width`` characters."""
+    lines = str(exc).splitlines()
+    found = [ln.strip() for ln in lines if "error:" in ln.lower() and "error building extension" not in ln.lower()]
+    text = found[0] if found else (lines[0] if lines else type(exc).__name__)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
 def _build_selected() -> tuple[ModuleType, str, bool]:
     """The first build that compiles: this CPU's SIMD with OpenMP, the baseline with OpenMP, then the
     baseline for one thread; (module, simd, openmp). The last failure's ImportError if none does."""
@@ -109,7 +118,7 @@ def _build_selected() -> tuple[ModuleType, str, bool]:
         try:
             module = _build(build_simd, openmp)
         except ImportError as exc:
-            errors.append(f"{ext_name(build_simd, openmp)} did not build ({str(exc).splitlines()[0]})")
+            errors.append(f"{ext_name(build_simd, openmp)} did not build ({compiler_error(exc)})")
             if len(errors) == len(tries):
                 raise
             continue

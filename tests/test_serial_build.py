@@ -115,3 +115,14 @@ class TestChoice:
         with pytest.raises(ImportError, match="indoorgs_cpu_serial failed"):
             cpu_ext._build_selected()
         assert len(tried) == 3
+
+
+def test_the_warning_quotes_the_compilers_error_not_ninjas_command_line():
+    from splat.cpu_ext import compiler_error
+
+    ninja = ("building indoorgs_cpu in /c failed: Error building extension 'indoorgs_cpu': [1/6] c++ -MMD "
+             + "-isystem /x " * 50 + "-fopenmp -c k.cpp\nFAILED: k.o\nclang: error: unsupported option '-fopenmp'\n"
+             "ninja: build stopped: subcommand failed.")
+    assert compiler_error(ImportError(ninja)) == "clang: error: unsupported option '-fopenmp'"
+    assert compiler_error(ImportError("cannot import x.so\ndetails")) == "cannot import x.so"
+    assert len(compiler_error(ImportError("y" * 500))) == 200
