@@ -51,23 +51,9 @@ def test_compositing_is_bitwise_equal(builds, two_threads, monkeypatch, nch, dty
 
 
 def test_projection_and_losses_are_bitwise_equal(builds, two_threads, monkeypatch):
-    from test_project_cpu import OUTPUTS, camera, hard_params, project_and_grads
+    from test_simd_builds import projection_and_losses
 
-    from splat import losses_cpu, project_cpu
-
-    params, cam = hard_params(n=800, seed=3, dtype=torch.float32), camera(dtype=torch.float32)
-    gen = torch.Generator().manual_seed(0)
-    x, y = torch.rand(2, 37, 53, 3, generator=gen)
-    results = []
-    for build in builds:
-        monkeypatch.setattr(project_cpu, "_ext", build)
-        monkeypatch.setattr(losses_cpu, "_EXT", [build])
-        proj, grads = project_and_grads(params, cam, "cpu", sh_degree=3)
-        xs = x.clone().requires_grad_()
-        ssim = losses_cpu.ssim_mean(xs, y)
-        ssim.backward()
-        results.append([*(getattr(proj, k) for k in (*OUTPUTS, "radii")), *grads, ssim.detach(), xs.grad])
-    for a, b in zip(*results):
+    for a, b in zip(*projection_and_losses(builds, monkeypatch, torch.float32)):
         assert torch.equal(a, b)
 
 

@@ -48,8 +48,8 @@ def test_compositing_agrees(builds, monkeypatch, nch, dtype):
             torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6 * float(a.abs().max()))
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_projection_and_losses_are_bitwise_equal(builds, monkeypatch, dtype):
+def projection_and_losses(builds, monkeypatch, dtype) -> list[list[torch.Tensor]]:
+    """With each build: the projection's outputs and gradients, the fused SSIM and its gradient."""
     from test_project_cpu import OUTPUTS, camera, hard_params, project_and_grads
 
     from splat import losses_cpu, project_cpu
@@ -67,7 +67,12 @@ def test_projection_and_losses_are_bitwise_equal(builds, monkeypatch, dtype):
         ssim = losses_cpu.ssim_mean(xs, y)
         ssim.backward()
         results.append([*(getattr(proj, k) for k in (*OUTPUTS, "radii")), *grads, ssim.detach(), xs.grad])
-    for a, b in zip(*results):
+    return results
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_projection_and_losses_are_bitwise_equal(builds, monkeypatch, dtype):
+    for a, b in zip(*projection_and_losses(builds, monkeypatch, dtype)):
         assert torch.equal(a, b)
 
 
