@@ -31,7 +31,9 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
          icp: bool = False,
          cfg: Annotated[MeshMetricsConfig, tyro.conf.arg(name="")] = MeshMetricsConfig()) -> int:
     """Mesh metrics (accuracy, completeness, Chamfer-L1, F-score, normal consistency) of a mesh,
-    and with --renders the PSNR / SSIM of rendered held-out views.
+    and with --renders the PSNR / SSIM of rendered held-out views. A mesh that looks like it is in
+    another frame or unit than the GT (most of it outside the GT's box, or 3x its size) is warned
+    about: score such a mesh with --align-to.
 
     Args:
         pred_mesh: the predicted mesh (PLY/OBJ/OFF).
