@@ -75,7 +75,10 @@ def _load_backend(name: str):
 
             _modules[name] = importlib.import_module(f"splat.composite_{name}")
         except Exception as exc:  # noqa: BLE001 - any build/import failure means "fall back"
-            _errors[name] = f"{type(exc).__name__}: {exc}"
+            from splat.ext_build import compiler_error
+
+            log.debug("%s backend import failed: %s", name, exc)  # the whole compiler output, with -v
+            _errors[name] = f"{type(exc).__name__}: {compiler_error(exc)}"
             log.warning("%s compositing backend unavailable, using torch: %s",
                         {"cpu": "C++", "cuda": "CUDA"}[name], _errors[name])
     return _modules[name]

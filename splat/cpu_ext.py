@@ -33,7 +33,7 @@ from types import ModuleType
 
 import torch
 
-from splat.ext_build import build_or_load, cache_dir
+from splat.ext_build import build_or_load, cache_dir, compiler_error
 
 log = logging.getLogger(__name__)
 
@@ -96,15 +96,6 @@ def _build(simd: str | None = None, openmp: bool = True) -> ModuleType:
     return build_or_load(ext_name(simd, openmp), SOURCES, build_dir(simd, openmp),
                          "C++ rasterizer kernels" + (" for AVX2" if avx2 else "") + ("" if openmp else " for one thread"),
                          cflags=build_flags(simd, openmp), ldflags=["-fopenmp"] if openmp else [])
-
-
-def compiler_error(exc: Exception, width: int = 200) -> str:
-    """The compiler's first error line in a failed build's message (ninja's first line is the whole
-    command), else the message's first line; at most ``width`` characters."""
-    lines = str(exc).splitlines()
-    found = [ln.strip() for ln in lines if "error:" in ln.lower() and "error building extension" not in ln.lower()]
-    text = found[0] if found else (lines[0] if lines else type(exc).__name__)
-    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def _build_selected() -> tuple[ModuleType, str, bool]:

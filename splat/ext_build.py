@@ -90,6 +90,15 @@ def _finished(name: str, out_dir: Path) -> ModuleType | None:
         return None
 
 
+def compiler_error(exc: Exception, width: int = 200) -> str:
+    """The compiler's first error line in a failed build's message (ninja's first line is the whole
+    command), else the message's first line; at most ``width`` characters."""
+    lines = str(exc).splitlines()
+    found = [ln.strip() for ln in lines if "error:" in ln.lower() and "error building extension" not in ln.lower()]
+    text = found[0] if found else (lines[0] if lines else type(exc).__name__)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
 def build_or_load(name: str, sources: tuple[Path, ...], out_dir: Path, what: str, *, cflags: list[str],
                   cuda_cflags: list[str] | None = None, ldflags: list[str] | None = None) -> ModuleType:
     """Import the finished build in ``out_dir`` or compile ``sources`` there with torch's JIT loader.

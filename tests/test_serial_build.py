@@ -104,7 +104,7 @@ class TestChoice:
 
 
 def test_the_warning_quotes_the_compilers_error_not_ninjas_command_line():
-    from splat.cpu_ext import compiler_error
+    from splat.ext_build import compiler_error
 
     ninja = ("building indoorgs_cpu in /c failed: Error building extension 'indoorgs_cpu': [1/6] c++ -MMD "
              + "-isystem /x " * 50 + "-fopenmp -c k.cpp\nFAILED: k.o\nclang: error: unsupported option '-fopenmp'\n"
