@@ -133,6 +133,18 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | Non
     return "cpu"
 
 
+def describe_backend(backend: str, device: torch.device) -> str:
+    """What ``backend`` resolves to on ``device``, in words for a log line or a report:
+    "cpu (C++ avx2 build, OpenMP, 2 threads)", "cpu (C++ baseline build, one thread)", "cuda", "torch"."""
+    name = resolve_backend(backend, device)
+    if name != "cpu":
+        return name
+    from splat.cpu_ext import OPENMP, SIMD
+
+    threads = f"OpenMP, {torch.get_num_threads()} threads" if OPENMP else "one thread"
+    return f"cpu (C++ {SIMD} build, {threads})"
+
+
 def composite(
     means2d: Tensor,  # [N, 2] pixel coordinates (COLMAP centres)
     conics: Tensor,  # [N, 3] (a, b, c) of the inverse 2D covariance [[a, b], [b, c]]

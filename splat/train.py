@@ -42,6 +42,7 @@ from geocues.types import CueType
 from splat import checkpoint, compiled
 from splat.camera_opt import CameraRefiner
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
+from splat.composite import describe_backend
 from splat.export import write_3dgs_run
 from splat.frozen import GEOMETRY_KEYS, colour_step
 from splat.gaussians import cue_type_path, scene_scale
@@ -282,10 +283,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
         shutil.rmtree(work)
     device = resolve_device(cfg.device)
-    if device.type == "cpu" and cfg.backend in ("auto", "cpu"):
-        from splat.composite import available_backends
-
-        available_backends()  # builds the C++ kernels now, with a message, not inside the first step
+    rasterizer = describe_backend(cfg.backend, device)  # builds the kernels now, with a message, not in the first step
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)  # CPU: the loss patches are drawn on the CPU
@@ -341,8 +339,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     guard = NumericsGuard(cfg.guard, torch.as_tensor(np.median(seeds, 0), dtype=torch.float32, device=device),
                           scale)
     timings["load_and_init_s"] = time.perf_counter() - t_start
-    log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, device %s",
-             cfg.iters, len(train_views), len(test_views), len(cue_type), _type_counts(cue_type), scale, device)
+    log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, rasterizer %s",
+             cfg.iters, len(train_views), len(test_views), len(cue_type), _type_counts(cue_type), scale, rasterizer)
 
     work.mkdir(parents=True, exist_ok=True)
     if ckpt is None:
@@ -495,6 +493,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
         timings["mesh_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),
+              "rasterizer": rasterizer,
               "scene_scale": scale, "n_train_views": len(train_views), "n_test_views": len(test_views),
               "gaussians_init": _type_counts(cue_type), "gaussians_final": _type_counts(state["cue_type"]),
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},

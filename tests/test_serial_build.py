@@ -103,6 +103,20 @@ class TestChoice:
         assert len(tried) == 3
 
 
+def test_the_rasterizer_is_named_with_its_build(monkeypatch):
+    """`splat train` logs and reports which kernels run: the slow paths must be visible."""
+    cpu_ext = pytest.importorskip("splat.cpu_ext", reason="the C++ CPU extension does not build here")
+    from splat.composite import describe_backend
+
+    cpu = torch.device("cpu")
+    assert describe_backend("torch", cpu) == "torch"
+    monkeypatch.setattr(cpu_ext, "OPENMP", True)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 3)
+    assert describe_backend("auto", cpu) == f"cpu (C++ {cpu_ext.SIMD} build, OpenMP, 3 threads)"
+    monkeypatch.setattr(cpu_ext, "OPENMP", False)
+    assert describe_backend("cpu", cpu) == f"cpu (C++ {cpu_ext.SIMD} build, one thread)"
+
+
 def test_the_warning_quotes_the_compilers_error_not_ninjas_command_line():
     from splat.ext_build import compiler_error
 

@@ -68,6 +68,11 @@ def test_train_writes_every_output(trained):
     assert report["gaussians_final"]["PLANE"] <= report["gaussians_init"]["PLANE"]
     assert len(cue_type) <= 20_000  # the budget holds
     assert set(report["timings"]) >= {"load_and_init_s", "train_s", "mesh_s", "total_s"}
+    import torch
+
+    from splat.composite import describe_backend
+
+    assert report["rasterizer"] == describe_backend("auto", torch.device(report["device"]))  # which kernels ran
     # the 3DGS layout holds the same model (SIBR / other tools read it), written once and linked
     iters = report["config"]["iters"]
     other = out / "point_cloud" / f"iteration_{iters}" / "point_cloud.ply"
