@@ -20,11 +20,15 @@ measured anchors put the wall elsewhere (:func:`cues_contradict`).
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from geocues.ceiling import level_plane_points
 from geocues.floor_lines import FloorLineConfig, sample_nearest
 from geocues.plane_fit import weighted_median
+
+log = logging.getLogger(__name__)
 
 WALL_CHECK_MIN = 0.3  # metres above the floor: lower rows of a raised floor-texture line lie so close to
 # the floor the views see behind them that a loose tolerance cannot tell them from a wall
@@ -132,6 +136,10 @@ def wall_anchors(points: np.ndarray, line: np.ndarray, floor_normal: np.ndarray,
         top = max(float(np.percentile(h, 99)) if len(h) else 0.0, cam_top)
     heights = np.arange(cfg.wall_step, top + 1e-9, cfg.wall_step)  # [H]
     check = cfg.wall_check and views is not None and bool(priors)
+    if cfg.wall_check and not check and len(line):
+        log.warning("--floor.wall-check: no aligned depth priors to check the walls with (the scene has none, or "
+                    "none could be aligned): every floor segment raised unchecked to %.2f m, floor texture lines "
+                    "and furniture feet included", top)
     counts = {"dropped": 0, "cut": 0, "unchecked": 0}
     feet, grids, raised = [], [], []
     for k in np.unique(line):

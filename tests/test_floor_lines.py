@@ -360,7 +360,7 @@ def _raised(cams, segments, priors, cfg):
     return tops, report
 
 
-def test_wall_check_raises_a_wall_foot_and_drops_a_floor_texture_line(views):
+def test_wall_check_raises_a_wall_foot_and_drops_a_floor_texture_line(views, caplog):
     """--floor.wall-check: the priors see the wall above its foot (raised to the top), and the floor and
     the wall behind a texture line 1 m in front of it (not raised); without priors both are raised."""
     cams, _ = views
@@ -370,8 +370,10 @@ def test_wall_check_raises_a_wall_foot_and_drops_a_floor_texture_line(views):
     tops, report = _raised(cams, [FOOT, texture], priors, cfg)
     assert tops == pytest.approx([2.0, 0.0])
     assert report == {"dropped": 1, "cut": 0, "unchecked": 0}
-    tops, report = _raised(cams, [FOOT, texture], {}, cfg)  # no prior: the assumption as before
+    assert "unchecked" not in caplog.text
+    tops, report = _raised(cams, [FOOT, texture], {}, cfg)  # no prior: the assumption as before, said
     assert tops == pytest.approx([2.0, 2.0]) and report == {}
+    assert "--floor.wall-check: no aligned depth priors" in caplog.text and "raised unchecked to 2.00 m" in caplog.text
     off = FloorLineConfig(lines=True, walls=True, wall_height=2.0)
     assert _raised(cams, [FOOT, texture], priors, off)[0] == pytest.approx([2.0, 2.0])
 
