@@ -8,9 +8,13 @@ Replaces the text between ``<!-- accuracy-vs-time -->`` and ``<!-- /accuracy-vs-
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.doc_markers import replace_block  # noqa: E402
 RUNS = (("paper", "textured_s0"), ("+ L_a", "textured_s0_anchor"))
 
 
@@ -26,12 +30,7 @@ def table(runs=RUNS) -> str:
 
 
 def main(doc: Path = REPO / "docs" / "training.md") -> None:
-    head, tail = "<!-- accuracy-vs-time -->", "<!-- /accuracy-vs-time -->"
-    text = doc.read_text()
-    if head not in text or tail not in text:
-        raise SystemExit(f"{doc} has no {head} ... {tail} markers")
-    text = text[:text.index(head) + len(head)] + "\n" + table() + "\n" + text[text.index(tail):]
-    doc.write_text(text)
+    replace_block(doc, "accuracy-vs-time", table())
     print(f"wrote the table into {doc}")
 
 

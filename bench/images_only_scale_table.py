@@ -11,6 +11,11 @@ import json
 import sys
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.doc_markers import replace_block  # noqa: E402
+
 ROWS = {"mapped": "as mapped (COLMAP's unit)", "guess": "`--median-depth 2` (a guess)",
         "exact": "`--scale S` (exact)"}
 
@@ -32,16 +37,6 @@ def table(results: list[tuple[int, dict]]) -> str:
     return "\n".join(lines)
 
 
-def write(doc: Path, text: str, marker: str = "images-only-scale") -> None:
-    """Replace what lies between ``<!-- marker -->`` and ``<!-- /marker -->`` in ``doc``."""
-    start, end = f"<!-- {marker} -->", f"<!-- /{marker} -->"
-    body = doc.read_text()
-    if start not in body or end not in body:
-        raise SystemExit(f"{doc} has no {start} ... {end} markers")
-    head, rest = body.split(start, 1)
-    doc.write_text(f"{head}{start}\n{text.rstrip()}\n{end}{rest.split(end, 1)[1]}")
-
-
 def main(argv: list[str]) -> int:
     do_write = "--write" in argv
     argv = [a for a in argv if a != "--write"]
@@ -53,7 +48,7 @@ def main(argv: list[str]) -> int:
                   for p in paths])
     print(text)
     if do_write:
-        write(Path(__file__).resolve().parents[1] / "docs" / "training.md", text)
+        replace_block(REPO / "docs" / "training.md", "images-only-scale", text)
     return 0
 
 

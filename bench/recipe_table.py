@@ -26,6 +26,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.doc_markers import replace_block  # noqa: E402
 from evaluation.ablation_report import row_floor  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
@@ -124,13 +125,7 @@ def main() -> None:
         ap.error(f"--room takes LABEL BEFORE AFTER [NOCUES], got {bad[0]}")
     fixed = {label: (float(c), float(f), float(n)) for label, c, f, n in args.fixed_targets}
     text = table([tuple(r) for r in args.room], args.before, args.after, fixed)
-    doc = args.doc.read_text()
-    start, end = f"<!-- {args.marker} -->", f"<!-- /{args.marker} -->"
-    if start not in doc or end not in doc:
-        raise SystemExit(f"recipe_table: {args.doc} has no {start} ... {end} markers")
-    head, rest = doc.split(start, 1)
-    _, tail = rest.split(end, 1)
-    args.doc.write_text(f"{head}{start}\n{text}\n{end}{tail}")
+    replace_block(args.doc, args.marker, text)
     print(text)
 
 

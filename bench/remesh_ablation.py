@@ -31,6 +31,7 @@ import tyro
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.doc_markers import replace_block  # noqa: E402
 from evaluation.mesh_metrics import MeshMetricsConfig  # noqa: E402
 from geocues.atomic import atomic_path  # noqa: E402
 from splat.ablate import score_mesh  # noqa: E402
@@ -133,14 +134,7 @@ def write_docs(doc: Path = REPO / "docs" / "meshing.md") -> None:
         parts.append(f"**{result.get('scene_label') or result['scene']}** "
                      f"([{path.relative_to(REPO)}](../{path.relative_to(REPO)})), C-L1 in cm / F@5cm / NC:\n\n"
                      + format_table(result))
-    text = doc.read_text()
-    head, tail = "<!-- remesh-summary -->", "<!-- /remesh-summary -->"
-    if head not in text or tail not in text:
-        raise ValueError(f"{doc} has no {head} ... {tail} markers")
-    body = "\n\n".join(parts) if parts else "(no results yet)"
-    text = text[:text.index(head) + len(head)] + "\n" + body + "\n" + text[text.index(tail):]
-    with atomic_path(doc) as tmp:
-        tmp.write_text(text)
+    replace_block(doc, "remesh-summary", "\n\n".join(parts) if parts else "(no results yet)")
 
 
 def format_table(result: dict) -> str:

@@ -16,9 +16,13 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.doc_markers import replace_block  # noqa: E402
 
 
 def curves(name: str, row: str) -> list[list[dict]]:
@@ -75,11 +79,7 @@ def main() -> None:
     if args.doc is None:
         print(text)
         return
-    doc = args.doc.read_text()
-    start, end = f"<!-- {args.marker} -->", f"<!-- /{args.marker} -->"
-    if start not in doc or end not in doc:
-        raise SystemExit(f"room_curve_table: {args.doc} has no {start} ... {end} markers")
-    args.doc.write_text(doc[:doc.index(start) + len(start)] + "\n" + text + "\n" + doc[doc.index(end):])
+    replace_block(args.doc, args.marker, text)
     print(f"wrote the table into {args.doc}")
 
 

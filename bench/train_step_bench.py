@@ -48,6 +48,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
+from bench.doc_markers import replace_block  # noqa: E402
 from geocues.atomic import atomic_path  # noqa: E402
 from splat import compiled  # noqa: E402
 from splat.camera_opt import CameraRefiner  # noqa: E402
@@ -340,17 +341,11 @@ def _variant(row: dict) -> str:
 
 def write_docs(result: dict, path: Path, doc: Path = REPO / "docs" / "training.md", marker: str = "train-step") -> None:
     """Put the table between the ``marker`` markers of docs/training.md."""
-    head, tail = f"<!-- {marker} -->", f"<!-- /{marker} -->"
-    text = doc.read_text()
-    if head not in text or tail not in text:
-        raise ValueError(f"{doc} has no {head} ... {tail} markers")
     load = ", ".join(f"{x:.1f}" for x in result["load_avg"])
     body = (f"From [{path.relative_to(REPO)}](../{path.relative_to(REPO)}) ({result['threads']} torch threads, "
             f"load average {load} when it ended; medians of {result['config']['iters']} iterations):\n\n"
             + format_table(result))
-    text = text[:text.index(head) + len(head)] + "\n" + body + "\n" + text[text.index(tail):]
-    with atomic_path(doc) as tmp:
-        tmp.write_text(text)
+    replace_block(doc, marker, body)
     print(f"wrote the table into {doc}")
 
 
