@@ -243,5 +243,7 @@ def test_images_only_scale_table_prints_one_row_per_unit_and_seed(tmp_path, caps
     assert "10.00 / 0.500 / 0.800 | 5.00 / 0.500 / 0.800" in lines[4] and "seed 1" in lines[7] and "| 7 |" in lines[4]
     doc = tmp_path / "doc.md"
     doc.write_text("a\n<!-- images-only-scale -->\nold\n<!-- /images-only-scale -->\nb\n")
-    mod.write(doc, "new")
+    from bench.doc_markers import replace_block  # the scripts' one marker-block writer
+
+    replace_block(doc, "images-only-scale", "new")
     assert doc.read_text() == "a\n<!-- images-only-scale -->\nnew\n<!-- /images-only-scale -->\nb\n"
