@@ -19,7 +19,8 @@ in any case (tests compare the two).
 
 The kernels' threads are OpenMP's. A compiler without it (Apple's clang has no ``-fopenmp``), or
 ``INDOORGS_CPU_OPENMP=0``, gets the same kernels built for one thread (``indoorgs_cpu_serial``,
-``csrc/omp_compat.h``; a warning says so) instead of the torch backend, 8-14x slower on 2 cores.
+``csrc/omp_compat.h``; a warning says so) instead of the torch backend, 6-10x slower than it on
+2 cores (docs/rasterizer.md).
 """
 
 from __future__ import annotations
@@ -102,25 +103,24 @@ def _build_selected() -> tuple[ModuleType, str, bool]:
     """The first build that compiles: this CPU's SIMD with OpenMP, the baseline with OpenMP, then the
     baseline for one thread; (module, simd, openmp). The last failure's ImportError if none does."""
     simd = selected_simd()
-    tries = [(simd, True), ("baseline", True)] if simd == "avx2" else [("baseline", True)]
-    tries = [t for t in tries if t[1] and openmp_wanted()] + [("baseline", False)]
+    threaded = ([(simd, True)] if simd == "avx2" else []) + [("baseline", True)]
+    tries = (threaded if openmp_wanted() else []) + [("baseline", False)]
     errors = []
     for build_simd, openmp in tries:
         try:
             module = _build(build_simd, openmp)
+            break
         except ImportError as exc:
-            errors.append(f"{ext_name(build_simd, openmp)} did not build ({compiler_error(exc)})")
-            if len(errors) == len(tries):
+            if (build_simd, openmp) == tries[-1]:
                 raise
-            continue
-        if errors:
-            log.warning("using the %s build of the C++ kernels: %s", ext_name(build_simd, openmp), "; ".join(errors))
-        if not openmp:
-            log.warning("the C++ kernels run on one thread (built without OpenMP%s): training is about as many "
-                        "times slower as there are cores; a compiler with OpenMP (gcc, or clang with libomp) "
-                        "gives the threaded build", "" if openmp_wanted() else ": INDOORGS_CPU_OPENMP=0")
-        return module, build_simd, openmp
-    raise AssertionError("unreachable")
+            errors.append(f"{ext_name(build_simd, openmp)} did not build ({compiler_error(exc)})")
+    if errors:
+        log.warning("using the %s build of the C++ kernels: %s", ext_name(build_simd, openmp), "; ".join(errors))
+    if not openmp:
+        log.warning("the C++ kernels run on one thread (built without OpenMP%s): training is about as many "
+                    "times slower as there are cores; a compiler with OpenMP (gcc, or clang with libomp) "
+                    "gives the threaded build", "" if openmp_wanted() else ": INDOORGS_CPU_OPENMP=0")
+    return module, build_simd, openmp
 
 
 @functools.cache
