@@ -24,7 +24,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
 
@@ -33,29 +33,27 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from geocues.atomic import atomic_path, check_output_dir
-from geocues.depth_align import load_alignments, load_prior_kind
-from geocues.plane_anchors import load_plane_anchors
-from geocues.rescale import metric_warning
+from geocues.atomic import atomic_path
 from geocues.scene import Scene
-from geocues.types import CueType
-from splat import checkpoint, compiled
+from splat import checkpoint
 from splat.camera_opt import CameraRefiner
-from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish, staging_dir
+from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish
 from splat.composite import describe_backend
 from splat.export import write_3dgs_run
 from splat.frozen import GEOMETRY_KEYS, colour_step
-from splat.gaussians import cue_type_path, scene_scale
+from splat.gaussians import cue_type_path
 from splat.guard import NumericsGuard, TrainingDiverged
-from splat.losses import LossConfig, total_loss, without_priors
+from splat.losses import LossConfig, total_loss
 from splat.mesh import write_mesh
 from splat.mesh_run import fuse_cameras
-from splat.multiview import SourceView, source_view, training_neighbours
+from splat.multiview import SourceView, source_view
 from splat.rasterize import render
 from splat.strategy import PAPER_ITERS, IndoorStrategy
 from splat.init_gaussians import initial_gaussians, load_init_cloud  # noqa: F401  (re-exported)
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
-from splat.views import View, ViewSet, warn_large_images
+from splat.train_setup import (TrainingSetup, cue_report_priors, make_optimizers,  # noqa: F401  (re-exported)
+                               open_run, setup_training, type_counts)
+from splat.views import View, ViewSet
 
 log = logging.getLogger(__name__)
 
@@ -70,20 +68,6 @@ def resolve_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"device {name!r} asked for, but torch sees no CUDA device")
     return torch.device(name)
-
-
-def make_optimizers(params: torch.nn.ParameterDict, lr: LearningRates, scale: float,
-                    adam: str = "fused") -> dict[str, torch.optim.Adam]:
-    """One Adam per parameter (gsplat layout), eps 1e-15 as 3DGS. ``adam="fused"`` takes torch's
-    single-kernel implementation (one pass over the moments instead of ~8 element-wise ops: about 5x
-    faster on the CPU), ``"torch"`` torch's default implementation; the same update up to rounding."""
-    rates = {"means": lr.means * scale, "scales": lr.scales, "quats": lr.quats,
-             "opacities": lr.opacities, "sh0": lr.sh0, "shN": lr.shN}
-    if adam not in ("fused", "torch"):
-        raise ValueError(f"adam must be 'fused' or 'torch', got {adam!r}")
-    impl = {"fused": True} if adam == "fused" else {}
-    return {k: torch.optim.Adam([{"params": [params[k]], "lr": rates[k], "name": k}], eps=1e-15, **impl)
-            for k in params}
 
 
 def means_lr(step: int, total: int, lr: LearningRates, scale: float) -> float:
@@ -216,10 +200,6 @@ def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, refiner:
                         device=views[0].rgb.device if len(views) else "cpu")
 
 
-def _type_counts(cue_type: Tensor) -> dict[str, int]:
-    return {t.name: int((cue_type == t.value).sum()) for t in CueType}
-
-
 def _live_view(cfg: TrainConfig, scene: Scene):
     """The `--view` server (splat/viewer.py), or None."""
     if not cfg.view:
@@ -229,28 +209,189 @@ def _live_view(cfg: TrainConfig, scene: Scene):
     return LiveView(scene, port=cfg.view_port)
 
 
-def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict, str]:
-    """(per-image depth alignments for L_a — empty when it is off —, the depth priors' kind) from
-    CUES/depth_alignments.json that `geocues extract` wrote beside the cues (older cue folders: their
-    report.json; the kind, where unrecorded: scene.json's)."""
-    try:
-        kind = load_prior_kind(cues_ply.parent, default=scene.depth_kind)
-    except FileNotFoundError:  # a bare cues.ply without its extract folder
-        kind = scene.depth_kind
-    alignments = {}
-    if cfg.loss.lambda_anchor > 0 or kind == "disparity":  # L_a, or depth for L_d from disparity
-        try:
-            alignments = load_alignments(cues_ply.parent)
-        except FileNotFoundError:
-            alignments = {}
-        if not alignments and scene.has_depth_priors and cfg.loss.lambda_anchor > 0:
-            log.warning("%s records no depth alignments (the extract ran without priors?): the "
-                        "anchored-depth term L_a is off", cues_ply.parent)
-    return alignments, kind  # with lambda_anchor 0 the anchors cost nothing: L_a is skipped
-
-
 def _db(psnr: float | None) -> str:
     return "none (no test views)" if psnr is None else f"{psnr:.2f} dB"
+
+
+class _Loop:
+    """The loop's own state — step, view order, accuracy-against-time curve, training seconds, the
+    log's byte length — with the in-memory snapshots the guard rolls back to and the checkpoint a
+    stopped run resumes from (splat/checkpoint.py)."""
+
+    def __init__(self, cfg: TrainConfig, s: TrainingSetup, work: Path, rng: np.random.Generator,
+                 gen: torch.Generator) -> None:
+        self.cfg, self.s, self.rng, self.gen = cfg, s, rng, gen
+        self.step, self.order, self.curve, self.train_s, self.log_bytes = 0, [], [], 0.0, 0
+        self.checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
+        self.sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
+        self.freeze_step = round(cfg.geometry_until * cfg.iters)
+        self.base_lr = {k: opt.param_groups[0]["lr"] for k, opt in s.optimizers.items()}
+        self.work, self.log_path, self.ckpt_path = work, work / "train_log.jsonl", work / checkpoint.CKPT_NAME
+
+    def snapshot(self) -> dict:
+        s = self.s
+        return checkpoint.capture(s.params, s.optimizers, s.state, {
+            "step": self.step, "order": [int(i) for i in self.order],
+            "numpy_rng": checkpoint.numpy_rng_state(self.rng), "gen": self.gen.get_state(), "curve": self.curve,
+            "train_s": self.train_s, "log_bytes": self.log_bytes, "lr_mult": s.guard.lr_mult,
+            "guard_events": s.guard.events, "guard_level": [s.guard.loss_mean, s.guard.n_good],
+            "camera_refiner": s.refiner.state_dict() if s.refiner is not None else None})
+
+    def restore(self, snap: dict) -> None:
+        s = self.s
+        extra = checkpoint.restore(snap, s.params, s.optimizers, s.state)
+        self.order, self.curve, self.train_s, self.log_bytes = (extra["order"], extra["curve"], extra["train_s"],
+                                                                extra["log_bytes"])
+        checkpoint.set_numpy_rng_state(self.rng, extra["numpy_rng"])
+        self.gen.set_state(extra["gen"])
+        if "guard_level" in extra:  # the loss level the guard compares with (checkpoints of older runs lack it)
+            s.guard.loss_mean, s.guard.n_good = extra["guard_level"]
+        if s.refiner is not None and extra.get("camera_refiner") is not None:
+            s.refiner.load_state_dict(extra["camera_refiner"])
+        self.step = extra["step"]
+
+    def resume(self, ckpt: dict) -> None:
+        self.restore(ckpt)
+        self.s.guard.lr_mult, self.s.guard.events = dict(ckpt["lr_mult"]), list(ckpt["guard_events"])
+        log.info("resuming %s at step %d (%.0f s of training done)", self.work, self.step, self.train_s)
+
+    def _iteration(self) -> tuple[Tensor, dict, dict, int]:
+        """One step on the next view of the order: (loss, its terms, what density control did, the SH degree)."""
+        cfg, s, step = self.cfg, self.s, self.step
+        frozen = step >= self.freeze_step
+        for key, opt in s.optimizers.items():
+            rate = means_lr(step, cfg.iters, cfg.lr, s.scale) if key == "means" else self.base_lr[key]
+            if frozen and key in GEOMETRY_KEYS:
+                rate = 0.0  # Adam with lr 0 moves nothing: the geometry stays as it is
+            opt.param_groups[0]["lr"] = rate * s.guard.lr_mult.get(key, 1.0)
+        if not self.order:
+            self.order = list(self.rng.permutation(len(s.train_views)))
+        k = self.order.pop()
+        view = s.train_views[k]
+        colour_only = frozen and COLOUR_STEP_WHEN_FROZEN and step >= s.strategy.schedule.stop
+        loss_cfg = s.loss_cfg if step < s.priors_step else s.late_loss_cfg
+        source = None  # L_mv's neighbour: none for the colour step, which has no L_mv
+        if s.neighbours and s.neighbours[k] and step >= s.loss_cfg.mv_from_iter and loss_cfg.lambda_mv > 0 \
+                and not colour_only:
+            j = s.neighbours[k][int(torch.randint(len(s.neighbours[k]), (1,), generator=self.gen))]
+            source = source_view(view.camera, s.train_views.cameras[j], s.train_views.image(j))
+        sh_degree = min(cfg.sh_degree, step // self.sh_every)
+        if s.refiner is not None:
+            s.refiner.set_progress(step / cfg.iters, frozen=frozen)
+            view = s.refiner.view(k, view)
+        guard = s.guard if cfg.guard.enabled else None
+        if colour_only:
+            loss, terms, density = colour_step(s.params, s.optimizers, view, sh_degree, loss_cfg, step,
+                                               partial(render_view, cfg=cfg), guard)
+        else:
+            loss, terms, density = train_step(s.params, s.optimizers, s.strategy, s.state, view, step, sh_degree,
+                                              cfg, loss_cfg, self.gen, guard, source=source, refiner=s.refiner)
+        return loss, terms, density, sh_degree
+
+    def _roll_back(self, event: dict, good: dict, log_file) -> dict:
+        """Back to the last good snapshot ``good`` after the guard's ``event``, its lowered learning
+        rates and its events kept; the event logged. Returns the new good snapshot."""
+        guard = self.s.guard
+        try:
+            guard.on_rollback(event)  # raises TrainingDiverged after too many in a row
+        except TrainingDiverged as exc:
+            checkpoint.save(self.ckpt_path, good, asdict(self.cfg))
+            raise TrainingDiverged(f"{exc}; the last good state (step {good['step']}) is in {self.ckpt_path}") from None
+        log_file.flush()
+        lr_mult, events = dict(guard.lr_mult), list(guard.events)
+        self.restore(good)
+        guard.lr_mult, guard.events = lr_mult, events
+        log_file.seek(0, 2)
+        log_file.write(json.dumps({"step": event["step"], "guard": event}) + "\n")
+        log_file.flush()
+        self.log_bytes = log_file.tell()
+        return self.snapshot()
+
+    def _at_checkpoint(self, sh_degree: int) -> None:
+        """Held-out PSNR/SSIM (and a mesh, with mesh_at_checkpoints) onto the accuracy-against-time curve."""
+        cfg, s = self.cfg, self.s
+        metrics = evaluate_views(s.params, s.test_views, sh_degree, cfg, refiner=s.refiner)
+        self.curve.append({"step": self.step, "train_s": round(self.train_s, 2), "psnr": metrics["psnr"],
+                           "ssim": metrics["ssim"], "n_gaussians": len(s.state["cue_type"])})
+        if cfg.mesh and cfg.mesh_at_checkpoints:
+            rel = Path("checkpoints") / f"mesh_{self.step:06d}.ply"
+            write_mesh(fuse_mesh(s.params, s.train_views, sh_degree, cfg, s.refiner), self.work / rel)
+            self.curve[-1]["mesh"] = str(rel)
+        log.info("checkpoint %d: %.1f s training, test PSNR %s", self.step, self.train_s, _db(metrics["psnr"]))
+
+    def run(self) -> None:
+        """Iterate to cfg.iters; on SIGINT / SIGTERM write the checkpoint and raise TrainingInterrupted."""
+        cfg, s = self.cfg, self.s
+        with open(self.log_path, "a+b") as f:  # a resumed run cuts the log back to its checkpoint
+            f.truncate(self.log_bytes)
+        good = self.snapshot()
+        last_save = self.train_s
+        live = _live_view(cfg, s.scene)
+        with open(self.log_path, "a") as log_file, SignalCatcher() as signals, \
+                tqdm(total=cfg.iters, initial=self.step, desc="splat train", unit="it") as bar, \
+                contextlib.closing(live) if live else contextlib.nullcontext():
+            while self.step < cfg.iters:
+                t0 = time.perf_counter()
+                loss, terms, density, sh_degree = self._iteration()
+                event = density.get("guard") or s.guard.check_params(self.step, s.params)
+                if event is None and density.get("opacity_reset"):
+                    s.guard.on_opacity_reset()
+                if event is not None:
+                    good = self._roll_back(event, good, log_file)
+                    bar.n = self.step
+                    continue
+                self.train_s += time.perf_counter() - t0
+                self.step += 1
+                step = self.step
+                bar.update(1)
+                if live and (step % cfg.view_every == 0 or step == cfg.iters):
+                    live.update(s.params, step, float(loss))
+                if (step - 1) % cfg.log_every == 0 or step == cfg.iters or density:
+                    row = {"step": step - 1, "train_s": round(self.train_s, 3), "loss": float(loss), **terms,
+                           "n": len(s.state["cue_type"]), **type_counts(s.state["cue_type"])}
+                    if density:
+                        row["density"] = density
+                    log_file.write(json.dumps(row) + "\n")
+                    log_file.flush()  # readable while the run works (`splat ablate --jobs` progress, tail -f)
+                    bar.set_postfix(loss=f"{float(loss):.4f}", n=len(s.state["cue_type"]))
+                if step in self.checkpoints:
+                    self._at_checkpoint(sh_degree)
+                save_due = cfg.save_every > 0 and self.train_s - last_save >= cfg.save_every
+                if step % cfg.guard.snapshot_every == 0 or signals.caught or save_due:
+                    log_file.flush()
+                    self.log_bytes = log_file.tell()
+                    good = self.snapshot()
+                    s.guard.on_snapshot()
+                    if signals.caught or save_due:
+                        checkpoint.save(self.ckpt_path, good, asdict(cfg))
+                        last_save = self.train_s
+                    if signals.caught:
+                        raise TrainingInterrupted(
+                            f"stopped by {signals.caught} at step {step} of {cfg.iters}; checkpoint "
+                            f"{self.ckpt_path}; continue with the same command and --resume")
+
+
+def _write_outputs(cfg: TrainConfig, s: TrainingSetup, loop: _Loop, timings: dict[str, float]) -> dict:
+    """Held-out renders and metrics, the 3DGS-format model, the refined cameras and the mesh into the
+    staging folder; returns the final held-out metrics."""
+    work = loop.work
+    t0 = time.perf_counter()
+    final = evaluate_views(s.params, s.test_views, cfg.sh_degree, cfg, work / "test_renders", s.refiner)
+    ply = write_3dgs_run(work, s.params, s.state["cue_type"], s.scene, asdict(cfg), cfg.iters)
+    for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
+        if src.is_file():
+            _link_or_copy(src, work / src.name)
+    if s.refiner is not None:  # the refined training cameras: corrections per view (bench/camera_error.py reads them)
+        s.refiner.save(work / "camera_refinement.npz", [s.scene.cameras[i].name for i in s.train_views.indices])
+    timings["eval_and_save_s"] = time.perf_counter() - t0
+    if cfg.mesh:
+        t0 = time.perf_counter()
+        if loop.curve and loop.curve[-1]["step"] == cfg.iters and "mesh" in loop.curve[-1]:
+            shutil.copyfile(work / loop.curve[-1]["mesh"], work / "mesh.ply")  # the same model, fused already
+        else:
+            write_mesh(fuse_mesh(s.params, s.train_views, cfg.sh_degree, cfg, s.refiner), work / "mesh.ply")
+        timings["mesh_s"] = time.perf_counter() - t0
+    return final
 
 
 def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
@@ -263,248 +404,47 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     of training and on SIGINT / SIGTERM (then :class:`TrainingInterrupted` is raised);
     ``resume=True`` continues from it. A finished OUT is only replaced with ``overwrite=True``.
     """
-    out_dir, cues = Path(out_dir), Path(cues)
-    cues_ply = cues / "cues.ply" if cues.is_dir() else cues
-    if not cues_ply.is_file():
-        raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
-    cfg.validate()
-    work = staging_dir(out_dir)
-    if (out_dir / "report.json").is_file() and not overwrite:
-        raise ValueError(f"{out_dir} holds a finished run; pass --overwrite to replace it")
-    check_output_dir(out_dir)  # a file, or a folder that refuses files: one line, before any work
-    ckpt = None
-    if resume:
-        ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
-        diff = checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
-        if diff:
-            raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
-                             f"({work / checkpoint.CKPT_NAME}); resume with the same options")
-    elif work.exists():
-        log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
-        shutil.rmtree(work)
+    out_dir = Path(out_dir)
+    work, cues_ply, ckpt = open_run(cfg, out_dir, Path(cues), overwrite, resume)
     device = resolve_device(cfg.device)
     rasterizer = describe_backend(cfg.backend, device)  # builds the kernels now, with a message, not in the first step
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)  # CPU: the loss patches are drawn on the CPU
     t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-
-    scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
-    warn_large_images(scene, cfg.downscale)
-    if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
-        log.warning("%s", far)
-    alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
-    plane_depths = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0
-    plane_normals = cfg.loss.plane_normals and cfg.loss.use_normal
-    planes = load_plane_anchors(cues_ply) if plane_depths or plane_normals else None
-    fused = None
-    if cfg.loss.fused_anchor and cfg.loss.lambda_anchor > 0 and alignments:
-        from splat.fused_prior import fused_anchors
-
-        fused = fused_anchors(scene, scene.train_indices, alignments, cfg.loss.fused_voxel, cfg.loss.fused_trunc,
-                              cfg.loss.fused_method, cfg.loss.fused_neighbours)
-    elif cfg.loss.fused_anchor:
-        log.warning("--loss.fused-anchor: no aligned depth priors (or --loss.lambda-anchor 0): L_a has no fused prior")
-    train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
-                          prior_kind=prior_kind, plane_anchors=planes if plane_depths else None,
-                          plane_normals=planes if plane_normals else None, plane_first=cfg.loss.plane_first,
-                          plane_views=cfg.loss.plane_views, anchor_override=fused)
-    test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
-    if len(train_views) == 0:
-        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
-    if cfg.loss.use_depth and not train_views.has_depth_priors:
-        log.warning("%s has no depth priors: L_d and L_a are off. From photos alone, `geocues mvs` computes "
-                    "them without a network; train its scene with `geocues extract --preset mvs` cues and "
-                    "`splat train --preset mvs` (docs/training.md, \"Photos only\")", scene_dir)
-    init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)
-    scale = scene_scale(train_views.camera_centers(), seeds)
-    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
-    optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)
-    compiled.enable(cfg.compile and device.type == "cuda")
-    refiner = (CameraRefiner(len(train_views), scale, cfg.pose_opt, cfg.focal_opt, cfg.pose_lr, cfg.focal_lr, device)
-               if cfg.pose_opt or cfg.focal_opt else None)
-    strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters,  # no density control on frozen geometry
-                                      refine_stop=min(cfg.strategy.refine_stop, round(cfg.geometry_until * PAPER_ITERS))))
-    loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
-                       mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
-    late_loss_cfg, priors_step = without_priors(loss_cfg, cfg.priors_kept), round(cfg.priors_until * cfg.iters)
-    neighbours = training_neighbours(scene, train_views.indices, cfg.loss.mv_neighbours) if cfg.loss.lambda_mv > 0 else None
-    if neighbours is not None:
-        log.info("L_mv: %d of %d training views have a neighbour (%.1f on average)", sum(map(bool, neighbours)),
-                 len(neighbours), float(np.mean([len(n) for n in neighbours])))
-    state = strategy.initialize_state(scale)
-    state["cue_type"] = cue_type.to(device)
-    strategy.check_sanity(params, optimizers)
-    guard = NumericsGuard(cfg.guard, torch.as_tensor(np.median(seeds, 0), dtype=torch.float32, device=device),
-                          scale)
-    timings["load_and_init_s"] = time.perf_counter() - t_start
+    s = setup_training(cfg, Path(scene_dir), cues_ply, device)
+    timings = {"load_and_init_s": time.perf_counter() - t_start}
     log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, rasterizer %s",
-             cfg.iters, len(train_views), len(test_views), len(cue_type), _type_counts(cue_type), scale, rasterizer)
+             cfg.iters, len(s.train_views), len(s.test_views), len(s.state["cue_type"]), s.init_counts, s.scale,
+             rasterizer)
 
     work.mkdir(parents=True, exist_ok=True)
     if ckpt is None:
         from splat.presets import write_config_file
 
         write_config_file(work / "config.yaml", cfg, {"scene": str(scene_dir), "cues": str(cues_ply)})
-    checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
-    sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
-    freeze_step = round(cfg.geometry_until * cfg.iters)
-    base_lr = {k: opt.param_groups[0]["lr"] for k, opt in optimizers.items()}
-    curve, order, train_s, step0, log_bytes = [], [], 0.0, 0, 0
-    log_path = work / "train_log.jsonl"
-
-    def snapshot(step: int) -> dict:
-        return checkpoint.capture(params, optimizers, state, {
-            "step": step, "order": [int(i) for i in order], "numpy_rng": checkpoint.numpy_rng_state(rng),
-            "gen": gen.get_state(), "curve": curve, "train_s": train_s, "log_bytes": log_bytes,
-            "lr_mult": guard.lr_mult, "guard_events": guard.events, "guard_level": [guard.loss_mean, guard.n_good],
-            "camera_refiner": refiner.state_dict() if refiner is not None else None})
-
-    def restore(snap: dict) -> int:
-        nonlocal order, curve, train_s, log_bytes
-        extra = checkpoint.restore(snap, params, optimizers, state)
-        order, curve, train_s, log_bytes = extra["order"], extra["curve"], extra["train_s"], extra["log_bytes"]
-        checkpoint.set_numpy_rng_state(rng, extra["numpy_rng"])
-        gen.set_state(extra["gen"])
-        if "guard_level" in extra:  # the loss level the guard compares with (checkpoints of older runs lack it)
-            guard.loss_mean, guard.n_good = extra["guard_level"]
-        if refiner is not None and extra.get("camera_refiner") is not None:
-            refiner.load_state_dict(extra["camera_refiner"])
-        return extra["step"]
-
+    loop = _Loop(cfg, s, work, rng, gen)
     if ckpt is not None:
-        step0 = restore(ckpt)
-        guard.lr_mult, guard.events = dict(ckpt["lr_mult"]), list(ckpt["guard_events"])
-        log.info("resuming %s at step %d (%.0f s of training done)", work, step0, train_s)
-    with open(log_path, "a+b") as f:  # a resumed run cuts the log back to its checkpoint
-        f.truncate(log_bytes)
-    good = snapshot(step0)
-    ckpt_path = work / checkpoint.CKPT_NAME
-    last_save = train_s
-    step = step0
-    live = _live_view(cfg, scene)
-    with open(log_path, "a") as log_file, SignalCatcher() as signals, \
-            tqdm(total=cfg.iters, initial=step0, desc="splat train", unit="it") as bar, \
-            contextlib.closing(live) if live else contextlib.nullcontext():
-        while step < cfg.iters:
-            t0 = time.perf_counter()
-            frozen = step >= freeze_step
-            for key, opt in optimizers.items():
-                rate = means_lr(step, cfg.iters, cfg.lr, scale) if key == "means" else base_lr[key]
-                if frozen and key in GEOMETRY_KEYS:
-                    rate = 0.0  # Adam with lr 0 moves nothing: the geometry stays as it is
-                opt.param_groups[0]["lr"] = rate * guard.lr_mult.get(key, 1.0)
-            if not order:
-                order = list(rng.permutation(len(train_views)))
-            k = order.pop()
-            view = train_views[k]
-            colour_only = frozen and COLOUR_STEP_WHEN_FROZEN and step >= strategy.schedule.stop
-            step_loss_cfg = loss_cfg if step < priors_step else late_loss_cfg
-            source = None  # L_mv's neighbour: none for the colour step, which has no L_mv
-            if neighbours and neighbours[k] and step >= loss_cfg.mv_from_iter and step_loss_cfg.lambda_mv > 0 \
-                    and not colour_only:
-                j = neighbours[k][int(torch.randint(len(neighbours[k]), (1,), generator=gen))]
-                source = source_view(view.camera, train_views.cameras[j], train_views.image(j))
-            sh_degree = min(cfg.sh_degree, step // sh_every)
-            if refiner is not None:
-                refiner.set_progress(step / cfg.iters, frozen=frozen)
-                view = refiner.view(k, view)
-            if colour_only:
-                loss, terms, density = colour_step(params, optimizers, view, sh_degree, step_loss_cfg, step,
-                                                   partial(render_view, cfg=cfg),
-                                                   guard if cfg.guard.enabled else None)
-            else:
-                loss, terms, density = train_step(params, optimizers, strategy, state, view, step, sh_degree,
-                                                  cfg, step_loss_cfg, gen, guard if cfg.guard.enabled else None,
-                                                  source=source, refiner=refiner)
-            event = density.get("guard") or guard.check_params(step, params)
-            if event is None and density.get("opacity_reset"):
-                guard.on_opacity_reset()
-            if event is not None:
-                try:
-                    guard.on_rollback(event)  # raises TrainingDiverged after too many in a row
-                except TrainingDiverged as exc:
-                    checkpoint.save(ckpt_path, good, asdict(cfg))
-                    raise TrainingDiverged(f"{exc}; the last good state (step {good['step']}) is in {ckpt_path}") from None
-                log_file.flush()
-                lr_mult, events = dict(guard.lr_mult), list(guard.events)
-                step = restore(good)
-                guard.lr_mult, guard.events = lr_mult, events
-                log_file.seek(0, 2)
-                log_file.write(json.dumps({"step": event["step"], "guard": event}) + "\n")
-                log_file.flush()
-                log_bytes = log_file.tell()
-                good = snapshot(step)
-                bar.n = step
-                continue
-            train_s += time.perf_counter() - t0
-            step += 1
-            bar.update(1)
-            if live and (step % cfg.view_every == 0 or step == cfg.iters):
-                live.update(params, step, float(loss))
-            if (step - 1) % cfg.log_every == 0 or step == cfg.iters or density:
-                row = {"step": step - 1, "train_s": round(train_s, 3), "loss": float(loss), **terms,
-                       "n": len(state["cue_type"]), **_type_counts(state["cue_type"])}
-                if density:
-                    row["density"] = density
-                log_file.write(json.dumps(row) + "\n")
-                log_file.flush()  # readable while the run works (`splat ablate --jobs` progress, tail -f)
-                bar.set_postfix(loss=f"{float(loss):.4f}", n=len(state["cue_type"]))
-            if step in checkpoints:
-                metrics = evaluate_views(params, test_views, sh_degree, cfg, refiner=refiner)
-                curve.append({"step": step, "train_s": round(train_s, 2), "psnr": metrics["psnr"],
-                              "ssim": metrics["ssim"], "n_gaussians": len(state["cue_type"])})
-                if cfg.mesh and cfg.mesh_at_checkpoints:
-                    rel = Path("checkpoints") / f"mesh_{step:06d}.ply"
-                    write_mesh(fuse_mesh(params, train_views, sh_degree, cfg, refiner), work / rel)
-                    curve[-1]["mesh"] = str(rel)
-                log.info("checkpoint %d: %.1f s training, test PSNR %s", step, train_s, _db(metrics["psnr"]))
-            if step % cfg.guard.snapshot_every == 0 or signals.caught or \
-                    (cfg.save_every > 0 and train_s - last_save >= cfg.save_every):
-                log_file.flush()
-                log_bytes = log_file.tell()
-                good = snapshot(step)
-                guard.on_snapshot()
-                if signals.caught or (cfg.save_every > 0 and train_s - last_save >= cfg.save_every):
-                    checkpoint.save(ckpt_path, good, asdict(cfg))
-                    last_save = train_s
-                if signals.caught:
-                    raise TrainingInterrupted(
-                        f"stopped by {signals.caught} at step {step} of {cfg.iters}; checkpoint {ckpt_path}; "
-                        "continue with the same command and --resume")
-    timings["train_s"] = train_s
+        loop.resume(ckpt)
+    step0 = loop.step
+    loop.run()
+    timings["train_s"] = loop.train_s
 
-    t0 = time.perf_counter()
-    final = evaluate_views(params, test_views, cfg.sh_degree, cfg, work / "test_renders", refiner)
-    ply = write_3dgs_run(work, params, state["cue_type"], scene, asdict(cfg), cfg.iters)
-    for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
-        if src.is_file():
-            _link_or_copy(src, work / src.name)
-    if refiner is not None:  # the refined training cameras: corrections per view (bench/camera_error.py reads them)
-        refiner.save(work / "camera_refinement.npz", [train_views.scene.cameras[i].name for i in train_views.indices])
-    timings["eval_and_save_s"] = time.perf_counter() - t0
-    if cfg.mesh:
-        t0 = time.perf_counter()
-        if curve and curve[-1]["step"] == cfg.iters and "mesh" in curve[-1]:
-            shutil.copyfile(work / curve[-1]["mesh"], work / "mesh.ply")  # the same model, fused already
-        else:
-            write_mesh(fuse_mesh(params, train_views, cfg.sh_degree, cfg, refiner), work / "mesh.ply")
-        timings["mesh_s"] = time.perf_counter() - t0
+    final = _write_outputs(cfg, s, loop, timings)
     timings["total_s"] = time.perf_counter() - t_start
     report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),
               "rasterizer": rasterizer,
-              "scene_scale": scale, "n_train_views": len(train_views), "n_test_views": len(test_views),
-              "gaussians_init": _type_counts(cue_type), "gaussians_final": _type_counts(state["cue_type"]),
+              "scene_scale": s.scale, "n_train_views": len(s.train_views), "n_test_views": len(s.test_views),
+              "gaussians_init": s.init_counts, "gaussians_final": type_counts(s.state["cue_type"]),
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
-              "test_per_view": final.get("per_view", []), "accuracy_vs_time": curve, "timings": timings,
-              "resumed_from_step": step0 if ckpt is not None else None, "guard_events": guard.events,
-              "camera_refinement": refiner.summary() if refiner is not None else None}
+              "test_per_view": final.get("per_view", []), "accuracy_vs_time": loop.curve, "timings": timings,
+              "resumed_from_step": step0 if ckpt is not None else None, "guard_events": s.guard.events,
+              "camera_refinement": s.refiner.summary() if s.refiner is not None else None}
     with atomic_path(work / "report.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2, allow_nan=False))
     if not cfg.keep_ckpt:
         shutil.rmtree(work / "ckpt", ignore_errors=True)
     publish(work, out_dir)
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
-             _db(final["psnr"]), len(state["cue_type"]), out_dir)
+             _db(final["psnr"]), len(s.state["cue_type"]), out_dir)
     return out_dir

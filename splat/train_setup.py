@@ -1,0 +1,183 @@
+"""What a `splat train` run holds before its first iteration: the output folder it works in (and the
+checkpoint it resumes from), the scene's views with their priors, the typed Gaussians from the cues,
+one Adam per parameter, the per-type density control, the scaled loss schedules, L_mv's neighbours,
+the camera refiner and the numerics guard (splat/train.py runs the loop over them)."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from geocues.atomic import check_output_dir
+from geocues.depth_align import load_alignments, load_prior_kind
+from geocues.plane_anchors import load_plane_anchors
+from geocues.rescale import metric_warning
+from geocues.scene import Scene
+from geocues.types import CueType
+from splat import checkpoint, compiled
+from splat.camera_opt import CameraRefiner
+from splat.checkpoint import staging_dir
+from splat.gaussians import scene_scale
+from splat.guard import NumericsGuard
+from splat.init_gaussians import initial_gaussians
+from splat.losses import LossConfig, without_priors
+from splat.multiview import training_neighbours
+from splat.strategy import PAPER_ITERS, IndoorStrategy
+from splat.train_config import LearningRates, TrainConfig
+from splat.views import ViewSet, warn_large_images
+
+log = logging.getLogger(__name__)
+
+
+def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resume: bool
+             ) -> tuple[Path, Path, dict | None]:
+    """Check the inputs and the output folder before any work; return (the staging folder
+    ``OUT.partial`` the run works in, the cue cloud's path, the checkpoint to resume from or None).
+    Without ``resume`` an unfinished staging folder is removed."""
+    cues_ply = cues / "cues.ply" if cues.is_dir() else cues
+    if not cues_ply.is_file():
+        raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
+    cfg.validate()
+    work = staging_dir(out_dir)
+    if (out_dir / "report.json").is_file() and not overwrite:
+        raise ValueError(f"{out_dir} holds a finished run; pass --overwrite to replace it")
+    check_output_dir(out_dir)  # a file, or a folder that refuses files: one line, before any work
+    ckpt = None
+    if resume:
+        ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
+        diff = checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
+        if diff:
+            raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
+                             f"({work / checkpoint.CKPT_NAME}); resume with the same options")
+    elif work.exists():
+        log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
+        shutil.rmtree(work)
+    return work, cues_ply, ckpt
+
+
+def make_optimizers(params: torch.nn.ParameterDict, lr: LearningRates, scale: float,
+                    adam: str = "fused") -> dict[str, torch.optim.Adam]:
+    """One Adam per parameter (gsplat layout), eps 1e-15 as 3DGS. ``adam="fused"`` takes torch's
+    single-kernel implementation (one pass over the moments instead of ~8 element-wise ops: about 5x
+    faster on the CPU), ``"torch"`` torch's default implementation; the same update up to rounding."""
+    rates = {"means": lr.means * scale, "scales": lr.scales, "quats": lr.quats,
+             "opacities": lr.opacities, "sh0": lr.sh0, "shN": lr.shN}
+    if adam not in ("fused", "torch"):
+        raise ValueError(f"adam must be 'fused' or 'torch', got {adam!r}")
+    impl = {"fused": True} if adam == "fused" else {}
+    return {k: torch.optim.Adam([{"params": [params[k]], "lr": rates[k], "name": k}], eps=1e-15, **impl)
+            for k in params}
+
+
+def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[dict, str]:
+    """(per-image depth alignments for L_a — empty when it is off —, the depth priors' kind) from
+    CUES/depth_alignments.json that `geocues extract` wrote beside the cues (older cue folders: their
+    report.json; the kind, where unrecorded: scene.json's)."""
+    try:
+        kind = load_prior_kind(cues_ply.parent, default=scene.depth_kind)
+    except FileNotFoundError:  # a bare cues.ply without its extract folder
+        kind = scene.depth_kind
+    alignments = {}
+    if cfg.loss.lambda_anchor > 0 or kind == "disparity":  # L_a, or depth for L_d from disparity
+        try:
+            alignments = load_alignments(cues_ply.parent)
+        except FileNotFoundError:
+            alignments = {}
+        if not alignments and scene.has_depth_priors and cfg.loss.lambda_anchor > 0:
+            log.warning("%s records no depth alignments (the extract ran without priors?): the "
+                        "anchored-depth term L_a is off", cues_ply.parent)
+    return alignments, kind  # with lambda_anchor 0 the anchors cost nothing: L_a is skipped
+
+
+def type_counts(cue_type: Tensor) -> dict[str, int]:
+    """Gaussians per cue type ({"SFM": n, "LINE": n, "PLANE": n})."""
+    return {t.name: int((cue_type == t.value).sum()) for t in CueType}
+
+
+@dataclass
+class TrainingSetup:
+    """Everything the loop reads or steps; ``params`` and ``state`` are changed in place by it."""
+
+    scene: Scene
+    train_views: ViewSet
+    test_views: ViewSet
+    params: torch.nn.ParameterDict
+    optimizers: dict[str, torch.optim.Adam]
+    strategy: IndoorStrategy
+    state: dict  # the density control's state, with "cue_type" [N]
+    init_counts: dict[str, int]  # Gaussians per cue type at the start
+    scale: float  # the scene's scale (m): means' learning rate, guard bounds
+    loss_cfg: LossConfig  # iteration counts scaled to the run
+    late_loss_cfg: LossConfig  # from priors_step on: the priors not kept switched off
+    priors_step: int
+    neighbours: list[list[int]] | None  # L_mv's neighbours of each training view, or None when it is off
+    refiner: CameraRefiner | None
+    guard: NumericsGuard
+
+
+def _load_views(cfg: TrainConfig, scene: Scene, scene_dir: Path, cues_ply: Path, device: torch.device
+                ) -> tuple[ViewSet, ViewSet]:
+    """The training views with the priors, alignments and plane anchors the losses use, and the test views."""
+    alignments, prior_kind = cue_report_priors(cfg, scene, cues_ply)
+    plane_depths = cfg.loss.plane_anchor and cfg.loss.lambda_anchor > 0
+    plane_normals = cfg.loss.plane_normals and cfg.loss.use_normal
+    planes = load_plane_anchors(cues_ply) if plane_depths or plane_normals else None
+    fused = None
+    if cfg.loss.fused_anchor and cfg.loss.lambda_anchor > 0 and alignments:
+        from splat.fused_prior import fused_anchors
+
+        fused = fused_anchors(scene, scene.train_indices, alignments, cfg.loss.fused_voxel, cfg.loss.fused_trunc,
+                              cfg.loss.fused_method, cfg.loss.fused_neighbours)
+    elif cfg.loss.fused_anchor:
+        log.warning("--loss.fused-anchor: no aligned depth priors (or --loss.lambda-anchor 0): L_a has no fused prior")
+    train_views = ViewSet(scene, scene.train_indices, device, desc="training views", alignments=alignments,
+                          prior_kind=prior_kind, plane_anchors=planes if plane_depths else None,
+                          plane_normals=planes if plane_normals else None, plane_first=cfg.loss.plane_first,
+                          plane_views=cfg.loss.plane_views, anchor_override=fused)
+    test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
+    if len(train_views) == 0:
+        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
+    if cfg.loss.use_depth and not train_views.has_depth_priors:
+        log.warning("%s has no depth priors: L_d and L_a are off. From photos alone, `geocues mvs` computes "
+                    "them without a network; train its scene with `geocues extract --preset mvs` cues and "
+                    "`splat train --preset mvs` (docs/training.md, \"Photos only\")", scene_dir)
+    return train_views, test_views
+
+
+def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: torch.device) -> TrainingSetup:
+    """Load the scene and its views, initialise the typed Gaussians from the cues (§4.2) and make
+    what steps them. Every iteration count of the paper's schedule is scaled to ``cfg.iters``."""
+    scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
+    warn_large_images(scene, cfg.downscale)
+    if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
+        log.warning("%s", far)
+    train_views, test_views = _load_views(cfg, scene, scene_dir, cues_ply, device)
+    init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)
+    scale = scene_scale(train_views.camera_centers(), seeds)
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
+    optimizers = make_optimizers(params, cfg.lr, scale, cfg.adam)
+    compiled.enable(cfg.compile and device.type == "cuda")
+    refiner = (CameraRefiner(len(train_views), scale, cfg.pose_opt, cfg.focal_opt, cfg.pose_lr, cfg.focal_lr, device)
+               if cfg.pose_opt or cfg.focal_opt else None)
+    strategy = IndoorStrategy(replace(cfg.strategy, total_iters=cfg.iters,  # no density control on frozen geometry
+                                      refine_stop=min(cfg.strategy.refine_stop, round(cfg.geometry_until * PAPER_ITERS))))
+    loss_cfg = replace(cfg.loss, nc_from_iter=round(cfg.loss.nc_from_iter * cfg.iters / PAPER_ITERS),
+                       mv_from_iter=round(cfg.loss.mv_from_iter * cfg.iters / PAPER_ITERS))
+    neighbours = training_neighbours(scene, train_views.indices, cfg.loss.mv_neighbours) if cfg.loss.lambda_mv > 0 else None
+    if neighbours is not None:
+        log.info("L_mv: %d of %d training views have a neighbour (%.1f on average)", sum(map(bool, neighbours)),
+                 len(neighbours), float(np.mean([len(n) for n in neighbours])))
+    state = strategy.initialize_state(scale)
+    state["cue_type"] = cue_type.to(device)
+    strategy.check_sanity(params, optimizers)
+    guard = NumericsGuard(cfg.guard, torch.as_tensor(np.median(seeds, 0), dtype=torch.float32, device=device),
+                          scale)
+    return TrainingSetup(scene, train_views, test_views, params, optimizers, strategy, state, type_counts(cue_type),
+                         scale, loss_cfg, without_priors(loss_cfg, cfg.priors_kept), round(cfg.priors_until * cfg.iters),
+                         neighbours, refiner, guard)
