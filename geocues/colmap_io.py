@@ -20,6 +20,15 @@ log = logging.getLogger(__name__)
 
 # Camera models read as they are; every other model has distortion and must be undistorted first.
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+# Models that are a pinhole when every distortion parameter is 0 (dataset converters often write
+# OPENCV with zeros); the fisheye models are not: their projection differs even then.
+ZERO_DISTORTION_PINHOLES = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+def is_pinhole(model: str, distortion) -> bool:
+    """True when a camera of COLMAP ``model`` with these extra (distortion) parameters projects as a
+    pinhole: PINHOLE / SIMPLE_PINHOLE, or a radial / OpenCV model whose distortion is exactly 0."""
+    return model in PINHOLE_MODELS or (model in ZERO_DISTORTION_PINHOLES and not np.any(np.asarray(distortion)))
 
 
 def quat_xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
@@ -72,6 +81,12 @@ class RawImage:
     K: np.ndarray  # [3, 3] intrinsics, COLMAP pixel convention
     R: np.ndarray  # [3, 3] world-to-camera rotation
     t: np.ndarray  # [3] world-to-camera translation
+    distortion: tuple[float, ...] = ()  # the model's extra parameters (k1, k2, p1, p2, ...); () for a pinhole
+
+    @property
+    def pinhole(self) -> bool:
+        """Projects as a pinhole with ``K`` (:func:`is_pinhole`)."""
+        return is_pinhole(self.model, self.distortion)
 
 
 @dataclass
@@ -130,6 +145,7 @@ def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
             K=np.asarray(cam.calibration_matrix(), dtype=np.float64),
             R=np.asarray(pose.rotation.matrix(), dtype=np.float64),
             t=np.asarray(pose.translation, dtype=np.float64),
+            distortion=tuple(float(cam.params[i]) for i in cam.extra_params_idxs()),
         ))
     images.sort(key=lambda r: r.name)
 

@@ -201,7 +201,7 @@ class Scene:
 
         cameras: list[Camera] = []
         for k, im in enumerate(raw_images):
-            if im.model not in PINHOLE_MODELS and not allow_distorted:
+            if not im.pinhole and not allow_distorted:
                 raise ValueError(
                     f"image {im.name} in {model_dir} uses the distorted camera model {im.model}; "
                     f"undistort the scene first: `geocues undistort {scene_root} -o OUT`")
@@ -229,7 +229,9 @@ class Scene:
                                               if c.name in ns.depth_paths}
         scene = cls(scene_root, cameras, points, metadata, test_every, downscale, model_dir, depth_files,
                     [] if ns is None else ns.sources)
-        scene.distorted_models = sorted({im.model for im in raw_images} - set(PINHOLE_MODELS))
+        scene.distorted_models = sorted({im.model for im in raw_images if not im.pinhole})
+        if zero := sorted({im.model for im in raw_images if im.pinhole and im.model not in PINHOLE_MODELS}):
+            log.info("%s: camera model %s with zero distortion, read as a pinhole", model_dir, ", ".join(zero))
         if check_priors:
             scene._check_priors(raw_images)
         log.info("scene %s: %d images (%d train / %d test), %d points, priors: depth %d, normal %d",

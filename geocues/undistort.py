@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from geocues.atomic import atomic_dir, check_output_dir
-from geocues.colmap_io import PINHOLE_MODELS, find_model_dir
+from geocues.colmap_io import find_model_dir, is_pinhole
 from geocues.scene import no_images_folder
 
 log = logging.getLogger(__name__)
@@ -55,8 +55,9 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
         if not (image_dir / im.name).is_file():
             raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: {image_dir / im.name}")
     models = sorted({c.model.name for c in rec.cameras.values()})
-    if all(m in PINHOLE_MODELS for m in models):
-        log.info("undistort: %s already uses %s cameras; images are copied unchanged", scene_dir, models)
+    if all(is_pinhole(c.model.name, [c.params[i] for i in c.extra_params_idxs()]) for c in rec.cameras.values()):
+        log.info("undistort: %s already uses %s cameras without distortion; images are copied unchanged "
+                 "(every command reads this scene as it is)", scene_dir, models)
     if (scene_dir / "priors").is_dir():
         log.warning("undistort: priors in %s are not carried over (they would need the same warp)",
                     scene_dir / "priors")

@@ -216,6 +216,26 @@ class TestBadInput:
         with pytest.raises(ValueError, match="SIMPLE_RADIAL.*geocues undistort"):
             Scene.load(scene_dir)
 
+    @pytest.mark.parametrize("line", [f"1 OPENCV {W} {H} 60 62 32 24 0 0 0 0",
+                                      f"1 SIMPLE_RADIAL {W} {H} 61 32 24 0",
+                                      f"1 FULL_OPENCV {W} {H} 60 62 32 24 0 0 0 0 0 0 0 0"])
+    def test_zero_distortion_is_read_as_a_pinhole(self, scene_dir: Path, line: str):
+        """Dataset converters write OPENCV (or SIMPLE_RADIAL) with every coefficient 0: that camera
+        is a pinhole, read as one (as the nerfstudio reader does), with the same intrinsics."""
+        (scene_dir / "sparse" / "0" / "cameras.txt").write_text(line + "\n")
+        s = Scene.load(scene_dir)
+        p = [float(v) for v in line.split()[4:]]
+        fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if "SIMPLE" in line else p[:4]
+        np.testing.assert_allclose(s.cameras[3].K, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        assert s.distorted_models == []
+
+    @pytest.mark.parametrize("line", [f"1 OPENCV {W} {H} 60 62 32 24 0 0 1e-9 0",
+                                      f"1 OPENCV_FISHEYE {W} {H} 60 62 32 24 0 0 0 0"])
+    def test_any_distortion_or_a_fisheye_is_still_refused(self, scene_dir: Path, line: str):
+        (scene_dir / "sparse" / "0" / "cameras.txt").write_text(line + "\n")
+        with pytest.raises(ValueError, match=line.split()[1] + ".*geocues undistort"):
+            Scene.load(scene_dir)
+
     def test_info_summarises_a_distorted_scene_and_names_undistort(self, scene_dir: Path, capsys):
         """COLMAP's own mapper writes SIMPLE_RADIAL: `geocues info` is the first command a user runs
         on it, so it summarises the scene and names the step that makes it readable."""
