@@ -105,6 +105,10 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     print(f"gt mesh    {s.gt_mesh_path or 'none'}")
     if s.metadata:
         print(f"metadata   {', '.join(sorted(s.metadata))}")
+    from geocues.advice import next_steps
+
+    for k, (cmd, why) in enumerate(next_steps(s, not_metric=warn is not None)):  # a script to copy
+        print(f"{'next' if k == 0 else '':<11}# {why}\n{'':<11}{cmd}")
     return 0
 
 

@@ -1,0 +1,53 @@
+"""What to run next on a scene: the commands `geocues info` prints under "next", from what the scene
+holds (README, "Your own photos"). The first step that the scene still lacks comes first — a pinhole
+camera, a metric unit, SfM points — then the chain to a mesh: with depth priors the paper's recipe,
+without them `geocues mvs` and its recipe, or the prior-free run."""
+
+from __future__ import annotations
+
+import os
+import shlex
+from pathlib import Path
+
+from geocues.scene import Scene
+
+
+def _sibling(root: Path, suffix: str) -> str:
+    """ROOT_suffix beside ``root`` (in the working folder when root's folder is not writable, e.g. a
+    shared dataset), quoted for a shell."""
+    parent = root.parent if os.access(root.parent, os.W_OK) else Path()
+    return shlex.quote(str(parent / f"{root.name}_{suffix}"))
+
+
+def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
+    """(command, why) pairs, in the order to run them. ``not_metric``: the scene does not look metric
+    (:func:`geocues.rescale.metric_warning` said so)."""
+    root = Path(scene.root)
+    q = shlex.quote(str(root))
+    if scene.distorted_models:
+        out = _sibling(root, "pinhole")
+        return [(f"geocues undistort {q} -o {out}", "the other commands read pinhole cameras only"),
+                (f"geocues info {out}", "then follow its advice")]
+    if not_metric:
+        out = _sibling(root, "metric")
+        how = "--from-priors" if scene.has_depth_priors and scene.depth_kind == "depth" else "--median-depth 2"
+        return [(f"geocues rescale {q} -o {out} {how}",
+                 "every length here is in metres" + ("" if how == "--from-priors" else
+                                                     " (2 m: a guess of how far the photos were taken from the walls)")),
+                (f"geocues info {out}", "then follow its advice")]
+    if len(scene.points) == 0:
+        out = _sibling(root, "sfm")
+        return [(f"geocues sfm {q} -o {out}", "the cues start from SfM points"),
+                (f"geocues info {out}", "then follow its advice")]
+    cues, run = _sibling(root, "cues"), _sibling(root, "run")
+    if scene.has_depth_priors:
+        return [(f"geocues extract {q} -o {cues}", "lines, SfM and plane-like cues (paper §4.1)"),
+                (f"splat train {q} -c {cues} -o {run} --iters 3000 --downscale 2",
+                 "IndoorGS with the depth and normal priors (§4.2-4.3), then a mesh"),
+                (f"splat view {run}", "look at it (or splat render)")]
+    mvs = _sibling(root, "mvs")
+    return [(f"geocues mvs {q} -o {mvs}", "no depth priors: depth from the photos themselves (the best mesh "
+             "measured without priors; or bring priors of your own in priors/)"),
+            (f"geocues extract {mvs} -o {cues} --preset mvs", "cues for that recipe"),
+            (f"splat train {mvs} -c {cues} -o {run} --preset mvs --iters 3000 --downscale 2", "train, then a mesh"),
+            (f"splat view {run}", "look at it (or splat render)")]

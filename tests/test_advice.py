@@ -1,0 +1,75 @@
+"""`geocues info` ends with what to run next: the first step the scene lacks, then the chain to a mesh."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from cues_synth import make_room_scene
+from geocues.advice import next_steps
+from geocues.scene import Scene
+from test_scene import make_scene
+
+
+def _commands(scene_dir: Path, **kw) -> list[str]:
+    from geocues.rescale import metric_warning
+
+    s = Scene.load(scene_dir, allow_distorted=True, **kw)
+    return [cmd for cmd, _ in next_steps(s, not_metric=metric_warning(s) is not None)]
+
+
+@pytest.fixture(scope="module")
+def rooms(tmp_path_factory):
+    base = tmp_path_factory.mktemp("advice")
+    return (make_room_scene(base / "with priors", n_views=4, w=64, h=48, priors="all"),
+            make_room_scene(base / "bare", n_views=4, w=64, h=48, priors="none"))
+
+
+def test_each_missing_step_comes_first(tmp_path, rooms):
+    make_scene(tmp_path / "posed")  # a posed model without points
+    cmds = _commands(tmp_path / "posed")
+    assert cmds[0] == f"geocues sfm {tmp_path / 'posed'} -o {tmp_path / 'posed_sfm'}"
+    assert cmds[1] == f"geocues info {tmp_path / 'posed_sfm'}"
+
+    cams = tmp_path / "posed" / "sparse" / "0" / "cameras.txt"
+    cams.write_text("1 SIMPLE_RADIAL 64 48 60 32 24 0.05\n")
+    assert _commands(tmp_path / "posed")[0].startswith(f"geocues undistort {tmp_path / 'posed'} -o ")
+
+    with_priors, bare = rooms
+    meta = json.loads((bare / "scene.json").read_text()) if (bare / "scene.json").is_file() else {}
+    arbitrary = tmp_path / "arbitrary"
+    subprocess.run(["cp", "-r", str(bare), str(arbitrary)], check=True)
+    (arbitrary / "scene.json").write_text(json.dumps({**meta, "scale": "arbitrary"}))
+    cmds = _commands(arbitrary)
+    assert cmds[0].startswith(f"geocues rescale {arbitrary} -o ") and cmds[0].endswith("--median-depth 2")
+
+
+def test_the_chain_follows_the_priors(rooms):
+    with_priors, bare = rooms
+    q = shlex.quote
+    cmds = _commands(with_priors)
+    cues, run = q(f"{with_priors}_cues"), q(f"{with_priors}_run")
+    assert cmds[0] == f"geocues extract {q(str(with_priors))} -o {cues}"
+    assert cmds[1].startswith(f"splat train {q(str(with_priors))} -c {cues} -o {run}") and "--preset" not in cmds[1]
+    # the folder's name has a space: quoted, the command survives the shell
+    assert shlex.split(cmds[0]) == ["geocues", "extract", str(with_priors), "-o", f"{with_priors}_cues"]
+    cmds = _commands(bare)
+    mvs = f"{bare}_mvs"
+    assert cmds[0] == f"geocues mvs {bare} -o {mvs}"
+    assert cmds[1] == f"geocues extract {mvs} -o {bare}_cues --preset mvs"
+    assert cmds[2].startswith(f"splat train {mvs} -c {bare}_cues -o {bare}_run --preset mvs")
+
+
+def test_info_prints_them(rooms, capsys):
+    from cli.geocues_cli import main
+
+    _, bare = rooms
+    assert main(["info", str(bare)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    at = next(k for k, line in enumerate(out) if line.startswith("next"))
+    assert out[at].split(None, 1)[1].startswith("# no depth priors")
+    assert out[at + 1].strip() == f"geocues mvs {bare} -o {bare}_mvs"
