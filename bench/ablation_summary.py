@@ -1,13 +1,13 @@
 """Write the committed ablation results into the docs (figures in docs are generated, not typed).
 
-    python bench/ablation_summary.py                      # docs/training.md from bench/results/ablation_*/
+    python bench/ablation_summary.py                      # docs/ablation_results.md from bench/results/ablation_*/
     python bench/ablation_summary.py --demo outputs/demo  # also README.md's demo figures and plot
 
 For each ``bench/results/ablation_<scene>/ablation.json`` (copied there from a `splat ablate` OUT
 with ``--collect OUT NAME [--label TEXT]``; merged with the rows already there when the setup is the same, so an
 ablation can be finished over several sessions), a table of every row: Chamfer-L1, F@5cm, NC, test PSNR, training
 seconds, the ratio of Chamfer-L1 to the floor's and the deltas against `no-cues`. The text between
-``<!-- ablation-summary -->`` and ``<!-- /ablation-summary -->`` in docs/training.md is replaced.
+``<!-- ablation-summary -->`` and ``<!-- /ablation-summary -->`` in docs/ablation_results.md is replaced.
 With ``--demo DIR`` the main job's figures (DIR/ablation/ablation.json) go between
 ``<!-- demo-figures -->`` markers in README.md and its plot to docs/img/demo_accuracy_vs_time.png.
 """
@@ -115,8 +115,8 @@ def main() -> None:
         parts.append(scene_table(data) + f"\n\n([report]({'../' + str(rel)}/report.md), "
                      f"[plot]({'../' + str(rel)}/accuracy_vs_time.png), [JSON]({'../' + str(rel)}/ablation.json))")
     if parts:
-        replace_block(REPO / "docs" / "training.md", "ablation-summary", "\n\n".join(parts))
-        print("updated docs/training.md")
+        replace_block(REPO / "docs" / "ablation_results.md", "ablation-summary", "\n\n".join(parts))
+        print("updated docs/ablation_results.md")
     if args.demo:
         data = json.loads((args.demo / "ablation" / "ablation.json").read_text())
         (REPO / "docs" / "img").mkdir(exist_ok=True)
