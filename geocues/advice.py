@@ -41,7 +41,9 @@ def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
                 (f"geocues info {out}", "then follow its advice")]
     cues, run = _sibling(root, "cues"), _sibling(root, "run")
     if scene.has_depth_priors:
-        return [(f"geocues extract {q} -o {cues}", "lines, SfM and plane-like cues (paper §4.1)"),
+        return [(f"geocues extract {q} -o {cues}", "lines, SfM and plane-like cues (paper §4.1); for a room with a "
+                 "level floor and ceiling and vertical walls, `--preset room` here and in splat train gave the "
+                 "best meshes measured"),
                 (f"splat train {q} -c {cues} -o {run} --iters 3000 --downscale 2",
                  "IndoorGS with the depth and normal priors (§4.2-4.3), then a mesh"),
                 (f"splat view {run}", "look at it (or splat render)")]
