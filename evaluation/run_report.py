@@ -142,7 +142,13 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
         raise FileNotFoundError(f"{run_dir} holds no report.json (not a finished `splat train` folder)")
     check_output_file(run_dir / "report.md", overwrite)  # the report is written into RUN
     report = json.loads(report_path.read_text())
-    scene_dir = Path(scene) if scene is not None else Path(report["scene"])
+    from splat.run_paths import recorded_path
+
+    scene_dir = Path(scene) if scene is not None else recorded_path(run_dir, report, "scene")
+    if scene_dir is None or not scene_dir.is_dir():
+        where = "given" if scene is not None else f"recorded in {report_path}"
+        raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; give the scene after "
+                                f"RUN: `evaluate report {run_dir} SCENE`")
     log_rows = _read_log(run_dir)
     plt = _plt()
 

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from geocues.atomic import atomic_path
 from geocues.scene import Scene
-from splat import checkpoint
+from splat import checkpoint, run_paths
 from splat.camera_opt import CameraRefiner
 from splat.checkpoint import SignalCatcher, TrainingInterrupted, publish
 from splat.composite import describe_backend
@@ -422,7 +422,8 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     if ckpt is None:
         from splat.presets import write_config_file
 
-        write_config_file(work / "config.yaml", cfg, {"scene": str(scene_dir), "cues": str(cues_ply)})
+        write_config_file(work / "config.yaml", cfg, {"scene": str(Path(scene_dir).resolve()),
+                                                      "cues": str(cues_ply.resolve())})
     loop = _Loop(cfg, s, work, rng, gen)
     if ckpt is not None:
         loop.resume(ckpt)
@@ -432,7 +433,9 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
 
     final = _write_outputs(cfg, s, loop, timings)
     timings["total_s"] = time.perf_counter() - t_start
-    report = {"config": asdict(cfg), "scene": str(scene_dir), "cues": str(cues_ply), "device": str(device),
+    paths = {f"{name}{k}": v for name, path in (("scene", scene_dir), ("cues", cues_ply))
+             for k, v in run_paths.record(path, out_dir).items()}  # readable from any folder (splat/run_paths.py)
+    report = {"config": asdict(cfg), **paths, "device": str(device),
               "rasterizer": rasterizer,
               "scene_scale": s.scale, "n_train_views": len(s.train_views), "n_test_views": len(s.test_views),
               "gaussians_init": s.init_counts, "gaussians_final": type_counts(s.state["cue_type"]),

@@ -32,6 +32,8 @@ from typing import Literal
 
 import numpy as np
 
+from splat.run_paths import recorded_path
+
 log = logging.getLogger(__name__)
 
 TRAIN_COLOR, TEST_COLOR = (40, 40, 40), (255, 127, 14)
@@ -200,8 +202,8 @@ def _resolve(run_dir: Path, cfg: ViewConfig) -> dict[str, Path | None]:
             raise ValueError(f"{report_path} is not valid JSON: {e}") from e
     elif cfg.scene is None or cfg.cues is None:
         log.warning("%s holds no report.json: no scene or cues to show unless --scene/--cues are given", run_dir)
-    scene = Path(cfg.scene) if cfg.scene else Path(report["scene"]) if report.get("scene") else None
-    cues = Path(cfg.cues) if cfg.cues else Path(report["cues"]) if report.get("cues") else None
+    scene = Path(cfg.scene) if cfg.scene else recorded_path(run_dir, report, "scene")
+    cues = Path(cfg.cues) if cfg.cues else recorded_path(run_dir, report, "cues")
     if cues is not None and cues.is_dir():
         cues = cues / "cues.ply"
     files = {"splats": ply, "mesh": run_dir / "mesh.ply", "cues": cues, "scene": scene,

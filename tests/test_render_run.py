@@ -111,3 +111,40 @@ def test_bad_inputs_are_named(fake_run, tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps([{"position": [0, 0, 0]}]))
     with pytest.raises(ValueError, match=r"bad.json: camera 0 lacks"):
         cameras_from_json(tmp_path / "bad.json")
+
+
+def test_a_run_is_found_from_any_folder_and_after_moving_with_its_scene(tmp_path, monkeypatch):
+    """A run trained with relative paths (`splat train room -c cues -o run` in its folder) is read from
+    another working folder, and still when the run and its scene move together; an old run that
+    recorded the relative path alone is found from the folders above it."""
+    from splat.render_run import load_run
+    from splat.train import TrainConfig
+    from splat.train import run as train
+    from test_train import surface_cues
+    from geocues.cue_io import write_cues_ply
+
+    work = tmp_path / "project"
+    root = make_room_scene(work / "room", n_views=6, w=W, h=H, priors="none")
+    write_cues_ply(work / "cues" / "cues.ply", surface_cues(root, n_plane=300))
+    monkeypatch.chdir(work)
+    train(TrainConfig(iters=4, checkpoints=(1.0,), mesh=False, test_every=3), "room", "cues", "outputs/run")
+    report = json.loads((work / "outputs" / "run" / "report.json").read_text())
+    assert report["scene"] == str(root) and report["scene_from_run"] == "../../room"
+    assert report["cues_from_run"] == "../../cues/cues.ply"
+
+    monkeypatch.chdir(tmp_path)  # another working folder
+    scene, _, _ = load_run(work / "outputs" / "run")
+    assert scene.root == root
+    moved = tmp_path / "elsewhere"
+    work.rename(moved)  # run and scene moved together: the recorded absolute path is gone
+    scene, _, _ = load_run(moved / "outputs" / "run")
+    assert scene.root.resolve() == (moved / "room").resolve()
+
+    legacy = {k: v for k, v in report.items() if not k.endswith("_from_run")}
+    legacy["scene"] = "room"  # as recorded before: relative to the folder training started in
+    (moved / "outputs" / "run" / "report.json").write_text(json.dumps(legacy))
+    assert load_run(moved / "outputs" / "run")[0].root.resolve() == (moved / "room").resolve()
+    legacy["scene"] = "nowhere"
+    (moved / "outputs" / "run" / "report.json").write_text(json.dumps(legacy))
+    with pytest.raises(FileNotFoundError, match=r"scene folder nowhere \(recorded in .*report.json\).*--scene"):
+        load_run(moved / "outputs" / "run")
