@@ -32,6 +32,7 @@ import numpy as np
 
 from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
+from geocues.camera_signature import camera_signature
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
 from geocues.ceiling import add_level_grids, ceiling_height
@@ -315,7 +316,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     timings["write"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     report = {
-        "scene": str(scene_dir), "n_images": n_img, "config_key": key, "config": asdict(cfg),
+        "scene": str(scene_dir), "n_images": n_img, "cameras": camera_signature(scene), "config_key": key,
+        "config": asdict(cfg),
         "counts": cues.counts(), "n_points": len(cues), "n_lines": len(lc),
         "n_plane_anchors": len(anchor_pts[0]),
         "stages": {"sfm": cfg.sfm, "lines": cfg.lines, "planes": cfg.planes, "priors": cfg.priors},

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -33,8 +34,12 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
     if cfg.init_from != "cues":
         raise ValueError(f"init_from must be 'cues' or 'sfm', got {cfg.init_from!r}")
     cloud = read_cues_ply(cues_ply)
-    share = 1.0 if scene is None else seen_share(cloud.xyz, scene)
-    if share < 0.5:
+    foreign = None if scene is None else foreign_cues(cues_ply, scene)
+    share = 1.0 if scene is None or foreign else seen_share(cloud.xyz, scene)
+    if foreign:
+        log.warning("the cues %s were extracted from another scene than %s: %s. Run `geocues extract %s -o CUES` "
+                    "for this one", cues_ply, scene.root, foreign, scene.root)
+    elif share < 0.5:
         log.warning("only %.0f%% of the cue points of %s lie in front of and inside any view of the scene %s: "
                     "were the cues extracted from another scene (or the model re-posed since)? Run "
                     "`geocues extract %s -o CUES` for this one", 100 * share, cues_ply, scene.root, scene.root)
@@ -46,6 +51,19 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
                     "--init.plane-share %.1f thins the PLANE seeds to leave some", len(cloud),
                     100 * len(cloud) / budget, budget, FULL_INIT)
     return thin_planes(cloud, cfg.init.plane_share, budget, cfg.seed)
+
+
+def foreign_cues(cues_ply: Path, scene: Scene) -> str | None:
+    """Why the cues at ``cues_ply`` belong to another scene, from the camera signature `geocues extract`
+    recorded in their report.json (geocues/camera_signature.py); None when they agree or nothing was recorded."""
+    from geocues.camera_signature import camera_signature, signature_mismatch
+
+    report = Path(cues_ply).parent / "report.json"
+    try:
+        recorded = json.loads(report.read_text()).get("cameras") if report.is_file() else None
+    except (OSError, json.JSONDecodeError):
+        return None
+    return signature_mismatch(recorded, camera_signature(scene)) if recorded else None
 
 
 def seen_share(xyz: np.ndarray, scene: Scene, max_points: int = 5000) -> float:

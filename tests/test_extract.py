@@ -59,6 +59,10 @@ class TestRun:
         cues = _no_nan(out)
         rep = _report(out)
         assert rep["counts"] == cues.counts() and all(v > 0 for v in rep["counts"].values())
+        from geocues.camera_signature import camera_signature
+        from geocues.scene import Scene
+
+        assert rep["cameras"] == camera_signature(Scene.load(scenes["all"]))  # what splat train compares
         for stage in ("sfm", "lines", "texture", "depth_align", "planes", "total"):
             assert rep["seconds"][stage] >= 0
         aligned = [r for r in rep["per_image"] if r["alignment"]["ok"]]

@@ -275,3 +275,40 @@ def test_cues_of_another_scene_are_named(tmp_path, caplog):
             load_init_cloud(TrainConfig(), scene, tmp_path / name / "cues.ply")
         assert ("extracted from another scene" in caplog.text) == warned, caplog.text
     assert str(tmp_path / "other" / "cues.ply") in caplog.text and str(scene.root) in caplog.text
+
+
+def test_cues_of_a_rescaled_copy_are_named_by_their_cameras(tmp_path, caplog):
+    """Cues extracted from a rescaled copy of the scene (`geocues rescale`) project into its views at
+    another scale, so the seen-share test misses them; the camera signature `geocues extract` records
+    in the cues' report tells them: one warning naming the factor. The same cameras under another
+    folder (`geocues sfm -o`, `mvs`, `undistort`) and an older cue folder without a signature: none."""
+    import json
+    import logging
+    import shutil
+
+    from cues_synth import make_room_scene
+    from geocues.camera_signature import camera_signature, signature_mismatch
+    from geocues.cue_io import write_cues_ply
+    from geocues.rescale import RescaleConfig, run as rescale
+    from geocues.scene import Scene
+    from splat.init_gaussians import load_init_cloud
+    from splat.train_config import TrainConfig
+
+    root = make_room_scene(tmp_path / "room", n_views=6, priors="none")
+    big = rescale(RescaleConfig(scale=10.0), root, tmp_path / "room_x10")
+    same = tmp_path / "room_copy"
+    shutil.copytree(root, same)
+    scene, scene_big, scene_same = (Scene.load(p) for p in (root, big, same))
+    assert signature_mismatch(camera_signature(scene), camera_signature(scene_same)) is None
+    why = signature_mismatch(camera_signature(scene_big), camera_signature(scene))
+    assert why is not None and "x0.1" in why
+
+    xyz = scene_big.points.xyz  # the copy's points: 10x the scene's, in front of its views all the same
+    for name, signed_by, warned in (("x10", scene_big, True), ("copy", scene_same, False), ("old", None, False)):
+        write_cues_ply(tmp_path / name / "cues.ply", CueCloud.make(xyz, np.zeros((len(xyz), 3), np.uint8), CueType.SFM))
+        report = {"scene": "somewhere"} | ({"cameras": camera_signature(signed_by)} if signed_by else {})
+        (tmp_path / name / "report.json").write_text(json.dumps(report))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="splat"):
+            load_init_cloud(TrainConfig(), scene, tmp_path / name / "cues.ply")
+        assert ("extracted from another scene" in caplog.text) == warned, (name, caplog.text)
