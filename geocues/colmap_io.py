@@ -9,6 +9,7 @@ diffable) and can convert it to binary with pycolmap.
 from __future__ import annotations
 
 import logging
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,18 +122,68 @@ def find_model_dir(scene_or_model: Path) -> Path:
         f"no cameras.txt or cameras.bin in {p}, {p / 'sparse'} or {p / 'sparse' / '0'}")
 
 
-def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
-    """Read a COLMAP model (binary or text) with pycolmap; images sorted by name."""
+def _check_text_model(model_dir: Path) -> None:
+    """The mistakes of hand-written or converted text models that pycolmap reports without naming the
+    file or the line: an image line without its (possibly empty) line of 2D points after it, an image
+    whose camera id cameras.txt lacks."""
+    cams, imgs = model_dir / "cameras.txt", model_dir / "images.txt"
+    if not (cams.is_file() and imgs.is_file()):
+        return
+    camera_ids = {ln.split()[0] for ln in cams.read_text(errors="replace").splitlines()
+                  if ln.strip() and not ln.lstrip().startswith("#")}
+    lines = [(k + 1, ln) for k, ln in enumerate(imgs.read_text(errors="replace").splitlines())
+             if not ln.lstrip().startswith("#")]
+    while lines and not lines[-1][1].strip():  # trailing empty lines: the last image's empty 2D points and blanks
+        lines.pop()
+    for (n, line), (n_next, following) in zip(lines[0::2], lines[1::2] + [(0, "")]):
+        fields = line.split()
+        if len(fields) < 10:
+            raise ValueError(f"{imgs}: line {n} should be an image (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME), "
+                             f"got {line.strip()[:80]!r}; every image takes two lines, the second its 2D points "
+                             "(an empty line when it has none)")
+        if fields[8] not in camera_ids:
+            raise ValueError(f"{imgs}: line {n}: image {fields[9]} uses camera {fields[8]}, which {cams} does not list")
+        nxt = following.split()
+        if len(nxt) >= 10 and len(nxt) % 3 != 0:  # an image line where its 2D points should be
+            raise ValueError(f"{imgs}: line {n_next} looks like another image, where the 2D points of image "
+                             f"{fields[9]} (line {n}) belong; every image takes two lines, the second empty "
+                             "when it has no points")
+
+
+def load_reconstruction(model_dir: Path):
+    """pycolmap's Reconstruction of the model in ``model_dir``, with errors that name the folder. A posed
+    model without a points3D file (cameras and images only: `geocues sfm`'s input) is read as one
+    without points."""
     import pycolmap
 
     model_dir = Path(model_dir)
-    for stem in ("cameras", "images", "points3D"):
+    for stem in ("cameras", "images"):
         if not any((model_dir / f"{stem}.{ext}").is_file() for ext in ("bin", "txt")):
             raise FileNotFoundError(f"no {stem}.txt or {stem}.bin in {model_dir}")
+    _check_text_model(model_dir)
     try:
-        rec = pycolmap.Reconstruction(str(model_dir))
+        if any((model_dir / f"points3D.{ext}").is_file() for ext in ("bin", "txt")):
+            return pycolmap.Reconstruction(str(model_dir))
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="indoorgs_model_") as tmp:
+            for f in model_dir.iterdir():  # cameras, images (rigs, frames): small
+                if f.is_file() and f.suffix in (".bin", ".txt"):
+                    shutil.copyfile(f, Path(tmp) / f.name)
+            if (model_dir / "images.bin").is_file():
+                (Path(tmp) / "points3D.bin").write_bytes(np.uint64(0).tobytes())
+            else:
+                (Path(tmp) / "points3D.txt").write_text("# no points\n")
+            log.info("%s has no points3D file: read as a model without points", model_dir)
+            return pycolmap.Reconstruction(tmp)
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on broken files
         raise ValueError(f"could not read COLMAP model in {model_dir}: {exc}") from exc
+
+
+def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
+    """Read a COLMAP model (binary or text) with pycolmap; images sorted by name."""
+    model_dir = Path(model_dir)
+    rec = load_reconstruction(model_dir)
 
     images: list[RawImage] = []
     for image_id in rec.reg_image_ids():

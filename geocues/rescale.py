@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from geocues.atomic import atomic_dir, check_output_dir
-from geocues.colmap_io import find_model_dir
+from geocues.colmap_io import find_model_dir, load_reconstruction
 from geocues.scene import ARBITRARY_SCALE, Scene, rescale_hint
 from geocues.sfm import link_scene
 
@@ -147,7 +147,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     import pycolmap
 
     model_dir = find_model_dir(scene_dir)
-    rec = pycolmap.Reconstruction(str(model_dir))  # tracks, 2D points and camera models kept as they are
+    rec = load_reconstruction(model_dir)  # tracks, 2D points and camera models kept as they are
     rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
     binary = (model_dir / "images.bin").is_file()
     with atomic_dir(out_dir) as tmp:

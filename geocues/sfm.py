@@ -34,7 +34,7 @@ import numpy as np
 
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
-from geocues.colmap_io import find_model_dir
+from geocues.colmap_io import find_model_dir, load_reconstruction
 from geocues.scene import ARBITRARY_SCALE, IMAGE_EXTS, OWN_FRAME, no_images_folder, rescale_hint
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -233,7 +233,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     pycolmap.set_random_seed(cfg.seed)
     ref = None
     if model_dir is not None:
-        ref = pycolmap.Reconstruction(str(model_dir))
+        ref = load_reconstruction(model_dir)
         if ref.num_reg_images() == 0:
             raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
         for im in ref.images.values():

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from geocues.atomic import atomic_dir, check_output_dir
-from geocues.colmap_io import find_model_dir, is_pinhole
+from geocues.colmap_io import find_model_dir, is_pinhole, load_reconstruction
 from geocues.scene import no_images_folder
 
 log = logging.getLogger(__name__)
@@ -48,7 +48,7 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
     if (out_dir / "sparse").exists() and not overwrite:
         raise ValueError(f"{out_dir / 'sparse'} exists; pass --overwrite to replace it")
     check_output_dir(out_dir)
-    rec = pycolmap.Reconstruction(str(model_dir))
+    rec = load_reconstruction(model_dir)
     if rec.num_reg_images() == 0:
         raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
     for im in rec.images.values():

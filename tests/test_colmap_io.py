@@ -161,3 +161,27 @@ class TestBadInput:
             write_model(tmp_path / "m", bad)
         _assert_same_images(read_model(tmp_path / "m")[0], images)
         assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]  # no temp folder left
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_a_posed_model_without_a_points_file_reads_as_one_without_points(tmp_path, binary):
+    """cameras + images only (what a user writes for known poses, `geocues sfm`'s input): read, 0 points."""
+    model = write_model(tmp_path / "m", _images(), binary=binary)
+    (model / f"points3D.{'bin' if binary else 'txt'}").unlink()
+    images, points = read_model(model)
+    _assert_same_images(images, _images())
+    assert len(points.ids) == 0 and not any(model.glob("points3D.*"))  # the user's folder is left as it was
+
+
+def test_text_model_mistakes_name_the_file_and_line(tmp_path):
+    model = write_model(tmp_path / "m", _images(3))
+    imgs = model / "images.txt"
+    text = imgs.read_text()
+    (model / "images.txt").write_text(text.replace(" 2 00001.png", " 7 00001.png"))
+    with pytest.raises(ValueError, match=r"images.txt: line \d+: image 00001.png uses camera 7, which .*cameras.txt"):
+        read_model(model)
+    body = [ln for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]  # without the 2D-point lines
+    imgs.write_text("\n".join(body) + "\n")
+    with pytest.raises(ValueError, match=r"images.txt: line \d+ looks like another image, where the 2D points of "
+                                         r"image 00000.png"):
+        read_model(model)
