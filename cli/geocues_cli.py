@@ -102,6 +102,10 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     if warn:
         print(f"warning    {warn}")
     print(f"split      {len(s.train_indices)} train / {len(s.test_indices)} test (every {test_every})")
+    from geocues.advice import few_views_warning
+
+    if few := few_views_warning(len(s)):
+        print(f"warning    {few}")
     print(f"gt mesh    {s.gt_mesh_path or 'none'}")
     if s.metadata:
         print(f"metadata   {', '.join(sorted(s.metadata))}")

@@ -12,6 +12,18 @@ from pathlib import Path
 from geocues.scene import Scene
 
 
+FEW_VIEWS = 10  # Gaussian splatting of a room fits each surface to the views that see it
+
+
+def few_views_warning(n_views: int, what: str = "images") -> str | None:
+    """A sentence when ``n_views`` are too few to reconstruct a room, else None."""
+    if n_views >= FEW_VIEWS:
+        return None
+    return (f"only {n_views} {what}: Gaussian splatting fits every surface to the views that see it, and with "
+            f"under {FEW_VIEWS} the renders fit their photos while the geometry between them stays unconstrained; "
+            "a room wants dozens of overlapping photos")
+
+
 def _sibling(root: Path, suffix: str) -> str:
     """ROOT_suffix beside ``root`` (in the working folder when root's folder is not writable, e.g. a
     shared dataset), quoted for a shell."""

@@ -242,7 +242,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         timings["sfm"] = time.perf_counter() - t0
         rejections["sfm"] = sfm.removed
         if sfm.n_input == 0:
-            notes.append("the SfM model has no 3D points: no SFM cues (run `geocues sfm` first)")
+            notes.append("the SfM model has no 3D points: no SFM cues (`geocues sfm` triangulates them; when it ran and found none, its warning says why)")
         else:
             notes.append(f"SOR removed {sfm.n_removed} of {sfm.n_input} SfM points")
 

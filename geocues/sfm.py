@@ -340,4 +340,19 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],
              sum(seconds.values()))
+    if report["points"] < FEW_POINTS:
+        log.warning("%s", few_points_advice(report["points"], len(names), n_short, cfg))
     return root
+
+
+FEW_POINTS = 100  # the cues start from the SfM points: fewer leaves most of a room without a cue
+
+
+def few_points_advice(n_points: int, n_images: int, n_short: int, cfg: SfmConfig) -> str:
+    """What to do when triangulation left (almost) no points."""
+    two_view = cfg.ignore_two_view_tracks or cfg.min_track_length > 2
+    return (f"sfm: only {n_points} points from {n_images} images ({n_short} seen in fewer than "
+            f"--min-track-length {cfg.min_track_length} images were dropped): the cues start from these points. "
+            + ("With few images, `--min-track-length 2 --no-ignore-two-view-tracks` keeps points seen in two; "
+               if two_view else "")
+            + "a room wants dozens of overlapping photos, each wall seen from several places")

@@ -89,7 +89,7 @@ def extract_sfm_cues(points: Points3D, cfg: SfmCueConfig) -> SfmCues:
     reason in ``removed``), never an error."""
     n = len(points)
     if n == 0:
-        log.warning("SfM cues: the model has no 3D points; no SFM cues (run `geocues sfm` first)")
+        log.warning("SfM cues: the model has no 3D points; no SFM cues (`geocues sfm` triangulates them; when it ran and found none, its warning says why)")
         return SfmCues(CueCloud.empty(), np.zeros(0, np.int64), 0, {"empty_model": 0})
     xyz = np.asarray(points.xyz, np.float64)
     if xyz.shape != (n, 3):

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from geocues.advice import few_views_warning
 from geocues.atomic import check_output_dir
 from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.plane_anchors import load_plane_anchors
@@ -143,6 +144,8 @@ def _load_views(cfg: TrainConfig, scene: Scene, scene_dir: Path, cues_ply: Path,
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
+    if few := few_views_warning(len(train_views), "training views"):
+        log.warning("%s: %s", scene_dir, few)
     if cfg.loss.use_depth and not train_views.has_depth_priors:
         log.warning("%s has no depth priors: L_d and L_a are off. From photos alone, `geocues mvs` computes "
                     "them without a network; train its scene with `geocues extract --preset mvs` cues and "

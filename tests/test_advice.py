@@ -73,3 +73,4 @@ def test_info_prints_them(rooms, capsys):
     at = next(k for k, line in enumerate(out) if line.startswith("next"))
     assert out[at].split(None, 1)[1].startswith("# no depth priors")
     assert out[at + 1].strip() == f"geocues mvs {bare} -o {bare}_mvs"
+    assert any(line.startswith("warning    only 4 images:") for line in out)  # too few for a room

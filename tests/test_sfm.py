@@ -296,3 +296,20 @@ def test_images_only_map_then_undistort(icl_dir: Path, tmp_path: Path, caplog):
     twice = Scene.load(rescale(RescaleConfig(scale=2.0), tmp_path / "und", tmp_path / "x2"))
     np.testing.assert_allclose(twice.points.xyz, 2 * s.points.xyz, atol=1e-9)
     np.testing.assert_allclose([c.center for c in twice.cameras], [2 * c.center for c in s.cameras], atol=1e-9)
+
+
+def test_two_images_leave_no_point_and_say_how_to_keep_some(icl_dir: Path, tmp_path: Path, caplog):
+    """Two photos: every track has two views, so the default (3 views, no two-view tracks) keeps no
+    point, and the cues would start from nothing; the warning names the options that keep them."""
+    import logging
+
+    scene = make_tiny_icl(icl_dir, tmp_path / "two", frames=[0, 5])
+    with caplog.at_level(logging.WARNING, logger="geocues"):
+        run(SfmConfig(), scene, tmp_path / "out")
+    assert _report(tmp_path / "out")["points"] == 0
+    assert "only 0 points from 2 images" in caplog.text
+    assert "--min-track-length 2 --no-ignore-two-view-tracks" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="geocues"):
+        run(SfmConfig(min_track_length=2, ignore_two_view_tracks=False), scene, tmp_path / "out2")
+    assert _report(tmp_path / "out2")["points"] > 0
