@@ -118,8 +118,23 @@ def find_model_dir(scene_or_model: Path) -> Path:
     for cand in (p / "sparse" / "0", p / "sparse", p):
         if any((cand / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
             return cand
-    raise FileNotFoundError(
-        f"no cameras.txt or cameras.bin in {p}, {p / 'sparse'} or {p / 'sparse' / '0'}")
+    raise FileNotFoundError(f"no cameras.txt or cameras.bin in {p}, {p / 'sparse'} or {p / 'sparse' / '0'}"
+                            + _no_model_hint(p))
+
+
+def _no_model_hint(p: Path) -> str:
+    """What the user most likely meant when SCENE holds no COLMAP model."""
+    from geocues.scene import is_image, list_images
+
+    others = sorted(d for d in (p / "sparse").glob("*") if any(d.glob("cameras.*"))) if (p / "sparse").is_dir() else []
+    if others:
+        return f"; {others[0]} holds a model: move (or link) it to {p / 'sparse' / '0'}"
+    if p.name == "images" and any(is_image(f) for f in p.iterdir()):
+        return f"; {p} looks like a scene's images folder: pass the scene folder above it, {p.parent}"
+    if (p / "images").is_dir() and list_images(p / "images"):
+        return (f"; {p / 'images'} holds photos without a model: `geocues sfm {p} -o MAP` makes one from the "
+                "images alone (README, \"Your own photos\")")
+    return ""
 
 
 def _check_text_model(model_dir: Path) -> None:

@@ -35,7 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
-from geocues.scene import ARBITRARY_SCALE, IMAGE_EXTS, OWN_FRAME, no_images_folder, rescale_hint
+from geocues.scene import ARBITRARY_SCALE, OWN_FRAME, list_images, no_images_folder, rescale_hint
 
 if TYPE_CHECKING:  # pragma: no cover
     import pycolmap
@@ -96,10 +96,6 @@ class SfmConfig:
 
 def _key(d: dict) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def _list_images(image_dir: Path) -> list[str]:
-    return sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTS and p.is_file())
 
 
 def link_scene(scene_dir: Path, out_dir: Path, parts: tuple[str, ...] = ("images", "priors", "gt")) -> None:
@@ -242,7 +238,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
                                         f"{image_dir / im.name}")
         names = sorted(ref.images[i].name for i in ref.reg_image_ids())
     else:
-        names = _list_images(image_dir)
+        names = list_images(image_dir)
         if len(names) < 2:
             raise ValueError(f"map mode needs at least 2 images in {image_dir}, found {len(names)}")
     if not in_place:

@@ -185,3 +185,36 @@ def test_text_model_mistakes_name_the_file_and_line(tmp_path):
     with pytest.raises(ValueError, match=r"images.txt: line \d+ looks like another image, where the 2D points of "
                                          r"image 00000.png"):
         read_model(model)
+
+
+def test_no_model_names_what_the_folder_holds_instead(tmp_path):
+    """The first command on a folder of photos, on a scene's images/ folder, or on a model kept in
+    sparse/1 names the step that fixes it, not only the files it looked for."""
+    import cv2
+
+    photos = tmp_path / "photos"
+    (photos / "images" / "seq1").mkdir(parents=True)
+    for k in range(3):
+        cv2.imwrite(str(photos / "images" / "seq1" / f"{k:04d}.JPG"), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(FileNotFoundError, match=r"holds photos without a model: `geocues sfm .*photos -o MAP`"):
+        find_model_dir(photos)
+    (photos / "images" / "a.png").write_bytes((photos / "images" / "seq1" / "0000.JPG").read_bytes())
+    with pytest.raises(FileNotFoundError, match=r"looks like a scene's images folder: pass the scene folder above it"):
+        find_model_dir(photos / "images")
+    write_model(tmp_path / "s" / "sparse" / "1", _images(2))
+    with pytest.raises(FileNotFoundError, match=r"sparse/1 holds a model: move \(or link\) it to .*sparse/0"):
+        find_model_dir(tmp_path / "s")
+
+
+def test_images_are_listed_in_any_case_and_from_subfolders(tmp_path):
+    from geocues.scene import list_images
+
+    (tmp_path / "flat").mkdir()
+    for name in ("b.JPG", "a.Jpeg", "c.tif", "notes.txt", "._b.JPG"):  # ._NAME: macOS's AppleDouble files
+        (tmp_path / "flat" / name).write_bytes(b"")
+    assert list_images(tmp_path / "flat") == ["a.Jpeg", "b.JPG", "c.tif"]
+    (tmp_path / "nested" / "seq2").mkdir(parents=True)
+    (tmp_path / "nested" / "seq1").mkdir()
+    for name in ("seq2/0.png", "seq1/1.png", "seq1/0.png"):
+        (tmp_path / "nested" / name).write_bytes(b"")
+    assert list_images(tmp_path / "nested") == ["seq1/0.png", "seq1/1.png", "seq2/0.png"]
