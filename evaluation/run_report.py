@@ -58,9 +58,10 @@ def _plt():
 def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None) -> list[dict]:
     """Mesh metrics of each checkpoint mesh the run kept (paths relative to RUN; needs a GT mesh)."""
     from evaluation.mesh_metrics import evaluate_with_scene
+    from geocues.scene import gt_mesh_file
 
     points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and (run_dir / p["mesh"]).is_file()]
-    if not points or (gt is None and (scene is None or not (scene / "gt" / "mesh.ply").is_file())):
+    if not points or (gt is None and (scene is None or gt_mesh_file(scene) is None)):
         return []
     out = []
     for p in points:

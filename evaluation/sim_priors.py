@@ -66,7 +66,7 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
     from tqdm import tqdm
 
     from geocues.atomic import atomic_dir, check_output_dir
-    from geocues.scene import Scene
+    from geocues.scene import Scene, gt_mesh_file
     from splat.floor import find_gt_depth_dir, load_gt_depth
 
     scene_dir, out = Path(scene_dir).resolve(), Path(out)
@@ -78,7 +78,7 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
     if depth_dir is None:
         raise FileNotFoundError(f"{scene_dir} has no gt/depth folder and no --gt-depth was given: "
                                 "the priors are simulated from exact depth")
-    mesh_path = Path(cfg.gt_mesh) if cfg.gt_mesh is not None else scene_dir / "gt" / "mesh.ply"
+    mesh_path = Path(cfg.gt_mesh) if cfg.gt_mesh is not None else (gt_mesh_file(scene_dir) or scene_dir / "gt" / "mesh.ply")
     if not mesh_path.is_file():
         raise FileNotFoundError(f"no GT mesh at {mesh_path} (give --gt-mesh): the normal priors are its normals")
     mesh = o3d.t.geometry.TriangleMesh.from_legacy(o3d.io.read_triangle_mesh(str(mesh_path)))

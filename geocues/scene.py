@@ -70,6 +70,14 @@ def no_images_folder(image_dir: Path) -> FileNotFoundError:
                              f"scene keeps them in images/ (COLMAP's layout): {fix}")
 
 
+GT_MESH_FILES = ("gt/mesh.ply", "reference_mesh.ply")  # the scene layout's, then a dataset's at its root (ICL-NUIM)
+
+
+def gt_mesh_file(root: Path) -> Path | None:
+    """The scene's ground-truth mesh: SCENE/gt/mesh.ply, else SCENE/reference_mesh.ply; None without one."""
+    return next((Path(root) / f for f in GT_MESH_FILES if (Path(root) / f).is_file()), None)
+
+
 def rescale_hint(root: Path) -> str:
     """How to make the scene at ``root`` metric (the end of every not-metric warning)."""
     return (f"make it metric with `geocues rescale {root} -o OUT --scale S` (metres per unit), --from-priors "
@@ -451,5 +459,4 @@ class Scene:
 
     @property
     def gt_mesh_path(self) -> Path | None:
-        p = self.root / "gt" / "mesh.ply"
-        return p if p.is_file() else None
+        return gt_mesh_file(self.root)

@@ -332,3 +332,16 @@ def test_training_warns_about_images_over_1600_px(tmp_path: Path, caplog):
         assert ("--downscale 2.6 trains at 1551x1163" in caplog.text) == (name == "big"), caplog.text
     warn_large_images(Scene.load(tmp_path / "big", downscale=2.0), 2.0)
     assert "--downscale 2.6 trains at 1551x1163" in caplog.text  # the factor is from the full size
+
+
+def test_a_reference_mesh_at_the_root_is_the_gt(tmp_path):
+    """ICL-NUIM (and the shared copy of it) keeps its GT as reference_mesh.ply beside the model:
+    `geocues info`, `evaluate MESH SCENE` and the cue metrics take it, as `geocues sfm -o` already did."""
+    make_scene(tmp_path / "s")
+    s = Scene.load(tmp_path / "s")
+    assert s.gt_mesh_path is None
+    (tmp_path / "s" / "reference_mesh.ply").write_text("ply\n")
+    assert Scene.load(tmp_path / "s").gt_mesh_path == tmp_path / "s" / "reference_mesh.ply"
+    (tmp_path / "s" / "gt").mkdir()
+    (tmp_path / "s" / "gt" / "mesh.ply").write_text("ply\n")  # the scene layout's own wins
+    assert Scene.load(tmp_path / "s").gt_mesh_path == tmp_path / "s" / "gt" / "mesh.ply"
