@@ -338,7 +338,7 @@ class TSDFFuser:
             return o3d.geometry.TriangleMesh()
         thr = self.effective_weight_threshold()
         tmesh = self.grid.extract_triangle_mesh(weight_threshold=thr)
-        mesh = tmesh.to_legacy()
+        mesh = canonical_order(tmesh.to_legacy())
         if not self.with_color:
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.zeros((0, 3)))
         if len(mesh.triangles) == 0:
@@ -350,6 +350,33 @@ class TSDFFuser:
                         f"(`splat mesh RUN --tsdf.weight-threshold {max(most - 1, 0):g}` on a finished run)"
                         if 0 < most <= thr else "")
         return mesh
+
+
+def canonical_order(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+    """``mesh`` with its vertices sorted by position (x, then y, then z) and its triangles by their
+    vertices (each rotated to start at its smallest index, so the winding is kept). Open3D's voxel
+    hash map hands marching cubes its blocks in a different order on every run; in this order the same
+    surface is the same file, and everything computed from it (cleaning, metrics' samples) the same."""
+    import open3d as o3d
+
+    V = np.asarray(mesh.vertices)
+    F = np.asarray(mesh.triangles)
+    if len(V) == 0:
+        return mesh
+    order = np.lexsort((V[:, 2], V[:, 1], V[:, 0]))  # [V] new -> old
+    rank = np.empty(len(V), np.int64)
+    rank[order] = np.arange(len(V))  # old -> new
+    F = rank[F] if len(F) else F.reshape(0, 3).astype(np.int64)
+    first = F.argmin(1) if len(F) else np.zeros(0, np.int64)
+    F = np.take_along_axis(F, (first[:, None] + np.arange(3)) % 3, axis=1)  # cyclic: same winding
+    F = F[np.lexsort((F[:, 2], F[:, 1], F[:, 0]))] if len(F) else F
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V[order]),
+                                    o3d.utility.Vector3iVector(F.astype(np.int32)))
+    if mesh.has_vertex_normals():
+        out.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_normals)[order])
+    if mesh.has_vertex_colors():
+        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
+    return out
 
 
 def fuse_views(views: Iterable[tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]],

@@ -423,3 +423,30 @@ def test_expected_depth_gives_smoother_normals_than_median_depth(tmp_path):
         assert m["accuracy"] < 0.03, (depth, m)  # both on the walls (jitter ±1.5 cm, 2 cm voxels)
         nc[depth] = m["normal_consistency"]
     assert nc["expected"] > nc["median"] + 0.01, nc
+
+
+def test_canonical_order_makes_one_file_of_one_surface():
+    """Open3D's hash map hands marching cubes its blocks in another order on every run; sorted, a
+    permuted copy of a mesh is the same arrays, with every triangle's winding (its normal) kept."""
+    import open3d as o3d
+
+    from splat.mesh import canonical_order
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=12)
+    sphere.compute_vertex_normals()
+    sphere.vertex_colors = o3d.utility.Vector3dVector(np.asarray(sphere.vertices) * 0.5 + 0.5)
+    V, F = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(V))  # new -> old
+    inv = np.argsort(perm)
+    F2 = np.roll(inv[F], rng.integers(0, 3), axis=1)[rng.permutation(len(F))]  # relabelled, rotated, reordered
+    shuffled = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V[perm]), o3d.utility.Vector3iVector(F2))
+    shuffled.vertex_normals = o3d.utility.Vector3dVector(np.asarray(sphere.vertex_normals)[perm])
+    shuffled.vertex_colors = o3d.utility.Vector3dVector(np.asarray(sphere.vertex_colors)[perm])
+    a, b = canonical_order(sphere), canonical_order(shuffled)
+    for attr in ("vertices", "triangles", "vertex_normals", "vertex_colors"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, attr)), np.asarray(getattr(b, attr)), err_msg=attr)
+    a.compute_triangle_normals()
+    centres = np.asarray(a.vertices)[np.asarray(a.triangles)].mean(1)
+    assert (np.einsum("ij,ij->i", np.asarray(a.triangle_normals), centres) > 0).all()  # still facing out
+    assert len(a.triangles) == len(F) and len(canonical_order(o3d.geometry.TriangleMesh()).vertices) == 0
