@@ -88,8 +88,9 @@ class SfmConfig:
     """Threads for extraction and matching (-1 = all cores)."""
     seed: int = 0
     """Random seed for pycolmap's RANSAC and mapper."""
-    binary: bool = True
-    """Write the model as .bin (else .txt)."""
+    model_format: Literal["auto", "bin", "txt"] = "auto"
+    """The written model's files: "auto" is .bin, except that a model replaced in place (no -o) keeps
+    its format."""
     check_gt: bool = True
     """When the scene has a GT mesh, report the share of points within 2 cm / 5 cm of it."""
 
@@ -320,7 +321,9 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     # ---- write
     target = (model_dir if in_place and model_dir is not None else root / "sparse" / "0")
     with atomic_dir(target) as tmp_model:
-        (rec.write_binary if cfg.binary else rec.write_text)(str(tmp_model))
+        binary = (cfg.model_format == "bin" if cfg.model_format != "auto"
+                  else not (in_place and model_dir is not None and (model_dir / "images.txt").is_file()))
+        (rec.write_binary if binary else rec.write_text)(str(tmp_model))
     report = summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
                          n_verified=n_verified, seconds=seconds)
     report.update(scene=str(scene_dir.resolve()), model=str(target.resolve()), dropped_short_tracks=n_short,
@@ -333,6 +336,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     with atomic_path(root / "sfm_report.json") as tmp_report:
         tmp_report.write_text(json.dumps(report, indent=2))
     _warn_unregistered(names, rec)
+    if in_place:
+        log.info("sfm: the model in %s was replaced in place (%s)", target, "binary" if binary else "text")
     log.info("sfm: %d points, mean track %.2f, mean reprojection error %.3f px, %.1f s",
              report["points"], report["mean_track_length"], report["mean_reproj_error"],
              sum(seconds.values()))

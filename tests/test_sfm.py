@@ -229,6 +229,15 @@ class TestTriangulate:
         assert abs(again["points"] - rep["points"]) <= 0.02 * rep["points"]  # threaded BA: not bit-exact
         assert again["seconds"]["match"] == 0.0 and again["seconds"]["extract"] < rep["seconds"]["extract"]
         assert again["model"] == str((out / "sparse" / "0").resolve())
+        assert (out / "sparse" / "0" / "images.bin").is_file()  # a binary model replaced in place: binary
+        model = out / "sparse" / "0"
+        rec = pycolmap.Reconstruction(str(model))
+        for f in model.iterdir():
+            f.unlink()
+        rec.write_text(str(model))  # the user's model in text, as a hand-written or converted one is
+        run(cfg, out)
+        files = {f.name for f in model.iterdir()}  # replaced in place by a text model, not by .bin files
+        assert {"cameras.txt", "images.txt", "points3D.txt"} <= files and not any(f.endswith(".bin") for f in files)
         # changing a matching parameter re-matches but keeps the features
         third = _report(run(replace(cfg, num_neighbors=3, exhaustive_below=5), out))
         assert third["pairs"] < again["pairs"] and third["seconds"]["match"] > 0
