@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import signal
 import sys
 from typing import Callable
@@ -73,11 +74,24 @@ def sigterm_as_interrupt():
         return None
 
 
+def summary(doc: str | None, width: int = 100) -> str:
+    """The first sentence of a docstring's first paragraph (which may wrap over lines), cut at a word
+    with "..." when longer than ``width``: a command's line in the usage."""
+    para = " ".join((doc or "").strip().split("\n\n")[0].split())
+    sentence = para
+    for m in re.finditer(r"(\S+)\. ", para):  # a period after an abbreviation (Tab., e.g.) ends nothing
+        word = m.group(1).lstrip("([{`'\"").lower()
+        if word not in ("tab", "fig", "figs", "eq", "sec", "cf", "vs", "etc", "no") and "." not in word:
+            sentence = para[:m.end() - 1]
+            break
+    return sentence if len(sentence) <= width else sentence[:width].rsplit(" ", 1)[0].rstrip(",;:(") + " ..."
+
+
 def _usage(prog: str, commands: dict[str, Callable], default: str | None) -> str:
     lines = [f"usage: {prog} COMMAND [ARGS...]   ({prog} COMMAND --help for its options)", "", "commands:"]
+    col = max(14, *(len(name) + 1 for name in commands))
     for name, fn in commands.items():
-        doc = (fn.__doc__ or "").strip().splitlines()
-        lines.append(f"  {name:<14} {doc[0] if doc else ''}")
+        lines.append(f"  {name:<{col}} {summary(fn.__doc__)}")
     if default is not None:
         lines.append(f"\nWith no command name, `{prog} ARGS...` runs `{default}`.")
     lines.append("\n" + GLOBAL_HELP)

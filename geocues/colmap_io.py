@@ -124,7 +124,7 @@ def find_model_dir(scene_or_model: Path) -> Path:
 
 def _no_model_hint(p: Path) -> str:
     """What the user most likely meant when SCENE holds no COLMAP model."""
-    from geocues.scene import is_image, list_images
+    from geocues.photos import is_image, list_images
 
     others = sorted(d for d in (p / "sparse").glob("*") if any(d.glob("cameras.*"))) if (p / "sparse").is_dir() else []
     if others:

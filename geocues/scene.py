@@ -30,29 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
+from geocues.photos import IMAGE_EXTS, is_image, list_images  # noqa: F401  (re-exported)
 from geocues.nerfstudio_io import find_transforms, read_transforms
 
 log = logging.getLogger(__name__)
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # compared in lower case: .JPG, .Jpeg too
-
-
-def is_image(path: Path) -> bool:
-    """A photo by its file name (any case of the extensions COLMAP and OpenCV both read)."""
-    return Path(path).suffix.lower() in IMAGE_EXTS
-
-
-def list_images(image_dir: Path) -> list[str]:
-    """The photos in ``image_dir`` as COLMAP names them (relative, '/'-separated), sorted: its own files,
-    or, when it holds none, those in its subfolders (a capture kept as images/seq1/...). Hidden files
-    and folders are not photos (macOS writes ._NAME.JPG beside each photo on some drives)."""
-    image_dir = Path(image_dir)
-    own = sorted(p.name for p in image_dir.iterdir() if p.is_file() and is_image(p) and not p.name.startswith("."))
-    if own:
-        return own
-    return sorted(rel.as_posix() for rel in (p.relative_to(image_dir) for p in image_dir.rglob("*")
-                                             if p.is_file() and is_image(p))
-                  if not any(part.startswith(".") for part in rel.parts))
 ARBITRARY_SCALE = "arbitrary"  # scene.json "scale" of a model mapped from images alone (rescale removes it)
 OWN_FRAME = "mapped from images"  # scene.json "frame" of such a model: origin and axes its own (kept)
 

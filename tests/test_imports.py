@@ -51,3 +51,14 @@ def test_no_import_cycles():
         if node not in state:
             visit(node, [node])
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_usage_lines_are_whole_sentences():
+    """`geocues --help`: each command's first sentence, not its docstring's first line cut mid-phrase."""
+    from cli._dispatch import summary
+
+    assert summary("The paper's ablation (Tab. 3) on SCENE: one run\n    per row. More.") == \
+        "The paper's ablation (Tab. 3) on SCENE: one run per row."
+    assert summary("Priors for a real scene (e.g. ICL-NUIM).\n\nArgs: x") == "Priors for a real scene (e.g. ICL-NUIM)."
+    long = summary("word " * 40 + "end.")
+    assert long.endswith(" ...") and len(long) <= 104
