@@ -51,6 +51,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
             (or --gt) culled to GT_SCENE's cameras. Needs SCENE.
         icp: after --align-to, refine with ICP (rotation, translation and scale) against the GT mesh.
     """
+    _check_arguments(pred_mesh, scene, gt)
     if json is not None:
         check_output_file(json, overwrite)
     if renders is not None and scene is None:
@@ -84,6 +85,26 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         save_json(result, json, {"images": images} if images is not None else None)  # atomic
         print(f"wrote {json}")
     return 0
+
+
+def _check_arguments(pred_mesh: Path, scene: Path | None, gt: Path | None) -> None:
+    """The mix-ups a new user makes, each named with the right form: SCENE and MESH swapped, a run
+    folder for its mesh, a GT mesh where SCENE goes, a folder for --gt."""
+    usage = "evaluate PRED_MESH [SCENE] [--gt GT_MESH]"
+    if pred_mesh.is_dir():
+        if (pred_mesh / "mesh.ply").is_file():
+            raise ValueError(f"{pred_mesh} is a folder (a run?): its mesh is {pred_mesh / 'mesh.ply'} — {usage}")
+        swapped = scene is not None and scene.is_file()
+        raise ValueError(f"no mesh at {pred_mesh} (a folder)"
+                         + (f"; the mesh comes first: evaluate {scene} {pred_mesh}" if swapped else f" — {usage}"))
+    if scene is not None and scene.is_file():
+        raise ValueError(f"{scene} is a file where SCENE (a folder) goes; a ground-truth mesh is given as "
+                         f"--gt {scene} — {usage}")
+    if gt is not None and gt.is_dir():
+        inside = next((gt / f for f in ("gt/mesh.ply", "mesh.ply", "reference_mesh.ply") if (gt / f).is_file()), None)
+        raise ValueError(f"--gt {gt} is a folder; --gt takes the GT mesh file"
+                         + (f" ({inside}?)" if inside else "") + (f", a scene folder goes after the mesh" if inside is None
+                                                                  and (gt / "sparse").is_dir() else ""))
 
 
 def _warn_own_frame(scene: Path | None) -> None:

@@ -86,6 +86,24 @@ def test_missing_file_fails_cleanly(tmp_path, capsys):
     assert "no mesh at" in err and "absent.ply" in err
 
 
+def test_mixed_up_arguments_are_named_with_the_right_form(tmp_path, capsys):
+    """SCENE and MESH swapped, a run folder for its mesh, a GT mesh where SCENE goes, a folder for --gt:
+    one line each naming the form that works, nothing scored."""
+    pred, gt = box_files(tmp_path, 0.0)
+    scene = make_scene(tmp_path / "scene")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "mesh.ply").write_bytes(pred.read_bytes())
+    cases = [([str(scene), str(pred)], f"the mesh comes first: evaluate {pred} {scene}"),
+             ([str(run), str(scene)], f"its mesh is {run / 'mesh.ply'}"),
+             ([str(pred), str(gt)], f"a ground-truth mesh is given as --gt {gt}"),
+             ([str(pred), "--gt", str(scene)], f"--gt takes the GT mesh file ({scene / 'gt' / 'mesh.ply'}?)")]
+    for argv, want in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert want in err and "Traceback" not in err, (argv, err)
+
+
 def test_empty_mesh_fails_cleanly(tmp_path, capsys):
     pred, _ = box_files(tmp_path, 0.0)
     empty = tmp_path / "empty.ply"
