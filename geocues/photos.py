@@ -23,3 +23,15 @@ def list_images(image_dir: Path) -> list[str]:
     return sorted(rel.as_posix() for rel in (p.relative_to(image_dir) for p in image_dir.rglob("*")
                                              if p.is_file() and is_image(p))
                   if not any(part.startswith(".") for part in rel.parts))
+
+
+def missing_images_error(model_dir: Path, paths: list[Path]) -> FileNotFoundError | None:
+    """One error for every image a model lists that is not on disk (the count and the first three), or None."""
+    gone = [p for p in paths if not Path(p).is_file()]
+    if not gone:
+        return None
+    if len(gone) == 1:
+        return FileNotFoundError(f"image listed in {model_dir} is missing on disk: {gone[0]}")
+    more = f" and {len(gone) - 3} more" if len(gone) > 3 else ""
+    return FileNotFoundError(f"{len(gone)} of {len(paths)} images listed in {model_dir} are missing on disk: "
+                             + ", ".join(str(p) for p in gone[:3]) + more)

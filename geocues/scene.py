@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
-from geocues.photos import IMAGE_EXTS, is_image, list_images  # noqa: F401  (re-exported)
+from geocues.photos import IMAGE_EXTS, is_image, list_images, missing_images_error  # noqa: F401  (re-exported)
 from geocues.nerfstudio_io import find_transforms, read_transforms
 
 log = logging.getLogger(__name__)
@@ -208,14 +208,16 @@ class Scene:
             metadata["depth_png_scale"] = 1000.0  # nerfstudio's depth_unit_scale_factor: millimetres
 
         cameras: list[Camera] = []
+        paths = [ns.image_paths[k] if ns is not None and images_dir is None else img_dir / im.name
+                 for k, im in enumerate(raw_images)]
         for k, im in enumerate(raw_images):
             if not im.pinhole and not allow_distorted:
                 raise ValueError(
                     f"image {im.name} in {model_dir} uses the distorted camera model {im.model}; "
                     f"undistort the scene first: `geocues undistort {scene_root} -o OUT`")
-            path = ns.image_paths[k] if ns is not None and images_dir is None else img_dir / im.name
-            if not path.is_file():
-                raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: {path}")
+            if k == 0 and (err := missing_images_error(model_dir, paths)):
+                raise err
+            path = paths[k]
             w, h = _read_image_size(path)
             if (w, h) != (im.width, im.height):
                 raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "

@@ -35,6 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
+from geocues.photos import missing_images_error
 from geocues.scene import ARBITRARY_SCALE, OWN_FRAME, list_images, no_images_folder, rescale_hint
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -233,10 +234,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         ref = load_reconstruction(model_dir)
         if ref.num_reg_images() == 0:
             raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
-        for im in ref.images.values():
-            if not (image_dir / im.name).is_file():
-                raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: "
-                                        f"{image_dir / im.name}")
+        if err := missing_images_error(model_dir, sorted(image_dir / im.name for im in ref.images.values())):
+            raise err
         names = sorted(ref.images[i].name for i in ref.reg_image_ids())
     else:
         names = list_images(image_dir)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import find_model_dir, is_pinhole, load_reconstruction
+from geocues.photos import missing_images_error
 from geocues.scene import no_images_folder
 
 log = logging.getLogger(__name__)
@@ -51,9 +52,8 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
     rec = load_reconstruction(model_dir)
     if rec.num_reg_images() == 0:
         raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
-    for im in rec.images.values():
-        if not (image_dir / im.name).is_file():
-            raise FileNotFoundError(f"image listed in {model_dir} is missing on disk: {image_dir / im.name}")
+    if err := missing_images_error(model_dir, sorted(image_dir / im.name for im in rec.images.values())):
+        raise err
     models = sorted({c.model.name for c in rec.cameras.values()})
     if all(is_pinhole(c.model.name, [c.params[i] for i in c.extra_params_idxs()]) for c in rec.cameras.values()):
         log.info("undistort: %s already uses %s cameras without distortion; images are copied unchanged "

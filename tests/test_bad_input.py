@@ -80,6 +80,17 @@ def test_missing_image(room, capsys):
     root = _copy(room, "missing")
     (root / "images" / "00002.png").unlink()
     _fails(capsys, geocues, ["info", str(root)], "00002.png", "missing")
+    for k in (0, 3, 4, 5):  # several: counted, the first three named, the same in every command
+        (root / "images" / f"{k:05d}.png").unlink()
+    n = len(_model_names(root))
+    for cmd in (["info", str(root)], ["sfm", str(root), "-o", str(room[0] / "sfm_missing")]):
+        _fails(capsys, geocues, cmd, f"5 of {n} images listed in", "00000.png, ", "00002.png, ", "00003.png and 2 more")
+
+
+def _model_names(root):
+    from geocues.colmap_io import read_model
+
+    return [im.name for im in read_model(root / "sparse" / "0")[0]]
 
 
 def test_truncated_npy_prior(room, capsys):
