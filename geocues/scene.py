@@ -131,6 +131,24 @@ class Points3D:
         return len(self.ids)
 
 
+def _warn_transparency(path: Path) -> None:
+    """One warning when the scene's first photo has transparent pixels: images are read as RGB (as COLMAP
+    reads them), so those pixels train as whatever colour they store."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            if "A" not in im.getbands() and "transparency" not in im.info:
+                return
+            alpha = np.asarray(im.convert("RGBA"))[..., 3]
+    except OSError:
+        return  # unreadable: the loader's own error names it
+    if (alpha < 255).any():
+        log.warning("%s has an alpha channel (%.0f%% of its pixels transparent or partly so): images are read as "
+                    "RGB, so those pixels train as the colour they store; composite the photos onto a background "
+                    "(or mask them out) first", path, 100 * float((alpha < 255).mean()))
+
+
 def _read_image_size(path: Path) -> tuple[int, int]:
     from PIL import Image, UnidentifiedImageError
 
@@ -218,6 +236,8 @@ class Scene:
             if k == 0 and (err := missing_images_error(model_dir, paths)):
                 raise err
             path = paths[k]
+            if k == 0:
+                _warn_transparency(path)
             w, h = _read_image_size(path)
             if (w, h) != (im.width, im.height):
                 raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "

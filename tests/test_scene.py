@@ -345,3 +345,20 @@ def test_a_reference_mesh_at_the_root_is_the_gt(tmp_path):
     (tmp_path / "s" / "gt").mkdir()
     (tmp_path / "s" / "gt" / "mesh.ply").write_text("ply\n")  # the scene layout's own wins
     assert Scene.load(tmp_path / "s").gt_mesh_path == tmp_path / "s" / "gt" / "mesh.ply"
+
+
+def test_transparent_photos_are_warned_about(tmp_path, caplog):
+    """RGBA photos with transparent pixels train as the colour those pixels store: one warning; an
+    opaque alpha channel none."""
+    import logging
+
+    for name, alpha in (("clear", 0), ("opaque", 255)):
+        make_scene(tmp_path / name, n=3)
+        img = cv2.imread(str(tmp_path / name / "images" / "00000.png"))
+        rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+        rgba[: H // 4, :, 3] = alpha
+        cv2.imwrite(str(tmp_path / name / "images" / "00000.png"), rgba)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="geocues"):
+            Scene.load(tmp_path / name)
+        assert ("alpha channel (25% of its pixels" in caplog.text) == (name == "clear"), caplog.text
