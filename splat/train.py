@@ -219,9 +219,11 @@ class _Loop:
     stopped run resumes from (splat/checkpoint.py)."""
 
     def __init__(self, cfg: TrainConfig, s: TrainingSetup, work: Path, rng: np.random.Generator,
-                 gen: torch.Generator) -> None:
+                 gen: torch.Generator, t_start: float) -> None:
         self.cfg, self.s, self.rng, self.gen = cfg, s, rng, gen
         self.step, self.order, self.curve, self.train_s, self.log_bytes = 0, [], [], 0.0, 0
+        # seconds of held-out metrics and meshes at checkpoints, and of wall time in earlier sessions (a resumed run)
+        self.checkpoint_s, self.wall_before, self.t_start = 0.0, 0.0, t_start
         self.checkpoints = sorted({max(1, min(cfg.iters, round(f * cfg.iters))) for f in cfg.checkpoints})
         self.sh_every = max(1, round(1000 * cfg.iters / PAPER_ITERS))
         self.freeze_step = round(cfg.geometry_until * cfg.iters)
@@ -235,7 +237,12 @@ class _Loop:
             "numpy_rng": checkpoint.numpy_rng_state(self.rng), "gen": self.gen.get_state(), "curve": self.curve,
             "train_s": self.train_s, "log_bytes": self.log_bytes, "lr_mult": s.guard.lr_mult,
             "guard_events": s.guard.events, "guard_level": [s.guard.loss_mean, s.guard.n_good],
-            "camera_refiner": s.refiner.state_dict() if s.refiner is not None else None})
+            "camera_refiner": s.refiner.state_dict() if s.refiner is not None else None,
+            "checkpoint_s": self.checkpoint_s, "wall_s": self.wall_s()})
+
+    def wall_s(self) -> float:
+        """Wall seconds of the run so far, earlier sessions included."""
+        return self.wall_before + time.perf_counter() - self.t_start
 
     def restore(self, snap: dict) -> None:
         s = self.s
@@ -252,6 +259,8 @@ class _Loop:
 
     def resume(self, ckpt: dict) -> None:
         self.restore(ckpt)
+        # seconds are not rolled back with the guard's snapshots: taken from the checkpoint here only
+        self.checkpoint_s, self.wall_before = ckpt.get("checkpoint_s", 0.0), ckpt.get("wall_s", self.train_s)
         self.s.guard.lr_mult, self.s.guard.events = dict(ckpt["lr_mult"]), list(ckpt["guard_events"])
         log.info("resuming %s at step %d (%.0f s of training done)", self.work, self.step, self.train_s)
 
@@ -309,7 +318,7 @@ class _Loop:
 
     def _at_checkpoint(self, sh_degree: int) -> None:
         """Held-out PSNR/SSIM (and a mesh, with mesh_at_checkpoints) onto the accuracy-against-time curve."""
-        cfg, s = self.cfg, self.s
+        cfg, s, t0 = self.cfg, self.s, time.perf_counter()
         metrics = evaluate_views(s.params, s.test_views, sh_degree, cfg, refiner=s.refiner)
         self.curve.append({"step": self.step, "train_s": round(self.train_s, 2), "psnr": metrics["psnr"],
                            "ssim": metrics["ssim"], "n_gaussians": len(s.state["cue_type"])})
@@ -317,6 +326,7 @@ class _Loop:
             rel = Path("checkpoints") / f"mesh_{self.step:06d}.ply"
             write_mesh(fuse_mesh(s.params, s.train_views, sh_degree, cfg, s.refiner), self.work / rel)
             self.curve[-1]["mesh"] = str(rel)
+        self.checkpoint_s += time.perf_counter() - t0
         log.info("checkpoint %d: %.1f s training, test PSNR %s", self.step, self.train_s, _db(metrics["psnr"]))
 
     def run(self) -> None:
@@ -369,6 +379,8 @@ class _Loop:
                         raise TrainingInterrupted(
                             f"stopped by {signals.caught} at step {step} of {cfg.iters}; checkpoint "
                             f"{self.ckpt_path}; continue with the same command and --resume")
+            log_file.flush()
+            self.log_bytes = log_file.tell()  # every row: the state after the loop is whole (see run())
 
 
 def _write_outputs(cfg: TrainConfig, s: TrainingSetup, loop: _Loop, timings: dict[str, float]) -> dict:
@@ -424,15 +436,22 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
 
         write_config_file(work / "config.yaml", cfg, {"scene": str(Path(scene_dir).resolve()),
                                                       "cues": str(cues_ply.resolve())})
-    loop = _Loop(cfg, s, work, rng, gen)
+    loop = _Loop(cfg, s, work, rng, gen, t_start)
     if ckpt is not None:
         loop.resume(ckpt)
     step0 = loop.step
     loop.run()
-    timings["train_s"] = loop.train_s
+    timings["train_s"], timings["checkpoints_s"] = loop.train_s, loop.checkpoint_s
 
-    final = _write_outputs(cfg, s, loop, timings)
-    timings["total_s"] = time.perf_counter() - t_start
+    try:
+        final = _write_outputs(cfg, s, loop, timings)
+    except KeyboardInterrupt:  # Ctrl-C / SIGTERM while meshing: keep the trained model, resumable
+        checkpoint.save(loop.ckpt_path, loop.snapshot(), asdict(cfg))
+        raise TrainingInterrupted(
+            f"stopped after training (step {loop.step} of {cfg.iters}) while writing its outputs; checkpoint "
+            f"{loop.ckpt_path}; continue with the same command and --resume (the outputs are written, "
+            "nothing trained again)") from None
+    timings["total_s"] = loop.wall_s()  # earlier sessions of a resumed run included
     paths = {f"{name}{k}": v for name, path in (("scene", scene_dir), ("cues", cues_ply))
              for k, v in run_paths.record(path, out_dir).items()}  # readable from any folder (splat/run_paths.py)
     report = {"config": asdict(cfg), **paths, "device": str(device),

@@ -80,6 +80,8 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, uninterrupted, 
     out = train.run(_cfg(), root, cues, base / "killed", resume=True)
     report = json.loads((out / "report.json").read_text())
     assert report["resumed_from_step"] == 38
+    t = report["timings"]  # both sessions: the stages add up to no more than the whole
+    assert t["total_s"] >= t["train_s"] + t["checkpoints_s"] + t["eval_and_save_s"] > 0
     # the C++ backend reduces gradients per pixel and per Gaussian in a fixed order: bitwise equal
     assert _same_model(out, uninterrupted) == 0.0
     ref = json.loads((uninterrupted / "report.json").read_text())
@@ -89,6 +91,29 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, uninterrupted, 
     assert [r["step"] for r in log_a] == [r["step"] for r in log_b]  # no line lost or doubled
     assert [r["loss"] for r in log_a] == [r["loss"] for r in log_b]
     assert not (base / "killed.partial").exists()
+
+
+def test_a_kill_while_writing_the_outputs_keeps_the_trained_model(scene, uninterrupted, monkeypatch):
+    """Ctrl-C after the last step (held-out renders, the mesh) used to lose the whole run: no
+    checkpoint, and the next command trained from step 0. Now the trained state is saved and
+    --resume writes the outputs without training again: the uninterrupted run's model and log."""
+    import splat.train as train
+    from splat.checkpoint import TrainingInterrupted
+
+    base, root, cues = scene
+    real = train._write_outputs
+    monkeypatch.setattr(train, "_write_outputs", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.raises(TrainingInterrupted, match=r"after training \(step 80 of 80\).*--resume"):
+        train.run(_cfg(), root, cues, base / "late")
+    assert (base / "late.partial" / "ckpt" / "last.pt").is_file() and not (base / "late").exists()
+    monkeypatch.setattr(train, "_write_outputs", real)
+    monkeypatch.setattr(train, "train_step", lambda *a, **k: pytest.fail("trained again"))
+    out = train.run(_cfg(), root, cues, base / "late", resume=True)
+    assert json.loads((out / "report.json").read_text())["resumed_from_step"] == 80
+    assert _same_model(out, uninterrupted) == 0.0
+    rows = [[{k: v for k, v in json.loads(x).items() if k != "train_s"} for x in (run / "train_log.jsonl").read_text()
+             .splitlines()] for run in (out, uninterrupted)]
+    assert rows[0] == rows[1]  # every row kept, none doubled (seconds aside)
 
 
 def test_sigterm_to_the_command_leaves_a_checkpoint_and_one_line(scene):
