@@ -52,6 +52,10 @@ def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
         return [(f"geocues sfm {q} -o {out}", "the cues start from SfM points"),
                 (f"geocues info {out}", "then follow its advice")]
     cues, run = _sibling(root, "cues"), _sibling(root, "run")
+    if scene.has_depth_priors and (scene.metadata.get("priors") or {}).get("source") == "geocues mvs":
+        return [(f"geocues extract {q} -o {cues} --preset mvs", "cues for the recipe of `geocues mvs` depth"),
+                (f"splat train {q} -c {cues} -o {run} --preset mvs --iters 3000 --downscale 2", "train, then a mesh"),
+                (f"splat view {run}", "look at it (or splat render)")]
     if scene.has_depth_priors:
         return [(f"geocues extract {q} -o {cues}", "lines, SfM and plane-like cues (paper §4.1); for a room with a "
                  "level floor and ceiling and vertical walls, `--preset room` here and in splat train gave the "

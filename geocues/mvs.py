@@ -197,6 +197,11 @@ def _sample(img: torch.Tensor, uv: torch.Tensor, w: int, h: int) -> tuple[torch.
     return F.grid_sample(img, grid, mode="bilinear", padding_mode="border", align_corners=False), inside
 
 
+MVS_PRIORS = {"source": "geocues mvs", "simulated": False,
+              "method": "plane-sweep stereo of the posed images (depth in metres, no normals)"}
+"""scene.json's "priors" of a `geocues mvs` scene (`geocues info` advises the mvs recipe for it)."""
+
+
 def sweep_view(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float, float], cfg: MvsConfig,
                images: dict[int, torch.Tensor]) -> tuple[np.ndarray, np.ndarray]:
     """Plane-sweep depth [H, W] (0 = none) and score [H, W] of view ``i`` (module docstring)."""
@@ -225,7 +230,7 @@ def sweep_view(scene: Scene, i: int, neighbours: list[int], bounds: tuple[float,
         warped = F.grid_sample(stack, grid, mode="bilinear", padding_mode="border", align_corners=False)
         s = ncc(I_r, warped, cfg.window, ref_stats=stats)[:, 0]  # [n, H, W]
         s = torch.where(inside, s, torch.full_like(s, -1.0))
-        scores[k] = s.topk(cfg.top_k, dim=0).values.mean(0)
+        scores[k] = s.topk(min(cfg.top_k, len(neighbours)), dim=0).values.mean(0)  # a view with fewer neighbours: all
     best = scores.argmax(0)  # [H, W]
     conf = scores.gather(0, best[None])[0]
     # parabolic refinement in inverse depth between the neighbouring planes
@@ -361,10 +366,11 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
         filtered = fill_textureless(scene, filtered, images, bounds, neighbours, cfg)
         conf = {i: np.where(swept[i] > 0, conf[i], max(0.5 * cfg.min_ncc, 1e-3)).astype(np.float32) for i in conf}
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
-    if (out_dir / "scene.json").is_file():
-        meta = json.loads((out_dir / "scene.json").read_text())
-        meta.pop("depth_png_scale", None)  # the MVS priors are .npy in metres
-        (out_dir / "scene.json").write_text(json.dumps(meta, indent=1))
+    meta = json.loads((out_dir / "scene.json").read_text()) if (out_dir / "scene.json").is_file() else {}
+    meta.pop("depth_png_scale", None)  # the MVS priors are .npy in metres
+    meta["priors"] = MVS_PRIORS  # not the source scene's (its simulated or network priors are not these)
+    with atomic_path(out_dir / "scene.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=1))
     for i, cam in enumerate(full.cameras):
         size_wh = (cam.width, cam.height)
         for kind, arr in (("depth", filtered[i]), ("depth_conf", np.where(filtered[i] > 0, conf[i], 0))):

@@ -74,3 +74,16 @@ def test_info_prints_them(rooms, capsys):
     assert out[at].split(None, 1)[1].startswith("# no depth priors")
     assert out[at + 1].strip() == f"geocues mvs {bare} -o {bare}_mvs"
     assert any(line.startswith("warning    only 4 images:") for line in out)  # too few for a room
+
+
+def test_a_geocues_mvs_scene_is_advised_its_recipe(rooms, tmp_path):
+    from geocues.mvs import MVS_PRIORS
+
+    with_priors, _ = rooms
+    mvs = tmp_path / "room_mvs"
+    subprocess.run(["cp", "-r", str(with_priors), str(mvs)], check=True)
+    meta = json.loads((mvs / "scene.json").read_text()) if (mvs / "scene.json").is_file() else {}
+    (mvs / "scene.json").write_text(json.dumps({**meta, "priors": MVS_PRIORS}))
+    cmds = _commands(mvs)
+    assert cmds[0] == f"geocues extract {mvs} -o {mvs}_cues --preset mvs"
+    assert cmds[1].startswith(f"splat train {mvs} -c {mvs}_cues -o {mvs}_run --preset mvs")

@@ -45,6 +45,9 @@ def test_depth_within_a_stated_error_of_the_exact_depth(mvs_room):
     assert report["valid_fraction"]["mean"] == pytest.approx(np.mean(valid), abs=0.02)
     assert report["valid_fraction"]["mean_before_consistency"] >= report["valid_fraction"]["mean"]
     assert (out / "images").resolve() == (root / "images").resolve()  # a scene folder over the same images
+    from geocues.mvs import MVS_PRIORS
+
+    assert json.loads((out / "scene.json").read_text())["priors"] == MVS_PRIORS  # not the source scene's
 
 
 def test_consistency_check_is_what_removes_the_outliers(mvs_room):
@@ -132,3 +135,16 @@ def test_a_killed_run_resumes_from_its_cached_sweeps(tmp_path, monkeypatch):
     takers = [i for i, v in json.loads((out / "mvs_report.json").read_text())["per_view"].items()
               if scene.cameras[2].name in v["neighbours"]]
     assert 2 in swept and len(swept) == 1 + len(takers) < len(scene)
+
+
+def test_a_view_with_fewer_neighbours_than_top_k_is_swept(mvs_room):
+    """A view at the end of a capture can have one neighbour where --top-k asks for two: its score
+    is that neighbour's (it crashed the whole run: topk out of range)."""
+    from geocues.mvs import _gray, depth_bounds, sweep_view
+
+    root, _ = mvs_room
+    scene = Scene.load(root, check_priors=False)
+    cfg = MvsConfig(max_size=128, n_depths=32, top_k=2)
+    images = {i: _gray(scene.load_image(i)) for i in (0, 1)}
+    depth, score = sweep_view(scene, 0, [1], depth_bounds(scene, 0), cfg, images)
+    assert np.isfinite(depth).all() and np.isfinite(score).all() and (depth > 0).any()
