@@ -440,8 +440,9 @@ def clean_mesh(mesh: o3d.geometry.TriangleMesh, cfg: TSDFConfig | None = None) -
     out = o3d.geometry.TriangleMesh(
         vertices=o3d.utility.Vector3dVector(m.vertex_matrix()),
         triangles=o3d.utility.Vector3iVector(m.face_matrix().astype(np.int32)))
-    if m.vertex_number() and mesh.has_vertex_normals():
-        out.vertex_normals = o3d.utility.Vector3dVector(m.vertex_normal_matrix())
+    if m.vertex_number() and mesh.has_vertex_normals():  # pymeshlab's are not unit length (area/angle sums)
+        n = m.vertex_normal_matrix()
+        out.vertex_normals = o3d.utility.Vector3dVector(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12))
     if m.vertex_number() and mesh.has_vertex_colors():
         out.vertex_colors = o3d.utility.Vector3dVector(m.vertex_color_matrix()[:, :3])
     log.info("clean_mesh: %d -> %d vertices, %d -> %d triangles (%d in components smaller than "

@@ -202,6 +202,7 @@ class TestClean:
         assert len(out.triangles) == len(big.triangles)
         assert np.asarray(out.vertices).max() <= 2.0 + 1e-9
         assert out.has_vertex_normals() and out.has_vertex_colors()
+        np.testing.assert_allclose(np.linalg.norm(np.asarray(out.vertex_normals), axis=1), 1.0, atol=1e-6)  # unit
         np.testing.assert_allclose(np.asarray(out.vertex_colors), 0.25, atol=1 / 255)
         kept = clean_mesh(mesh, TSDFConfig(min_component_diag=0.0))
         assert len(kept.triangles) == len(mesh.triangles)
