@@ -159,8 +159,23 @@ def config_from_dict(cls, data: dict) -> Any:
             value = config_from_dict(type(sub), value)
         elif isinstance(value, list):
             value = tuple(value)
-        kwargs[f.name] = value
+        kwargs[f.name] = _typed(cls, f, value)
     return cls(**kwargs)
+
+
+def _typed(cls, f: dataclasses.Field, value: Any) -> Any:
+    """``value`` checked against the type of field ``f``'s default (bool, int, float, str, tuple; a float
+    field takes an int): a config file edited by hand names the field, not a TypeError deep in a run."""
+    default = f.default
+    if default is dataclasses.MISSING or default is None or value is None:
+        return value
+    kinds = {bool: (bool,), int: (int,), float: (int, float), str: (str,), tuple: (tuple,)}
+    want = kinds.get(type(default))
+    ok = want is not None and isinstance(value, want) and not (isinstance(value, bool) and type(default) is not bool)
+    if want is not None and not ok:
+        raise ValueError(f"{cls.__name__}.{f.name} must be {type(default).__name__} (like its default "
+                         f"{default!r}), got {value!r}")
+    return float(value) if type(default) is float else value
 
 
 def load_config_file(path: str | Path) -> Any:
@@ -178,7 +193,10 @@ def load_config_file(path: str | Path) -> Any:
         raise ValueError(f"{path} is not valid YAML ({exc})") from None
     if not isinstance(data, dict) or "train" not in data:
         raise ValueError(f"{path} holds no 'train' section (write it with `splat train`)")
-    return config_from_dict(TrainConfig, data["train"])
+    try:
+        return config_from_dict(TrainConfig, data["train"])
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def write_config_file(path: str | Path, cfg: Any, extra: dict | None = None) -> Path:

@@ -238,6 +238,7 @@ def test_learning_rate_1e3_ends_in_a_clear_error_or_a_finite_model(scene, capsys
     ("--init.min-scale", "0", "--init.min-scale must be a finite number > 0"),
     ("--lr.means", "nan", "--lr.means must be a finite number > 0"),
     ("--loss.lambda-depth", "-1", "--loss.lambda-depth must be a finite number >= 0"),
+    ("--device", "tpu", "--device 'tpu': give auto, cpu, cuda or cuda:N"),
 ])
 def test_impossible_options_are_named(scene, capsys, option, value, message):
     from cli.splat_cli import main
@@ -278,6 +279,11 @@ def test_config_yaml_repeats_a_run_exactly(scene, capsys):
     ra, rb = (json.loads((d / "report.json").read_text()) for d in (a, b))
     assert ra["config"] == rb["config"] and ra["test_metrics"] == rb["test_metrics"]
     assert _same_model(a, b) == 0.0
+    bad = base / "bad_config.yaml"  # edited by hand: a value of the wrong type is named, not a TypeError
+    bad.write_text(text.replace("iters: 30", "iters: abc"))
+    assert main(["train", str(root), "-c", str(cues), "-o", str(base / "cfg_c"), "--load-config", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert f"{bad}: TrainConfig.iters must be int (like its default 30000), got 'abc'" in err and "Traceback" not in err
 
 
 def test_quiet_and_verbose_are_in_every_help(capsys):
