@@ -39,9 +39,21 @@ class MeshRunConfig:
         self.tsdf.validate()
 
 
+# TSDF options that change the surface, by their short tag in mesh file names (the remesh tables' names)
+_TAGS = {"voxel_size": "v", "consistent_views": "c", "consistency_neighbours": "n", "max_depth_spread": "s",
+         "sdf_trunc": "tr", "depth_max": "d", "min_component_diag": "m", "consistency_px": "px",
+         "consistency_rel_depth": "rd"}
+
+
 def default_out(run_dir: Path, tsdf: TSDFConfig) -> Path:
+    """RUN/mesh_DEPTH_wTHRESHOLD[...]: every surface-changing option that differs from the default
+    tagged in the name (``_v0.05`` for --tsdf.voxel-size 0.05, ``_c2``, ``_s0.02``, ``_t30`` for the
+    Taubin steps), so two different meshes never share a file name."""
+    base = TSDFConfig()
+    tags = "".join(f"_{tag}{getattr(tsdf, name):g}" for name, tag in _TAGS.items()
+                   if getattr(tsdf, name) != getattr(base, name) and getattr(tsdf, name) is not None)
     smooth = f"_t{tsdf.smooth_iters}" if tsdf.smooth_iters else ""
-    return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}{smooth}.ply"
+    return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}{tags}{smooth}.ply"
 
 
 def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = "auto",

@@ -451,3 +451,19 @@ def test_canonical_order_makes_one_file_of_one_surface():
     centres = np.asarray(a.vertices)[np.asarray(a.triangles)].mean(1)
     assert (np.einsum("ij,ij->i", np.asarray(a.triangle_normals), centres) > 0).all()  # still facing out
     assert len(a.triangles) == len(F) and len(canonical_order(o3d.geometry.TriangleMesh()).vertices) == 0
+
+
+def test_splat_mesh_names_every_option_that_changes_the_surface():
+    """`splat mesh RUN --tsdf.voxel-size 0.05` and `... 0.03` used to share mesh_expected_w3.ply (the
+    second refused as if it were the first)."""
+    from pathlib import Path
+
+    from splat.mesh_run import default_out
+
+    run = Path("RUN")
+    assert default_out(run, TSDFConfig()) == run / "mesh_expected_w3.ply"
+    names = {default_out(run, TSDFConfig(voxel_size=v)).name for v in (0.02, 0.03, 0.05)}
+    assert names == {"mesh_expected_w3.ply", "mesh_expected_w3_v0.03.ply", "mesh_expected_w3_v0.05.ply"}
+    mvs = TSDFConfig(weight_threshold=1, consistent_views=2, max_depth_spread=0.02, smooth_iters=30)
+    assert default_out(run, mvs).name == "mesh_expected_w1_c2_s0.02_t30.ply"  # the remesh tables' name
+    assert default_out(run, TSDFConfig(depth="median", sdf_trunc=0.1)).name == "mesh_median_w3_tr0.1.ply"
