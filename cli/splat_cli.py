@@ -67,7 +67,7 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None):
             preset: start from this named configuration (splat/presets.py: `full` is IndoorGS, `no-cues`
                 the RaDe-GS-style baseline, the rest the paper's ablation rows and this project's extensions:
                 `room` / `room-mesh` for `geocues extract --preset room` cues, `mvs` for a `geocues mvs` scene and
-                `--preset mvs` cues); options given on the command line override it. -v/--verbose: debug logging and tracebacks.
+                `--preset mvs` cues); options given on the command line override it.
             overwrite: replace a finished run in OUT (without it, a finished OUT is an error).
             resume: continue the unfinished run in OUT.partial from its checkpoint (same options).
             load_config: start from the options of an earlier run (its RUN/config.yaml) to repeat it exactly.

@@ -130,8 +130,11 @@ class ViewSet:
         n_depth = sum(d is not None for d in self._depth)
         n_normal = sum(n is not None for n in self._normal)
         n_anchor = sum(a is not None for a in self._anchor)
-        log.info("%s: %d views, %d with a depth prior, %d with an anchor for L_a, %d with a normal prior",
-                 desc, len(self), n_depth, n_anchor, n_normal)
+        if load_priors:
+            log.info("%s: %d views, %d with a depth prior, %d with an anchor for L_a, %d with a normal prior",
+                     desc, len(self), n_depth, n_anchor, n_normal)
+        else:  # held-out views are scored on their images alone
+            log.info("%s: %d views (images only)", desc, len(self))
 
     def __len__(self) -> int:
         return len(self.indices)
