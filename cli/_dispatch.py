@@ -7,6 +7,7 @@ default command, run when the first argument is not a subcommand name (``evaluat
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -33,14 +34,21 @@ GLOBAL_HELP = ("global options (every command): -v/--verbose debug logging and t
                "-q/--quiet warnings and errors only, no progress bars")
 
 
-def disable_progress_bars() -> None:
-    """Every tqdm bar created from now on is disabled (modules hold the class itself, so its
-    constructor's default is changed; TQDM_DISABLE is only read at import)."""
+@contextlib.contextmanager
+def progress_bars_off():
+    """Within the block every tqdm bar created is disabled (modules hold the class itself, so its
+    constructor's default is changed; TQDM_DISABLE is only read at import); restored after, so a
+    quiet command does not silence the next one in the same process."""
     from functools import partialmethod
 
     import tqdm
 
-    tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)
+    init = tqdm.tqdm.__init__
+    tqdm.tqdm.__init__ = partialmethod(init, disable=True)
+    try:
+        yield
+    finally:
+        tqdm.tqdm.__init__ = init
 
 
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
@@ -130,8 +138,6 @@ def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
     verbose = "--verbose" in rest or "-v" in rest
     quiet = "--quiet" in rest or "-q" in rest
     setup_logging(verbose, quiet)
-    if quiet:
-        disable_progress_bars()
     rest = [a for a in rest if a not in ("--verbose", "-v", "--quiet", "-q")]
     if "-h" in rest or "--help" in rest:
         try:
@@ -141,7 +147,8 @@ def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
             return 0
     old_sigterm = sigterm_as_interrupt()
     try:
-        return _run(fn, rest, sub_prog, verbose)
+        with progress_bars_off() if quiet else contextlib.nullcontext():
+            return _run(fn, rest, sub_prog, verbose)
     finally:
         if old_sigterm is not None:
             signal.signal(signal.SIGTERM, old_sigterm)
