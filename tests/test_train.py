@@ -123,13 +123,14 @@ def test_splat_mesh_refuses_again_without_training(trained, tmp_path, capsys):
     assert len(a.triangles) == len(b.triangles) and np.allclose(faces(a), faces(b), atol=1e-5)
     assert main(["mesh", str(out), "--tsdf.voxel-size", "0.05", "--tsdf.depth", "expected",
                  "--tsdf.weight-threshold", "1"]) == 0
-    exp = out / "mesh_expected_w1.ply"
+    exp = out / "mesh_expected_w1_v0.05.ply"  # named by the options that differ from the default
     v = np.asarray(o3d.io.read_triangle_mesh(str(exp)).vertices)
     assert len(v) > 500 and not np.array_equal(v, np.asarray(a.vertices))
     d = distance_to_surface(v)
     assert np.median(d) < 0.05 and np.mean(d < 0.1) > 0.9
     capsys.readouterr()
-    assert main(["mesh", str(out), "--tsdf.depth", "expected", "--tsdf.weight-threshold", "1"]) == 1
+    assert main(["mesh", str(out), "--tsdf.voxel-size", "0.05", "--tsdf.depth", "expected",
+                 "--tsdf.weight-threshold", "1"]) == 1
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert main(["mesh", str(out), "--tsdf.depth", "mean"]) == 1
     assert "depth must be 'median' or 'expected'" in capsys.readouterr().err

@@ -1,0 +1,104 @@
+"""What `splat train` renders and writes from its Gaussians: a view's render with the run's
+background, the held-out metrics (and PNGs), the TSDF mesh of the training views, and the outputs a
+finished run leaves in its folder (the 3DGS-format model, refined cameras, mesh)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from splat.camera_opt import CameraRefiner
+from splat.export import write_3dgs_run
+from splat.gaussians import cue_type_path
+from splat.mesh import write_mesh
+from splat.mesh_run import fuse_cameras
+from splat.rasterize import render
+from splat.train_config import TrainConfig
+from splat.train_setup import TrainingSetup
+from splat.views import View, ViewSet
+
+_BACKGROUNDS: dict[tuple, Tensor] = {}
+
+
+def render_view(params, view: View, sh_degree: int, cfg: TrainConfig, maps: bool = True) -> dict[str, Tensor]:
+    key = (tuple(cfg.background), view.rgb.device)  # made once: a copy to a GPU waits for it each time
+    if key not in _BACKGROUNDS:
+        _BACKGROUNDS[key] = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
+    return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=_BACKGROUNDS[key],
+                  maps=maps)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """``dst`` as a hard link to ``src`` (a copy where the file system has none)."""
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+@torch.no_grad()
+def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out_dir: Path | None = None,
+                   refiner: CameraRefiner | None = None) -> dict:
+    """Mean PSNR / SSIM of the renders of held-out ``views`` (with the refined shared focal when a
+    ``refiner`` is given); PNGs to ``out_dir`` when given."""
+    from evaluation.image_metrics import psnr, ssim
+
+    rows = []
+    for k in range(len(views)):
+        view = refiner.test_view(views[k]) if refiner is not None else views[k]
+        rgb = render_view(params, view, sh_degree, cfg, maps=False)["rgb"].clamp(0, 1)  # colour alone: the same image
+        rows.append({"name": view.name, "psnr": psnr(rgb.cpu(), view.rgb.cpu()), "ssim": ssim(rgb.cpu(), view.rgb.cpu())})
+        if out_dir is not None:
+            import cv2
+            out_dir.mkdir(parents=True, exist_ok=True)
+            img = (rgb.cpu().numpy()[:, :, ::-1] * 255.0 + 0.5).astype(np.uint8)
+            cv2.imwrite(str(out_dir / (Path(view.name).stem + ".png")), img)
+    if not rows:
+        return {"psnr": None, "ssim": None, "n_views": 0}
+    return {"psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": float(np.mean([r["ssim"] for r in rows])),
+            "n_views": len(rows), "per_view": rows}
+
+
+@torch.no_grad()
+def fuse_mesh(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, refiner: CameraRefiner | None = None):
+    """TSDF fusion of the rendered depth (``cfg.tsdf.depth``; alpha > 0.5) and colour of every
+    mesh_every-th training view (with its refined camera when a ``refiner`` is given), cleaned
+    (:func:`fuse_cameras`)."""
+    ks = range(0, len(views), max(cfg.mesh_every, 1))
+    cams = [views.scene.cameras[views.indices[k]] for k in ks]
+    if refiner is not None:
+        cams = [refiner.refined_scene_camera(k, cam) for k, cam in zip(ks, cams)]
+    return fuse_cameras(params, cams, sh_degree, cfg.tsdf, backend=cfg.backend, background=cfg.background,
+                        device=views[0].rgb.device if len(views) else "cpu")
+
+
+def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, float]) -> dict:
+    """Held-out renders and metrics, the 3DGS-format model, the refined cameras and the mesh into the
+    staging folder of ``loop`` (the finished splat.train._Loop: its folder and accuracy curve); returns
+    the final held-out metrics."""
+    work = loop.work
+    t0 = time.perf_counter()
+    final = evaluate_views(s.params, s.test_views, cfg.sh_degree, cfg, work / "test_renders", s.refiner)
+    ply = write_3dgs_run(work, s.params, s.state["cue_type"], s.scene, asdict(cfg), cfg.iters)
+    for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
+        if src.is_file():
+            _link_or_copy(src, work / src.name)
+    if s.refiner is not None:  # the refined training cameras: corrections per view (bench/camera_error.py reads them)
+        s.refiner.save(work / "camera_refinement.npz", [s.scene.cameras[i].name for i in s.train_views.indices])
+    timings["eval_and_save_s"] = time.perf_counter() - t0
+    if cfg.mesh:
+        t0 = time.perf_counter()
+        if loop.curve and loop.curve[-1]["step"] == cfg.iters and "mesh" in loop.curve[-1]:
+            shutil.copyfile(work / loop.curve[-1]["mesh"], work / "mesh.ply")  # the same model, fused already
+        else:
+            write_mesh(fuse_mesh(s.params, s.train_views, cfg.sh_degree, cfg, s.refiner), work / "mesh.ply")
+        timings["mesh_s"] = time.perf_counter() - t0
+    return final
