@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
@@ -73,8 +74,11 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None):
             load_config: start from the options of an earlier run (its RUN/config.yaml) to repeat it exactly.
             cfg: training options.
         """
+        from splat.presets import cue_preset_mismatch
         from splat.train import run
 
+        if mismatch := cue_preset_mismatch(preset, cues):
+            logging.getLogger("splat").warning("%s", mismatch)
         run(cfg, scene, cues, out, overwrite=overwrite, resume=resume)
         print(f"wrote {out}/report.json")
         return 0

@@ -236,3 +236,37 @@ def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: boo
     have = {"depth_priors": has_depth_priors, "normal_priors": has_normal_priors}
     lacking = [n.replace("_", " ") for n in preset.needs if n in have and not have[n]]
     return f"no {' / '.join(x.removesuffix(' priors') for x in lacking)} priors" if lacking else None
+
+
+# Training presets measured on the cues of an extract preset (docs/training.md): trained on other cues,
+# the preset's gains were never measured.
+CUE_PRESETS = {"room": "room", "room-mesh": "room", "mvs": "mvs"}
+
+
+def cue_preset_mismatch(train_preset: str, cues: str | Path) -> str | None:
+    """A sentence when training preset ``train_preset`` is the recipe of an extract preset that the
+    cues at ``cues`` (a folder or its cues.ply) were not extracted with (their report.json's config),
+    else None (also when the cues record no config)."""
+    from geocues.presets import EXTRACT_PRESETS
+
+    want = CUE_PRESETS.get(train_preset)
+    cues = Path(cues)
+    report = (cues if cues.is_dir() else cues.parent) / "report.json"
+    if want is None or not report.is_file():
+        return None
+    try:
+        config = json.loads(report.read_text()).get("config") or {}
+    except (OSError, json.JSONDecodeError):
+        return None
+    differ = []
+    for path, value in EXTRACT_PRESETS[want].items():
+        got: Any = config
+        for part in path.split("."):
+            got = got.get(part) if isinstance(got, dict) else None
+        if got is not None and got != value:
+            differ.append(f"{path} {got}")
+    if not differ:
+        return None
+    return (f"--preset {train_preset} is the recipe for `geocues extract --preset {want}` cues, and {cues} were "
+            f"extracted without it ({', '.join(differ[:3])}{', ...' if len(differ) > 3 else ''}): its measured "
+            f"gains need both; extract with `geocues extract SCENE -o CUES --preset {want}`")

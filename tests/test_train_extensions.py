@@ -131,3 +131,25 @@ def test_frozen_colour_step_equals_the_full_step_with_the_geometry_stopped(tmp_p
     # them by division: equal to float rounding, which Adam's normalised steps carry on
     assert np.abs(colours - colours_o).max() < 1e-5, np.abs(colours - colours_o).max()  # measured 6e-8
     assert abs(psnr - psnr_o) < 0.01
+
+
+def test_a_room_or_mvs_preset_on_other_cues_is_named(tmp_path):
+    """`splat train --preset room` with plain `geocues extract` cues trained in silence: the preset's
+    measured gains need the matching extract preset, so the mismatch is one warning naming it."""
+    import json
+    from dataclasses import asdict
+
+    from geocues.presets import extract_preset_config
+    from splat.presets import cue_preset_mismatch
+
+    for name in ("paper", "room", "mvs"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "report.json").write_text(json.dumps({"config": asdict(extract_preset_config(name))},
+                                                                default=str))
+    why = cue_preset_mismatch("room", tmp_path / "paper")
+    assert why and "`geocues extract --preset room` cues" in why and "floor.lines False" in why
+    assert cue_preset_mismatch("room-mesh", tmp_path / "room" / "cues.ply") is None
+    assert "--preset mvs" in cue_preset_mismatch("mvs", tmp_path / "room")
+    assert cue_preset_mismatch("mvs", tmp_path / "mvs") is None
+    assert cue_preset_mismatch("full", tmp_path / "paper") is None  # the paper's recipe takes any cues
+    assert cue_preset_mismatch("room", tmp_path / "nowhere") is None  # no record: nothing to say
