@@ -57,6 +57,9 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}); resume with the same options")
     elif work.exists():
+        if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked
+            raise ValueError(f"{work} holds an unfinished run with a checkpoint: pass --resume to continue it "
+                             "(same options), or --overwrite to start again")
         log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
         shutil.rmtree(work)
     return work, cues_ply, ckpt

@@ -116,6 +116,21 @@ def test_a_kill_while_writing_the_outputs_keeps_the_trained_model(scene, uninter
     assert rows[0] == rows[1]  # every row kept, none doubled (seconds aside)
 
 
+def test_a_stopped_run_is_not_dropped_without_asking(scene):
+    """The same command again without --resume used to delete OUT.partial and its checkpoint (a
+    warning, then training from step 0): now it is an error naming --resume and --overwrite."""
+    from splat.train import run
+
+    base, root, cues = scene
+    ckpt = base / "stopped.partial" / "ckpt" / "last.pt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"a checkpoint")
+    with pytest.raises(ValueError, match=r"stopped.partial holds an unfinished run with a checkpoint: pass --resume"):
+        run(_cfg(iters=4), root, cues, base / "stopped")
+    assert ckpt.read_bytes() == b"a checkpoint"
+    assert (run(_cfg(iters=4), root, cues, base / "stopped", overwrite=True) / "report.json").is_file()
+
+
 def test_sigterm_to_the_command_leaves_a_checkpoint_and_one_line(scene):
     base, root, cues = scene
     out = base / "cli"
