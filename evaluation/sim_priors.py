@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -67,6 +66,7 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
 
     from geocues.atomic import atomic_dir, check_output_dir
     from geocues.scene import Scene, gt_mesh_file
+    from geocues.sfm import link_scene
     from splat.floor import find_gt_depth_dir, load_gt_depth
 
     scene_dir, out = Path(scene_dir).resolve(), Path(out)
@@ -89,9 +89,8 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(len(scene.cameras))]
     per_image = {}
     with atomic_dir(out) as tmp:
-        for sub in ("images", "sparse", "gt"):
-            if (scene_dir / sub).exists():
-                os.symlink((scene_dir / sub).resolve(), tmp / sub)
+        link_scene(scene_dir, tmp, ("images", "sparse", "gt"))  # a root reference_mesh.ply, a nerfstudio scene too
+        (tmp / "scene.json").unlink(missing_ok=True)  # written below, with the priors' provenance
         (tmp / "priors" / "depth").mkdir(parents=True)
         (tmp / "priors" / "normal").mkdir(parents=True)
         for k, cam in enumerate(tqdm(scene.cameras, desc="simulate priors", unit="view")):
@@ -104,7 +103,7 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
             np.save(tmp / "priors" / "normal" / f"{cam.stem}.npy", nprior)
             per_image[cam.stem] = {"depth": dpar, "normal": npar}
         meta = json.loads((scene_dir / "scene.json").read_text()) if (scene_dir / "scene.json").is_file() else {}
-        meta["priors"] = {"simulated": True, "from_scene": str(scene_dir), "gt_depth": str(depth_dir),
+        meta["priors"] = {"simulated": True, "from_scene": str(scene_dir), "gt_depth": str(Path(depth_dir).resolve()),
                           "gt_mesh": str(mesh_path.resolve()), "seed": cfg.seed,
                           "method": "exact depth + simulated monocular errors: depth = s * warp(blur(gt)) * "
                                     "(1 + noise) + b; normals = GT mesh normals + blur + smooth tilt + noise",

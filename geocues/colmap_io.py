@@ -129,6 +129,9 @@ def _no_model_hint(p: Path) -> str:
     others = sorted(d for d in (p / "sparse").glob("*") if any(d.glob("cameras.*"))) if (p / "sparse").is_dir() else []
     if others:
         return f"; {others[0]} holds a model: move (or link) it to {p / 'sparse' / '0'}"
+    if (p / "cache" / "sfm").is_dir() and not (p / "sfm_report.json").is_file():
+        return (f"; {p} holds an unfinished `geocues sfm -o {p}` (stopped before it wrote the model): run that "
+                "command again, it reuses what was done")
     if p.name == "images" and any(is_image(f) for f in p.iterdir()):
         return f"; {p} looks like a scene's images folder: pass the scene folder above it, {p.parent}"
     if (p / "images").is_dir() and list_images(p / "images"):

@@ -245,3 +245,19 @@ def write_transforms(path: str | Path, images: list[RawImage], image_paths: list
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(out, indent=2))
     return path
+
+
+def write_colmap_model(transforms: str | Path, model_dir: str | Path) -> Path:
+    """The cameras (PINHOLE, one per frame) and points of a transforms.json as a COLMAP text model in
+    ``model_dir``: what the commands that work on a COLMAP model (`geocues sfm`, `rescale`, and the scene
+    folders `mvs` and `simulate-priors` write) take from a nerfstudio scene. Its images must lie in
+    the scene's images/ folder (their names are relative to it)."""
+    from geocues.colmap_io import write_model
+
+    ns = read_transforms(transforms)
+    images_dir = Path(os.path.normpath(Path(ns.path).parent / "images"))
+    outside = [p for p in ns.image_paths if not Path(p).is_relative_to(images_dir)]
+    if outside:
+        raise ValueError(f"{ns.path}: {len(outside)} frames' images lie outside {images_dir} (e.g. {outside[0]}): "
+                         "move them into images/ to use this scene with the commands that take a COLMAP model")
+    return write_model(Path(model_dir), ns.images, ns.points if len(ns.points.ids) else None)

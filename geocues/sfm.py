@@ -35,6 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
+from geocues.nerfstudio_io import find_transforms, write_colmap_model
 from geocues.photos import missing_images_error
 from geocues.scene import ARBITRARY_SCALE, OWN_FRAME, list_images, no_images_folder, rescale_hint
 
@@ -121,6 +122,10 @@ def link_scene(scene_dir: Path, out_dir: Path, parts: tuple[str, ...] = ("images
         elif link.is_dir():
             raise FileExistsError(f"{link} is a real folder; refusing to replace it with a link")
         link.symlink_to(target)
+    if "sparse" in parts and not (src / "sparse").exists() and (transforms := find_transforms(src)) is not None:
+        model = out_dir / "sparse" / "0"  # a nerfstudio scene: OUT gets its cameras as a COLMAP model
+        if not model.exists():
+            write_colmap_model(transforms, model)
     if (src / "scene.json").is_file():
         shutil.copyfile(src / "scene.json", out_dir / "scene.json")
 
@@ -213,6 +218,11 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         model_dir = find_model_dir(scene_dir)
     except FileNotFoundError:
         model_dir = None
+    converted = None
+    if model_dir is None and (transforms := find_transforms(scene_dir)) is not None and cfg.mode != "map":
+        converted = Path(tempfile.mkdtemp(prefix="indoorgs_ns_model_"))  # the known poses, as COLMAP's
+        model_dir = write_colmap_model(transforms, converted / "0")
+        log.info("sfm: %s is a nerfstudio scene: triangulating with its poses", scene_dir)
     mode = cfg.mode if cfg.mode != "auto" else ("triangulate" if model_dir is not None else "map")
     if mode == "triangulate" and model_dir is None:
         raise FileNotFoundError(f"triangulate mode needs a posed model: no cameras.txt or cameras.bin "
@@ -254,7 +264,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     state = json.loads(state_path.read_text()) if state_path.is_file() else {}
     if recompute or state.get("extract") != extract_key:
         if db_path.exists():
-            log.info("sfm: discarding cached database %s (--recompute or parameters changed)", db_path)
+            log.info("sfm: discarding cached database %s (--recompute, other parameters, or an extraction that was stopped)", db_path)
         db_path.unlink(missing_ok=True)
         state = {}
 
@@ -318,11 +328,13 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     seconds["triangulate" if mode == "triangulate" else "map"] = time.perf_counter() - t0
 
     # ---- write
-    target = (model_dir if in_place and model_dir is not None else root / "sparse" / "0")
+    target = (model_dir if in_place and model_dir is not None and converted is None else root / "sparse" / "0")
     with atomic_dir(target) as tmp_model:
         binary = (cfg.model_format == "bin" if cfg.model_format != "auto"
                   else not (in_place and model_dir is not None and (model_dir / "images.txt").is_file()))
         (rec.write_binary if binary else rec.write_text)(str(tmp_model))
+    if converted is not None:
+        shutil.rmtree(converted, ignore_errors=True)
     report = summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
                          n_verified=n_verified, seconds=seconds)
     report.update(scene=str(scene_dir.resolve()), model=str(target.resolve()), dropped_short_tracks=n_short,

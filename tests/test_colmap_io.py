@@ -201,6 +201,9 @@ def test_no_model_names_what_the_folder_holds_instead(tmp_path):
     (photos / "images" / "a.png").write_bytes((photos / "images" / "seq1" / "0000.JPG").read_bytes())
     with pytest.raises(FileNotFoundError, match=r"looks like a scene's images folder: pass the scene folder above it"):
         find_model_dir(photos / "images")
+    (photos / "cache" / "sfm").mkdir(parents=True)  # a `geocues sfm -o photos` stopped before its model
+    with pytest.raises(FileNotFoundError, match=r"holds an unfinished `geocues sfm -o .*photos`.*run that command again"):
+        find_model_dir(photos)
     write_model(tmp_path / "s" / "sparse" / "1", _images(2))
     with pytest.raises(FileNotFoundError, match=r"sparse/1 holds a model: move \(or link\) it to .*sparse/0"):
         find_model_dir(tmp_path / "s")

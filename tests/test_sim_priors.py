@@ -4,6 +4,7 @@ within the simulated error of the truth once the per-image scale and shift are u
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,3 +71,19 @@ def test_a_scene_without_exact_depth_is_a_clear_error(scene, tmp_path):
     (tmp_path / "c").mkdir()
     with pytest.raises(ValueError, match="already exists"):
         simulate_scene_priors(scene, tmp_path / "c")
+
+
+def test_a_root_reference_mesh_goes_along(scene, tmp_path):
+    """ICL-NUIM keeps its GT as reference_mesh.ply at the root: OUT used to lose it (`gt mesh none`,
+    and `evaluate cues CUES OUT` asked for --gt), as `geocues sfm -o` and `mvs` did not."""
+    import shutil
+
+    from evaluation.sim_priors import SimPriorsConfig, simulate_scene_priors
+
+    icl_like = tmp_path / "icl_like"
+    shutil.copytree(scene, icl_like, symlinks=True)
+    (icl_like / "gt" / "mesh.ply").rename(icl_like / "reference_mesh.ply")
+    out = simulate_scene_priors(icl_like, tmp_path / "sim", SimPriorsConfig(seed=3))
+    gt = Scene.load(out).gt_mesh_path
+    assert gt is not None and gt.resolve() == (icl_like / "reference_mesh.ply").resolve()
+    assert Path(json.loads((out / "scene.json").read_text())["priors"]["gt_depth"]).is_absolute()

@@ -176,3 +176,35 @@ class TestBadInput:
         (ns.parent / "images" / "00003.png").unlink()
         with pytest.raises(FileNotFoundError, match=r"images/00003.png"):
             Scene.load(ns.parent)
+
+
+def test_commands_that_take_a_colmap_model_take_a_nerfstudio_scene(colmap_scene, tmp_path):
+    """`geocues sfm` mapped a nerfstudio scene from its images alone (its poses thrown away, an
+    arbitrary unit), `rescale` refused it, and the scene folders `mvs` and `simulate-priors` wrote held
+    no cameras at all. Now its cameras go along as a COLMAP model: the same cameras everywhere."""
+    from geocues.rescale import RescaleConfig, run as rescale
+    from geocues.sfm import link_scene
+
+    ns = tmp_path / "ns"
+    ns.mkdir()
+    _export(colmap_scene, ns)
+    scene = Scene.load(ns)
+    out = tmp_path / "linked"  # what `geocues mvs` / `simulate-priors` write around their priors
+    link_scene(ns, out, ("images", "sparse", "gt"))
+    _assert_same_cameras(scene, Scene.load(out), same_paths=False)
+    big = rescale(RescaleConfig(scale=2.0), ns, tmp_path / "x2")
+    for a, b in zip(scene.cameras, Scene.load(big).cameras):
+        np.testing.assert_allclose(b.center, 2.0 * a.center, atol=1e-6)
+    from geocues import sfm
+
+    seen = {}
+    real = sfm.U.triangulate
+    sfm.U.triangulate = lambda ref, *a, **k: seen.setdefault("ref", ref) and real(ref, *a, **k)
+    try:
+        sfm.run(sfm.SfmConfig(check_gt=False), ns, tmp_path / "ns_sfm")
+    finally:
+        sfm.U.triangulate = real
+    assert seen["ref"].num_reg_images() == len(scene)  # triangulated with the known poses, not mapped
+    meta = tmp_path / "ns_sfm" / "scene.json"
+    assert not meta.is_file() or "arbitrary" not in meta.read_text()
+    _assert_same_cameras(scene, Scene.load(tmp_path / "ns_sfm"), same_paths=False)
