@@ -81,7 +81,9 @@ def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: 
     print(f"model      {s.model_dir}")
     print(f"cameras    {len(s)}  sizes {', '.join(f'{w}x{h}' for w, h in sizes)}  "
           f"(first: fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f})")
-    if len(pts):
+    if len(pts) and not pts.track_length.any():  # a nerfstudio ply_file_path: positions alone
+        print(f"points     {len(pts)}  (without tracks: their visibility is tested by projection)")
+    elif len(pts):
         print(f"points     {len(pts)}  mean track length {pts.track_length.mean():.2f}  "
               f"mean reprojection error {pts.error.mean():.3f} px")
     else:

@@ -105,6 +105,10 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
     gt_path = Path(gt_path) if gt_path is not None else scene.gt_mesh_path
     if gt_path is None:
         raise FileNotFoundError(f"no GT mesh: pass --gt or put one at {Path(scene_dir) / 'gt' / 'mesh.ply'}")
+    from splat.init_gaussians import foreign_cues
+
+    if foreign := foreign_cues(cues_path, scene):  # scored anyway: the figures then measure the mix-up
+        log.warning("the cues %s were extracted from another scene than %s: %s", cues_path, scene.root, foreign)
     gt = GroundTruth(gt_path, scene.cameras, cfg)
     result = cue_accuracy(read_cues_ply(cues_path), gt, cfg)
     sfm_all = gt.distances(scene.points.xyz)

@@ -65,3 +65,32 @@ def test_missing_cues_file_names_the_folder(tmp_path):
 
     with pytest.raises(FileNotFoundError, match=str(tmp_path)):
         evaluate_cues_dir(tmp_path, tmp_path)
+
+
+def test_cues_of_another_scene_are_scored_with_a_warning(tmp_path, caplog):
+    """`evaluate cues CUES SCENE` with cues from a rescaled copy scored them in silence (`splat train`
+    warned): the same camera check names the mismatch."""
+    import json
+    import logging
+
+    from cues_synth import make_room_scene
+    from evaluation.cue_metrics import evaluate_cues_dir
+    from geocues.camera_signature import camera_signature
+    from geocues.cue_io import write_cues_ply
+    from geocues.scene import Scene
+
+    from test_ablate import write_gt
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48, priors="none")
+    write_gt(root)
+    scene = Scene.load(root)
+    cues = tmp_path / "cues"
+    write_cues_ply(cues / "cues.ply", CueCloud.make(scene.points.xyz, np.zeros((len(scene.points), 3), np.uint8),
+                                                    CueType.SFM))
+    for spread, warned in ((1.0, False), (10.0, True)):  # the scene's own cameras, a copy 10x the size
+        sig = camera_signature(scene)
+        (cues / "report.json").write_text(json.dumps({"cameras": {**sig, "spread": sig["spread"] * spread}}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="evaluation"):
+            result = evaluate_cues_dir(cues, root)
+        assert ("extracted from another scene" in caplog.text) == warned and result["per_type"]

@@ -105,6 +105,7 @@ class TestRead:
         assert main(["info", str(out)]) == 0
         text = capsys.readouterr().out
         assert "transforms.json" in text and "cameras    5" in text
+        assert "(without tracks" in text and "mean track length 0.00" not in text  # no made-up figures
 
     def test_sfm_cues_match(self, colmap_scene, tmp_path):
         """geocues extract reads it: the SfM cues (same points, same filter) are the COLMAP scene's."""
