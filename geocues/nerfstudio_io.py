@@ -261,3 +261,14 @@ def write_colmap_model(transforms: str | Path, model_dir: str | Path) -> Path:
         raise ValueError(f"{ns.path}: {len(outside)} frames' images lie outside {images_dir} (e.g. {outside[0]}): "
                          "move them into images/ to use this scene with the commands that take a COLMAP model")
     return write_model(Path(model_dir), ns.images, ns.points if len(ns.points.ids) else None)
+
+
+def transforms_reconstruction(transforms: str | Path):
+    """pycolmap's Reconstruction of a transforms.json's cameras (:func:`write_colmap_model` into a
+    temporary folder, removed again)."""
+    import tempfile
+
+    from geocues.colmap_io import load_reconstruction
+
+    with tempfile.TemporaryDirectory(prefix="indoorgs_ns_model_") as tmp:
+        return load_reconstruction(write_colmap_model(transforms, Path(tmp) / "0"))

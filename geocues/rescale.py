@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 
 from geocues.atomic import atomic_dir, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
-from geocues.nerfstudio_io import find_transforms, write_colmap_model
+from geocues.nerfstudio_io import find_transforms, transforms_reconstruction
 from geocues.scene import ARBITRARY_SCALE, Scene, rescale_hint
 from geocues.sfm import link_scene
 
@@ -149,14 +148,13 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     import pycolmap
 
     transforms = find_transforms(scene_dir)
-    with tempfile.TemporaryDirectory(prefix="indoorgs_ns_model_") as ns_model:
-        if transforms is not None and not (scene_dir / "sparse").exists():  # a nerfstudio scene's cameras
-            model_dir = write_colmap_model(transforms, Path(ns_model) / "0")
-        else:
-            model_dir = find_model_dir(scene_dir)
+    if transforms is not None and not (scene_dir / "sparse").exists():  # a nerfstudio scene's cameras
+        rec, binary = transforms_reconstruction(transforms), False
+    else:
+        model_dir = find_model_dir(scene_dir)
         rec = load_reconstruction(model_dir)  # tracks, 2D points and camera models kept as they are
+        binary = (model_dir / "images.bin").is_file()
     rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(np.eye(3)), np.zeros(3)))
-    binary = (model_dir / "images.bin").is_file()
     with atomic_dir(out_dir) as tmp:
         (tmp / "sparse" / "0").mkdir(parents=True)
         (rec.write_binary if binary else rec.write_text)(str(tmp / "sparse" / "0"))

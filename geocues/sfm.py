@@ -35,7 +35,7 @@ import numpy as np
 from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
-from geocues.nerfstudio_io import find_transforms, write_colmap_model
+from geocues.nerfstudio_io import find_transforms, transforms_reconstruction, write_colmap_model
 from geocues.photos import missing_images_error
 from geocues.scene import ARBITRARY_SCALE, OWN_FRAME, list_images, no_images_folder, rescale_hint
 
@@ -218,13 +218,12 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         model_dir = find_model_dir(scene_dir)
     except FileNotFoundError:
         model_dir = None
-    converted = None
-    if model_dir is None and (transforms := find_transforms(scene_dir)) is not None and cfg.mode != "map":
-        converted = Path(tempfile.mkdtemp(prefix="indoorgs_ns_model_"))  # the known poses, as COLMAP's
-        model_dir = write_colmap_model(transforms, converted / "0")
+    transforms = find_transforms(scene_dir) if model_dir is None and cfg.mode != "map" else None
+    if transforms is not None:  # a nerfstudio scene: its known poses, as a COLMAP model
         log.info("sfm: %s is a nerfstudio scene: triangulating with its poses", scene_dir)
-    mode = cfg.mode if cfg.mode != "auto" else ("triangulate" if model_dir is not None else "map")
-    if mode == "triangulate" and model_dir is None:
+    posed = model_dir is not None or transforms is not None
+    mode = cfg.mode if cfg.mode != "auto" else ("triangulate" if posed else "map")
+    if mode == "triangulate" and not posed:
         raise FileNotFoundError(f"triangulate mode needs a posed model: no cameras.txt or cameras.bin "
                                 f"in {scene_dir / 'sparse' / '0'} or {scene_dir / 'sparse'}")
     in_place = out_dir is None or Path(out_dir).resolve() == scene_dir.resolve()
@@ -240,11 +239,12 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     U.quiet_pycolmap()
     pycolmap.set_random_seed(cfg.seed)
     ref = None
-    if model_dir is not None:
-        ref = load_reconstruction(model_dir)
+    if posed:
+        ref = load_reconstruction(model_dir) if model_dir is not None else transforms_reconstruction(transforms)
+        source = model_dir if model_dir is not None else transforms
         if ref.num_reg_images() == 0:
-            raise ValueError(f"the COLMAP model in {model_dir} has no registered images")
-        if err := missing_images_error(model_dir, sorted(image_dir / im.name for im in ref.images.values())):
+            raise ValueError(f"the COLMAP model in {source} has no registered images")
+        if err := missing_images_error(source, sorted(image_dir / im.name for im in ref.images.values())):
             raise err
         names = sorted(ref.images[i].name for i in ref.reg_image_ids())
     else:
@@ -328,13 +328,11 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     seconds["triangulate" if mode == "triangulate" else "map"] = time.perf_counter() - t0
 
     # ---- write
-    target = (model_dir if in_place and model_dir is not None and converted is None else root / "sparse" / "0")
+    target = (model_dir if in_place and model_dir is not None else root / "sparse" / "0")
     with atomic_dir(target) as tmp_model:
         binary = (cfg.model_format == "bin" if cfg.model_format != "auto"
                   else not (in_place and model_dir is not None and (model_dir / "images.txt").is_file()))
         (rec.write_binary if binary else rec.write_text)(str(tmp_model))
-    if converted is not None:
-        shutil.rmtree(converted, ignore_errors=True)
     report = summarize(rec, mode=mode, n_images=len(names), n_pairs=len(pairs),
                          n_verified=n_verified, seconds=seconds)
     report.update(scene=str(scene_dir.resolve()), model=str(target.resolve()), dropped_short_tracks=n_short,
