@@ -26,6 +26,11 @@ PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 ZERO_DISTORTION_PINHOLES = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 
 
+def camera_distortion(cam) -> tuple[float, ...]:
+    """A pycolmap camera's extra (distortion) parameters: k1, k2, p1, p2, ... (() for a pinhole)."""
+    return tuple(float(cam.params[i]) for i in cam.extra_params_idxs())
+
+
 def is_pinhole(model: str, distortion) -> bool:
     """True when a camera of COLMAP ``model`` with these extra (distortion) parameters projects as a
     pinhole: PINHOLE / SIMPLE_PINHOLE, or a radial / OpenCV model whose distortion is exactly 0."""
@@ -214,7 +219,7 @@ def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:
             K=np.asarray(cam.calibration_matrix(), dtype=np.float64),
             R=np.asarray(pose.rotation.matrix(), dtype=np.float64),
             t=np.asarray(pose.translation, dtype=np.float64),
-            distortion=tuple(float(cam.params[i]) for i in cam.extra_params_idxs()),
+            distortion=camera_distortion(cam),
         ))
     images.sort(key=lambda r: r.name)
 

@@ -228,16 +228,15 @@ class Scene:
         cameras: list[Camera] = []
         paths = [ns.image_paths[k] if ns is not None and images_dir is None else img_dir / im.name
                  for k, im in enumerate(raw_images)]
-        for k, im in enumerate(raw_images):
-            if not im.pinhole and not allow_distorted:
-                raise ValueError(
-                    f"image {im.name} in {model_dir} uses the distorted camera model {im.model}; "
-                    f"undistort the scene first: `geocues undistort {scene_root} -o OUT`")
-            if k == 0 and (err := missing_images_error(model_dir, paths)):
-                raise err
-            path = paths[k]
-            if k == 0:
-                _warn_transparency(path)
+        distorted = next((im for im in raw_images if not im.pinhole), None)
+        if distorted is not None and not allow_distorted:
+            raise ValueError(f"image {distorted.name} in {model_dir} uses the distorted camera model "
+                             f"{distorted.model}; undistort the scene first: `geocues undistort {scene_root} -o OUT`")
+        if err := missing_images_error(model_dir, paths):
+            raise err
+        if paths:
+            _warn_transparency(paths[0])
+        for k, (im, path) in enumerate(zip(raw_images, paths)):
             w, h = _read_image_size(path)
             if (w, h) != (im.width, im.height):
                 raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "

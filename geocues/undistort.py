@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from geocues.atomic import atomic_dir, check_output_dir
-from geocues.colmap_io import find_model_dir, is_pinhole, load_reconstruction
+from geocues.colmap_io import camera_distortion, find_model_dir, is_pinhole, load_reconstruction
 from geocues.photos import missing_images_error
 from geocues.scene import no_images_folder
 
@@ -55,7 +55,7 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
     if err := missing_images_error(model_dir, sorted(image_dir / im.name for im in rec.images.values())):
         raise err
     models = sorted({c.model.name for c in rec.cameras.values()})
-    if all(is_pinhole(c.model.name, [c.params[i] for i in c.extra_params_idxs()]) for c in rec.cameras.values()):
+    if all(is_pinhole(c.model.name, camera_distortion(c)) for c in rec.cameras.values()):
         log.info("undistort: %s already uses %s cameras without distortion; images are copied unchanged "
                  "(every command reads this scene as it is)", scene_dir, models)
     if (scene_dir / "priors").is_dir():
