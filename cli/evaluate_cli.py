@@ -101,7 +101,9 @@ def _check_arguments(pred_mesh: Path, scene: Path | None, gt: Path | None) -> No
         raise ValueError(f"{scene} is a file where SCENE (a folder) goes; a ground-truth mesh is given as "
                          f"--gt {scene} — {usage}")
     if gt is not None and gt.is_dir():
-        inside = next((gt / f for f in ("gt/mesh.ply", "mesh.ply", "reference_mesh.ply") if (gt / f).is_file()), None)
+        from geocues.scene import gt_mesh_file
+
+        inside = gt_mesh_file(gt) or ((gt / "mesh.ply") if (gt / "mesh.ply").is_file() else None)
         raise ValueError(f"--gt {gt} is a folder; --gt takes the GT mesh file"
                          + (f" ({inside}?)" if inside else "") + (f", a scene folder goes after the mesh" if inside is None
                                                                   and (gt / "sparse").is_dir() else ""))

@@ -19,6 +19,7 @@ uint8, and the line samples ``points`` [P, 3], ``point_colors`` [P, 3] uint8, ``
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -307,3 +308,14 @@ def read_lines_npz(path: str | Path) -> dict[str, np.ndarray | list[np.ndarray]]
     off = out["view_offsets"]
     out["views"] = [out["view_ids"][off[k]:off[k + 1]] for k in range(len(off) - 1)]
     return out
+
+
+def read_cue_report(cues: str | Path) -> dict:
+    """The report.json `geocues extract` wrote beside the cues (``cues``: the folder or its cues.ply);
+    {} when there is none or it cannot be read (cue folders made otherwise)."""
+    cues = Path(cues)
+    report = (cues if cues.is_dir() else cues.parent) / "report.json"
+    try:
+        return json.loads(report.read_text()) if report.is_file() else {}
+    except (OSError, json.JSONDecodeError):
+        return {}

@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geocues.cue_io import CueCloud, read_cues_ply
+from geocues.cue_io import CueCloud, read_cue_report, read_cues_ply
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat.gaussians import init_from_cues, load_ply
@@ -58,11 +57,7 @@ def foreign_cues(cues_ply: Path, scene: Scene) -> str | None:
     recorded in their report.json (geocues/camera_signature.py); None when they agree or nothing was recorded."""
     from geocues.camera_signature import camera_signature, signature_mismatch
 
-    report = Path(cues_ply).parent / "report.json"
-    try:
-        recorded = json.loads(report.read_text()).get("cameras") if report.is_file() else None
-    except (OSError, json.JSONDecodeError):
-        return None
+    recorded = read_cue_report(cues_ply).get("cameras")
     return signature_mismatch(recorded, camera_signature(scene)) if recorded else None
 
 

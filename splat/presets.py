@@ -247,16 +247,12 @@ def cue_preset_mismatch(train_preset: str, cues: str | Path) -> str | None:
     """A sentence when training preset ``train_preset`` is the recipe of an extract preset that the
     cues at ``cues`` (a folder or its cues.ply) were not extracted with (their report.json's config),
     else None (also when the cues record no config)."""
+    from geocues.cue_io import read_cue_report
     from geocues.presets import EXTRACT_PRESETS
 
     want = CUE_PRESETS.get(train_preset)
-    cues = Path(cues)
-    report = (cues if cues.is_dir() else cues.parent) / "report.json"
-    if want is None or not report.is_file():
-        return None
-    try:
-        config = json.loads(report.read_text()).get("config") or {}
-    except (OSError, json.JSONDecodeError):
+    config = read_cue_report(cues).get("config") if want is not None else None
+    if not config:
         return None
     differ = []
     for path, value in EXTRACT_PRESETS[want].items():

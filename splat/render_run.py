@@ -147,14 +147,12 @@ def _normal_u8(n: np.ndarray) -> np.ndarray:
     return out
 
 
-def load_run(run_dir: Path, scene_override: str | Path | None = None, scene_hint: str = "pass --scene SCENE"):
+def load_run(run_dir: Path, scene_override: str | Path | None = None):
     """(scene at the run's resolution and split, Gaussians, training config dict) of a finished
-    `splat train` folder; the scene from RUN/report.json (splat/run_paths.py) unless ``scene_override``.
-    ``scene_hint``: how the calling command is given a scene, for the error when the recorded one is gone."""
-    from splat.run_paths import recorded_path
-
+    `splat train` folder; the scene from RUN/report.json (splat/run_paths.py) unless ``scene_override``."""
     from geocues.scene import Scene
     from splat.gaussians import load_ply
+    from splat.run_paths import recorded_path
 
     report_path = run_dir / "report.json"
     if not report_path.is_file():
@@ -164,7 +162,7 @@ def load_run(run_dir: Path, scene_override: str | Path | None = None, scene_hint
     scene_dir = Path(scene_override) if scene_override else recorded_path(run_dir, report, "scene")
     if scene_dir is None or not scene_dir.is_dir():
         where = "given" if scene_override else f"recorded in {report_path}"
-        raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; {scene_hint}")
+        raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; pass --scene SCENE")
     scene = Scene.load(scene_dir, downscale=cfg.get("downscale", 1.0), test_every=cfg.get("test_every", 8),
                        check_priors=False)
     params, _ = load_ply(run_dir / "point_cloud.ply", sh_degree=cfg.get("sh_degree"))
