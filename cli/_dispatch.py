@@ -51,6 +51,56 @@ def progress_bars_off():
         tqdm.tqdm.__init__ = init
 
 
+LOG_PROGRESS_INTERVAL_S = 30.0  # with stderr in a file or a pipe: a bar's line at most this often
+
+
+class _ProgressLines:
+    """tqdm's file when stderr is a log, not a terminal: each refresh a line of its own (tqdm redraws
+    one line with carriage returns and cursor moves, which a log file keeps as one huge line)."""
+
+    encoding = "utf-8"
+    _ansi = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+    def write(self, s: str) -> None:
+        for line in self._ansi.sub("", s).replace("\r", "\n").split("\n"):
+            if line.strip():
+                sys.stderr.write(line.rstrip() + "\n")
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+    def isatty(self) -> bool:
+        return False
+
+
+@contextlib.contextmanager
+def progress_bars_as_lines():
+    """Within the block every tqdm bar writes whole lines, at most one per bar every
+    ``LOG_PROGRESS_INTERVAL_S`` seconds and none for work shorter than that: what a log of a
+    redirected command should hold. Restored after, as ``progress_bars_off``."""
+    from functools import partialmethod
+
+    import tqdm
+
+    init = tqdm.tqdm.__init__
+    tqdm.tqdm.__init__ = partialmethod(init, file=_ProgressLines(), mininterval=LOG_PROGRESS_INTERVAL_S,
+                                       delay=LOG_PROGRESS_INTERVAL_S, ascii=True, ncols=100)
+    try:
+        yield
+    finally:
+        tqdm.tqdm.__init__ = init
+
+
+def _progress_mode(quiet: bool):
+    if quiet:
+        return progress_bars_off()
+    try:
+        terminal = sys.stderr.isatty()
+    except (AttributeError, ValueError):  # a closed or stand-in stream
+        terminal = False
+    return contextlib.nullcontext() if terminal else progress_bars_as_lines()
+
+
 def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     """Route the package loggers to stderr; the library itself never configures logging."""
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
@@ -147,7 +197,7 @@ def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
             return 0
     old_sigterm = sigterm_as_interrupt()
     try:
-        with progress_bars_off() if quiet else contextlib.nullcontext():
+        with _progress_mode(quiet):
             return _run(fn, rest, sub_prog, verbose)
     finally:
         if old_sigterm is not None:

@@ -322,6 +322,38 @@ def test_quiet_run_prints_no_progress_bars(scene, capsys):
     assert "splat train:" not in err and "it/s" not in err
 
 
+def test_progress_bars_in_a_log_are_whole_lines(scene, capsys, monkeypatch):
+    """stderr redirected to a file (capsys: not a terminal): each bar refresh is a line of its own,
+    no carriage returns or cursor moves, which a log file kept as one huge line."""
+    import cli._dispatch as dispatch
+    from cli.splat_cli import main
+
+    monkeypatch.setattr(dispatch, "LOG_PROGRESS_INTERVAL_S", 0.0)  # every refresh, none held back
+    base, root, cues = scene
+    assert main(["train", str(root), "-c", str(cues), "-o", str(base / "logged"), "--iters", "10",
+                 "--sh-degree", "0", "--no-mesh"]) == 0
+    err = capsys.readouterr().err
+    bar_lines = [line for line in err.splitlines() if line.startswith("splat train:")]
+    assert len(bar_lines) >= 2 and "10/10" in bar_lines[-1]
+    assert "\r" not in err and "\x1b[" not in err
+
+
+def test_short_work_in_a_log_draws_no_bar_and_bars_are_restored_after(capsys):
+    import sys
+
+    from tqdm import tqdm
+
+    from cli._dispatch import progress_bars_as_lines
+
+    with progress_bars_as_lines():  # the default interval: work shorter than it draws nothing
+        for _ in tqdm(range(3), desc="short work"):
+            pass
+    assert "short work" not in capsys.readouterr().err
+    for _ in tqdm(range(3), desc="after the block", file=sys.stderr):
+        pass
+    assert "\rafter the block" in capsys.readouterr().err  # tqdm's own redrawing again
+
+
 def test_an_option_added_after_the_checkpoint_and_left_at_its_default_is_no_difference():
     """A run killed, the toolkit upgraded (new options), the run resumed: options the checkpoint does
     not record and the resume leaves at their defaults train the same, so they do not block it
