@@ -1,8 +1,10 @@
 """TSDF meshing of rendered depth: fuse per-view depth (and colour) into a truncated signed distance
 volume, extract the zero level set with marching cubes, clean it (DESIGN.md, "Meshing").
 
-The trainer renders the median depth of every training view, masks it by alpha and hands each view
-to :func:`fuse_views`, then :func:`clean_mesh` and :func:`write_mesh`.
+The trainer renders the expected (or, with ``--tsdf.depth median``, the median) depth of every
+training view, masks it by alpha and hands each view
+to :func:`fuse_views`, then :func:`clean_mesh` and :func:`write_mesh` (splat/mesh_post.py, with the
+canonical vertex order; the options are :class:`TSDFConfig`, splat/tsdf_config.py).
 
 Backend: Open3D's ``t.geometry.VoxelBlockGrid`` (a hash map of 16^3-voxel blocks, attributes
 ``tsdf``, ``weight`` and ``color`` in float32). Open3D 0.20's legacy ``ScalableTSDFVolume`` returns
@@ -36,12 +38,14 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import asdict
 from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 from tqdm import tqdm
+
+from splat.mesh_post import canonical_order, clean_mesh, write_mesh
+from splat.tsdf_config import TSDFConfig, open3d_device
 
 if TYPE_CHECKING:  # Open3D is imported where it is used: splat.train imports this module on
     import open3d as o3d  # machines that train without meshing (no Open3D there)
@@ -51,97 +55,6 @@ log = logging.getLogger(__name__)
 OPEN3D_PIXEL_SHIFT = 0.0
 """Added to cx, cy before they go to Open3D. 0: its integration reads pixel ``(int(u), int(v))``,
 which is the COLMAP pixel containing ``(u, v)`` (module docstring; tests/test_mesh.py checks it)."""
-
-
-@dataclass
-class TSDFConfig:
-    """TSDF fusion and mesh cleaning (Open3D VoxelBlockGrid, marching cubes, pymeshlab)."""
-
-    voxel_size: float = 0.02
-    """voxel edge in metres; at 2 cm exact depth meshes to within 1 mm, 1 cm costs 2.5x the time and 4x the triangles (docs/meshing.md)."""
-    sdf_trunc: float | None = None
-    """truncation distance of the signed distance in metres; None = 4 x voxel_size."""
-    depth_max: float = 10.0
-    """depths beyond this (metres) are ignored; rooms are under 10 m across."""
-    weight_threshold: float = 3.0
-    """marching cubes keeps voxels seen by more than this many views (Open3D's default); lowered to n - 1 when only n <= it views had valid depth."""
-    block_count: int = 1000
-    """initial capacity of the block hash map (16^3 voxels, 80 kB each, allocated up front); it grows as needed."""
-    device: str = "cpu"
-    """device of the voxel grid, spelled as everywhere in the toolkit: "cpu", "cuda" or "cuda:N"
-    ("cuda" needs a CUDA build of Open3D; Open3D's own "CPU:0" / "CUDA:0" are accepted too)."""
-    min_component_diag: float = 0.05
-    """clean_mesh removes connected components whose bounding-box diagonal is below this fraction of the whole mesh's (0 keeps all)."""
-    depth: str = "expected"
-    """rendered depth fused for a trained model: "expected" (the alpha-normalised blend of the
-    Gaussians' depth planes) or "median" (where transmittance crosses 0.5, RaDe-GS's meshing depth:
-    a step from one Gaussian's plane to the next, so its meshes' normals are rougher — normal
-    consistency 0.06-0.13 lower on every row of the textured-room ablation, docs/meshing.md).
-    Exact depth (the floor) is fused as it is."""
-
-    consistent_views: int | None = None
-    """fuse a rendered-depth pixel only where at least this many of its ``consistency_neighbours``
-    neighbouring views render a depth that agrees with it (forward-backward reprojection within
-    ``consistency_px`` pixels and ``consistency_rel_depth``, the check of MVS fusion; an extension);
-    None fuses every pixel. Exact depth (the floor) is never filtered."""
-    max_depth_spread: float | None = None
-    """fuse a rendered pixel only where its expected and median depths differ by at most this
-    fraction of the depth (an extension): where they part ways the pixel mixes surfaces — an object's
-    silhouette over the wall behind it, a floater — and its blended depth lies between them (the
-    halos in front of ICL's chair). None fuses every pixel with alpha > 0.5."""
-    consistency_neighbours: int = 4
-    """views compared with each fused view (chosen as `geocues mvs` chooses them) when ``consistent_views`` is set."""
-    consistency_px: float = 1.0
-    """forward-backward reprojection tolerance in pixels of the rendered views."""
-    consistency_rel_depth: float = 0.01
-    """forward-backward depth tolerance relative to the depth."""
-    smooth_iters: int = 0
-    """Taubin smoothing steps clean_mesh applies last, to trained meshes and the floor alike (an
-    extension; 0 = off): λ 0.5, μ -0.51, a low-pass filter with pass-band 0.04 that does not shrink
-    the mesh. It flattens the bumps a few voxels wide that the Gaussians' depth planes leave in the
-    fused surface; 30 steps measured on the seed-0 rooms (docs/meshing.md)."""
-
-    @property
-    def trunc(self) -> float:
-        """The truncation distance in metres (``sdf_trunc`` or 4 voxels)."""
-        return 4.0 * self.voxel_size if self.sdf_trunc is None else float(self.sdf_trunc)
-
-    def validate(self) -> None:
-        """Raise ValueError on an impossible setting."""
-        if not self.voxel_size > 0:
-            raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
-        if not self.trunc >= 2.0 * self.voxel_size:
-            raise ValueError(f"sdf_trunc ({self.trunc} m) must be at least 2 voxels "
-                             f"(2 x {self.voxel_size} m) for marching cubes to find the zero crossing")
-        if not self.depth_max > 0:
-            raise ValueError(f"depth_max must be positive, got {self.depth_max}")
-        if self.weight_threshold < 0:
-            raise ValueError(f"weight_threshold must be >= 0, got {self.weight_threshold}")
-        if self.block_count < 1:
-            raise ValueError(f"block_count must be >= 1, got {self.block_count}")
-        open3d_device(self.device)
-        if self.depth not in ("median", "expected"):
-            raise ValueError(f"depth must be 'median' or 'expected', got {self.depth!r}")
-        if self.consistent_views is not None and not 1 <= self.consistent_views <= self.consistency_neighbours:
-            raise ValueError(f"consistent_views must be in 1..consistency_neighbours "
-                             f"({self.consistency_neighbours}) or unset, got {self.consistent_views}")
-        if self.max_depth_spread is not None and not self.max_depth_spread > 0:
-            raise ValueError(f"max_depth_spread must be positive or unset, got {self.max_depth_spread}")
-        if not (self.consistency_px > 0 and self.consistency_rel_depth > 0):
-            raise ValueError(f"consistency_px and consistency_rel_depth must be positive, got "
-                             f"{self.consistency_px}, {self.consistency_rel_depth}")
-        if not 0.0 <= self.min_component_diag < 1.0:
-            raise ValueError(f"min_component_diag must be in [0, 1), got {self.min_component_diag}")
-        if self.smooth_iters < 0:
-            raise ValueError(f"smooth_iters must be >= 0, got {self.smooth_iters}")
-
-
-def open3d_device(name: str) -> str:
-    """The toolkit's device spelling ("cpu", "cuda", "cuda:1") as Open3D's ("CPU:0", "CUDA:1")."""
-    kind, _, index = name.strip().lower().partition(":")
-    if kind not in ("cpu", "cuda") or (index and not index.isdigit()):
-        raise ValueError(f"--tsdf.device must be cpu, cuda or cuda:N, got {name!r}")
-    return f"{kind.upper()}:{index or 0}"
 
 
 def _as_depth(depth: np.ndarray, where: str) -> np.ndarray:
@@ -352,33 +265,6 @@ class TSDFFuser:
         return mesh
 
 
-def canonical_order(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
-    """``mesh`` with its vertices sorted by position (x, then y, then z) and its triangles by their
-    vertices (each rotated to start at its smallest index, so the winding is kept). Open3D's voxel
-    hash map hands marching cubes its blocks in a different order on every run; in this order the same
-    surface is the same file, and everything computed from it (cleaning, metrics' samples) the same."""
-    import open3d as o3d
-
-    V = np.asarray(mesh.vertices)
-    F = np.asarray(mesh.triangles)
-    if len(V) == 0:
-        return mesh
-    order = np.lexsort((V[:, 2], V[:, 1], V[:, 0]))  # [V] new -> old
-    rank = np.empty(len(V), np.int64)
-    rank[order] = np.arange(len(V))  # old -> new
-    F = rank[F] if len(F) else F.reshape(0, 3).astype(np.int64)
-    first = F.argmin(1) if len(F) else np.zeros(0, np.int64)
-    F = np.take_along_axis(F, (first[:, None] + np.arange(3)) % 3, axis=1)  # cyclic: same winding
-    F = F[np.lexsort((F[:, 2], F[:, 1], F[:, 0]))] if len(F) else F
-    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V[order]),
-                                    o3d.utility.Vector3iVector(F.astype(np.int32)))
-    if mesh.has_vertex_normals():
-        out.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_normals)[order])
-    if mesh.has_vertex_colors():
-        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
-    return out
-
-
 def fuse_views(views: Iterable[tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]],
                cfg: TSDFConfig | None = None, progress: bool = True) -> o3d.geometry.TriangleMesh:
     """Fuse ``(depth [H, W] m, rgb [H, W, 3] or None, K [3, 3], world_to_cam [4, 4])`` tuples
@@ -402,86 +288,5 @@ def fuse_views(views: Iterable[tuple[np.ndarray, np.ndarray | None, np.ndarray, 
     return mesh
 
 
-def clean_mesh(mesh: o3d.geometry.TriangleMesh, cfg: TSDFConfig | None = None) -> o3d.geometry.TriangleMesh:
-    """Remove duplicate vertices and faces, zero-area faces, connected components whose bounding
-    box diagonal is below ``cfg.min_component_diag`` of the whole mesh's, and unreferenced
-    vertices (pymeshlab); then ``cfg.smooth_iters`` Taubin steps, with the vertex normals computed
-    again. Keeps vertex normals and colours. An empty mesh is returned as is."""
-    import open3d as o3d
-    import pymeshlab  # lazy: only the meshing stage needs it
-
-    cfg = cfg or TSDFConfig()
-    cfg.validate()
-    V = np.asarray(mesh.vertices, dtype=np.float64)  # [V, 3]
-    F = np.asarray(mesh.triangles, dtype=np.int32)  # [F, 3]
-    if len(V) == 0 or len(F) == 0:
-        log.info("clean_mesh: empty mesh (%d vertices, %d triangles), nothing to clean", len(V), len(F))
-        return o3d.geometry.TriangleMesh()
-    kwargs = {}
-    if mesh.has_vertex_normals():
-        kwargs["v_normals_matrix"] = np.asarray(mesh.vertex_normals, dtype=np.float64)
-    if mesh.has_vertex_colors():
-        rgb = np.clip(np.asarray(mesh.vertex_colors, dtype=np.float64), 0.0, 1.0)
-        kwargs["v_color_matrix"] = np.concatenate([rgb, np.ones((len(rgb), 1))], axis=1)  # RGBA
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V, face_matrix=F, **kwargs), "tsdf")
-    ms.meshing_remove_duplicate_vertices()
-    ms.meshing_remove_duplicate_faces()
-    ms.meshing_remove_null_faces()
-    n_before = ms.current_mesh().face_number()
-    if cfg.min_component_diag > 0:
-        ms.meshing_remove_connected_component_by_diameter(
-            mincomponentdiag=pymeshlab.PercentageValue(100.0 * cfg.min_component_diag), removeunref=True)
-    ms.meshing_remove_unreferenced_vertices()
-    if cfg.smooth_iters > 0 and ms.current_mesh().face_number():
-        ms.apply_coord_taubin_smoothing(lambda_=0.5, mu=-0.51, stepsmoothnum=cfg.smooth_iters)
-        ms.compute_normal_per_vertex()
-    m = ms.current_mesh()
-    out = o3d.geometry.TriangleMesh(
-        vertices=o3d.utility.Vector3dVector(m.vertex_matrix()),
-        triangles=o3d.utility.Vector3iVector(m.face_matrix().astype(np.int32)))
-    if m.vertex_number() and mesh.has_vertex_normals():  # pymeshlab's are not unit length (area/angle sums)
-        n = m.vertex_normal_matrix()
-        out.vertex_normals = o3d.utility.Vector3dVector(n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12))
-    if m.vertex_number() and mesh.has_vertex_colors():
-        out.vertex_colors = o3d.utility.Vector3dVector(m.vertex_color_matrix()[:, :3])
-    log.info("clean_mesh: %d -> %d vertices, %d -> %d triangles (%d in components smaller than "
-             "%.1f%% of the diagonal), %d Taubin steps", len(V), m.vertex_number(), len(F), m.face_number(),
-             n_before - m.face_number(), 100.0 * cfg.min_component_diag, cfg.smooth_iters)
-    return out
-
-
-_EMPTY_PLY = ("ply\nformat ascii 1.0\ncomment empty TSDF mesh (splat.mesh)\nelement vertex 0\n"
-              "property float x\nproperty float y\nproperty float z\nelement face 0\n"
-              "property list uchar int vertex_indices\nend_header\n")
-
-
-def write_mesh(mesh: o3d.geometry.TriangleMesh, path: str | Path) -> Path:
-    """Write ``mesh`` as a binary PLY (vertices, triangles, normals, colours) atomically; an empty
-    mesh becomes a valid PLY with no elements (Open3D refuses to write one), with a warning."""
-    import open3d as o3d
-    from geocues.atomic import atomic_path
-
-    path = Path(path)
-    if path.suffix.lower() != ".ply":
-        raise ValueError(f"write_mesh writes PLY; the path must end in .ply, got {path}")
-    verts = np.asarray(mesh.vertices)
-    if len(verts) and not np.isfinite(verts).all():
-        raise ValueError(f"write_mesh: {int((~np.isfinite(verts).all(1)).sum())} non-finite vertices; "
-                         f"not writing {path}")
-    with atomic_path(path) as tmp:
-        if len(mesh.vertices) == 0:
-            log.warning("write_mesh: the mesh is empty; writing an empty PLY to %s", path)
-            tmp.write_text(_EMPTY_PLY)
-        else:
-            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-                ok = o3d.io.write_triangle_mesh(filename=str(tmp), mesh=mesh, write_ascii=False,
-                                                compressed=False)
-            if not ok:
-                raise OSError(f"Open3D could not write the mesh to {path}")
-    log.info("wrote %s (%d vertices, %d triangles)", path, len(mesh.vertices), len(mesh.triangles))
-    return path
-
-
-__all__ = ["TSDFConfig", "TSDFFuser", "fuse_views", "clean_mesh", "write_mesh", "open3d_intrinsics",
+__all__ = ["TSDFConfig", "open3d_device", "canonical_order", "TSDFFuser", "fuse_views", "clean_mesh", "write_mesh", "open3d_intrinsics",
            "OPEN3D_PIXEL_SHIFT"]

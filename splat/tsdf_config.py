@@ -1,0 +1,97 @@
+"""TSDF fusion and mesh-cleaning options (``--tsdf.*`` of `splat train` and `splat mesh`): the
+dataclass :class:`TSDFConfig` and the device spelling Open3D takes (splat/mesh.py fuses with them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class TSDFConfig:
+    """TSDF fusion and mesh cleaning (Open3D VoxelBlockGrid, marching cubes, pymeshlab)."""
+
+    voxel_size: float = 0.02
+    """voxel edge in metres; at 2 cm exact depth meshes to within 1 mm, 1 cm costs 2.5x the time and 4x the triangles (docs/meshing.md)."""
+    sdf_trunc: float | None = None
+    """truncation distance of the signed distance in metres; None = 4 x voxel_size."""
+    depth_max: float = 10.0
+    """depths beyond this (metres) are ignored; rooms are under 10 m across."""
+    weight_threshold: float = 3.0
+    """marching cubes keeps voxels seen by more than this many views (Open3D's default); lowered to n - 1 when only n <= it views had valid depth."""
+    block_count: int = 1000
+    """initial capacity of the block hash map (16^3 voxels, 80 kB each, allocated up front); it grows as needed."""
+    device: str = "cpu"
+    """device of the voxel grid, spelled as everywhere in the toolkit: "cpu", "cuda" or "cuda:N"
+    ("cuda" needs a CUDA build of Open3D; Open3D's own "CPU:0" / "CUDA:0" are accepted too)."""
+    min_component_diag: float = 0.05
+    """clean_mesh removes connected components whose bounding-box diagonal is below this fraction of the whole mesh's (0 keeps all)."""
+    depth: str = "expected"
+    """rendered depth fused for a trained model: "expected" (the alpha-normalised blend of the
+    Gaussians' depth planes) or "median" (where transmittance crosses 0.5, RaDe-GS's meshing depth:
+    a step from one Gaussian's plane to the next, so its meshes' normals are rougher — normal
+    consistency 0.06-0.13 lower on every row of the textured-room ablation, docs/meshing.md).
+    Exact depth (the floor) is fused as it is."""
+
+    consistent_views: int | None = None
+    """fuse a rendered-depth pixel only where at least this many of its ``consistency_neighbours``
+    neighbouring views render a depth that agrees with it (forward-backward reprojection within
+    ``consistency_px`` pixels and ``consistency_rel_depth``, the check of MVS fusion; an extension);
+    None fuses every pixel. Exact depth (the floor) is never filtered."""
+    max_depth_spread: float | None = None
+    """fuse a rendered pixel only where its expected and median depths differ by at most this
+    fraction of the depth (an extension): where they part ways the pixel mixes surfaces — an object's
+    silhouette over the wall behind it, a floater — and its blended depth lies between them (the
+    halos in front of ICL's chair). None fuses every pixel with alpha > 0.5."""
+    consistency_neighbours: int = 4
+    """views compared with each fused view (chosen as `geocues mvs` chooses them) when ``consistent_views`` is set."""
+    consistency_px: float = 1.0
+    """forward-backward reprojection tolerance in pixels of the rendered views."""
+    consistency_rel_depth: float = 0.01
+    """forward-backward depth tolerance relative to the depth."""
+    smooth_iters: int = 0
+    """Taubin smoothing steps clean_mesh applies last, to trained meshes and the floor alike (an
+    extension; 0 = off): λ 0.5, μ -0.51, a low-pass filter with pass-band 0.04 that does not shrink
+    the mesh. It flattens the bumps a few voxels wide that the Gaussians' depth planes leave in the
+    fused surface; 30 steps measured on the seed-0 rooms (docs/meshing.md)."""
+
+    @property
+    def trunc(self) -> float:
+        """The truncation distance in metres (``sdf_trunc`` or 4 voxels)."""
+        return 4.0 * self.voxel_size if self.sdf_trunc is None else float(self.sdf_trunc)
+
+    def validate(self) -> None:
+        """Raise ValueError on an impossible setting."""
+        if not self.voxel_size > 0:
+            raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
+        if not self.trunc >= 2.0 * self.voxel_size:
+            raise ValueError(f"sdf_trunc ({self.trunc} m) must be at least 2 voxels "
+                             f"(2 x {self.voxel_size} m) for marching cubes to find the zero crossing")
+        if not self.depth_max > 0:
+            raise ValueError(f"depth_max must be positive, got {self.depth_max}")
+        if self.weight_threshold < 0:
+            raise ValueError(f"weight_threshold must be >= 0, got {self.weight_threshold}")
+        if self.block_count < 1:
+            raise ValueError(f"block_count must be >= 1, got {self.block_count}")
+        open3d_device(self.device)
+        if self.depth not in ("median", "expected"):
+            raise ValueError(f"depth must be 'median' or 'expected', got {self.depth!r}")
+        if self.consistent_views is not None and not 1 <= self.consistent_views <= self.consistency_neighbours:
+            raise ValueError(f"consistent_views must be in 1..consistency_neighbours "
+                             f"({self.consistency_neighbours}) or unset, got {self.consistent_views}")
+        if self.max_depth_spread is not None and not self.max_depth_spread > 0:
+            raise ValueError(f"max_depth_spread must be positive or unset, got {self.max_depth_spread}")
+        if not (self.consistency_px > 0 and self.consistency_rel_depth > 0):
+            raise ValueError(f"consistency_px and consistency_rel_depth must be positive, got "
+                             f"{self.consistency_px}, {self.consistency_rel_depth}")
+        if not 0.0 <= self.min_component_diag < 1.0:
+            raise ValueError(f"min_component_diag must be in [0, 1), got {self.min_component_diag}")
+        if self.smooth_iters < 0:
+            raise ValueError(f"smooth_iters must be >= 0, got {self.smooth_iters}")
+
+
+def open3d_device(name: str) -> str:
+    """The toolkit's device spelling ("cpu", "cuda", "cuda:1") as Open3D's ("CPU:0", "CUDA:1")."""
+    kind, _, index = name.strip().lower().partition(":")
+    if kind not in ("cpu", "cuda") or (index and not index.isdigit()):
+        raise ValueError(f"--tsdf.device must be cpu, cuda or cuda:N, got {name!r}")
+    return f"{kind.upper()}:{index or 0}"
