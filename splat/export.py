@@ -5,6 +5,7 @@ so that SIBR's viewer and the reference ``render.py`` / ``metrics.py`` open it a
     RUN/point_cloud/iteration_<N>/cue_type.npy      this project's Gaussian types (readers ignore it)
     RUN/cfg_args                                    repr of the argparse Namespace of ModelParams
     RUN/cameras.json                                the reference ``camera_to_JSON`` of every camera
+                                                    (refined where the run refined them)
 
 ``cfg_args`` always says ``sh_degree=3``: the PLY is padded to degree 3 and the reference loader
 asserts that its ``f_rest`` count matches that degree. Every file is written atomically.
@@ -57,12 +58,14 @@ def reference_cfg_args(scene: Scene, cfg_dict: dict, model_path: Path) -> Namesp
     )
 
 
-def camera_to_json(index: int, cam) -> dict:
+def camera_to_json(index: int, cam, refined: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> dict:
     """One entry of the reference ``cameras.json`` (``utils/camera_utils.py::camera_to_JSON``):
     position and rotation are camera-to-world (rotation columns = camera axes in the world),
     ``img_name`` is the file name up to its first dot (as the reference's COLMAP reader),
-    width/height/fx/fy in pixels at the training resolution. cam: a geocues.scene.Camera."""
-    R, t = np.asarray(cam.R, np.float64), np.asarray(cam.t, np.float64)
+    width/height/fx/fy in pixels at the training resolution. cam: a geocues.scene.Camera;
+    refined: its (K, R, t) after the run's camera refinement, written instead of the scene's."""
+    K, R, t = refined if refined is not None else (cam.K, cam.R, cam.t)
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
     return {
         "id": index,
         "img_name": Path(cam.name).name.split(".")[0],
@@ -70,19 +73,22 @@ def camera_to_json(index: int, cam) -> dict:
         "height": int(cam.height),
         "position": (-R.T @ t).tolist(),
         "rotation": [row.tolist() for row in R.T],
-        "fy": float(cam.K[1, 1]),
-        "fx": float(cam.K[0, 0]),
+        "fy": float(K[1, 1]),
+        "fx": float(K[0, 0]),
     }
 
 
 def write_3dgs_run(run_dir: str | Path, params: dict[str, Tensor], cue_type: Tensor | None, scene: Scene,
-                   cfg_dict: dict, iteration: int) -> Path:
+                   cfg_dict: dict, iteration: int, refinement: str | Path | None = None) -> Path:
     """Write the reference 3DGS run files into ``run_dir`` (see the module docstring).
 
     params: the Gaussians (splat.gaussians contract); cue_type: [N] or None; scene: the trained
     scene (its cameras go to cameras.json, its root to ``source_path``); cfg_dict: the training
     config as a dict (``downscale``, ``background``, ``test_every`` are read); iteration: N of
-    ``point_cloud/iteration_N``. Returns the PLY path.
+    ``point_cloud/iteration_N``; refinement: the run's camera_refinement.npz (`--pose-opt`,
+    `--focal-opt`), whose cameras the Gaussians were fitted to: cameras.json holds them (the
+    training views' corrected poses, every view's refined focal), as `splat render` draws them.
+    Returns the PLY path.
     """
     run_dir = Path(run_dir)
     if int(iteration) < 0:
@@ -91,7 +97,14 @@ def write_3dgs_run(run_dir: str | Path, params: dict[str, Tensor], cue_type: Ten
     args = reference_cfg_args(scene, cfg_dict, model_path_of(run_dir))
     with atomic_path(run_dir / "cfg_args") as tmp:
         tmp.write_text(repr(args))
-    cams = [camera_to_json(i, cam) for i, cam in enumerate(scene.cameras)]
+    if refinement is not None:
+        from splat.camera_opt import load_refinement, refine_Rt
+
+        corrections, focal = load_refinement(refinement)
+        refined = [refine_Rt(c.K, c.R, c.t, corrections.get(c.name), focal) for c in scene.cameras]
+    else:
+        refined = [None] * len(scene.cameras)
+    cams = [camera_to_json(i, cam, r) for i, (cam, r) in enumerate(zip(scene.cameras, refined))]
     with atomic_path(run_dir / "cameras.json") as tmp:
         tmp.write_text(json.dumps(cams, allow_nan=False))
     log.info("wrote the 3DGS reference layout of %s (iteration %d, %d cameras)", run_dir, iteration, len(cams))

@@ -87,12 +87,14 @@ def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, f
     work = loop.work
     t0 = time.perf_counter()
     final = evaluate_views(s.params, s.test_views, cfg.sh_degree, cfg, work / "test_renders", s.refiner)
-    ply = write_3dgs_run(work, s.params, s.state["cue_type"], s.scene, asdict(cfg), cfg.iters)
+    refinement = None
+    if s.refiner is not None:  # the refined training cameras: corrections per view (bench/camera_error.py reads them)
+        refinement = work / "camera_refinement.npz"
+        s.refiner.save(refinement, [s.scene.cameras[i].name for i in s.train_views.indices])
+    ply = write_3dgs_run(work, s.params, s.state["cue_type"], s.scene, asdict(cfg), cfg.iters, refinement)
     for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
         if src.is_file():
             _link_or_copy(src, work / src.name)
-    if s.refiner is not None:  # the refined training cameras: corrections per view (bench/camera_error.py reads them)
-        s.refiner.save(work / "camera_refinement.npz", [s.scene.cameras[i].name for i in s.train_views.indices])
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()

@@ -179,11 +179,18 @@ def test_train_with_camera_refinement_reports_it_meshes_and_resumes(tmp_path):
 
     scene, _, _ = load_run(out)
     names = [str(n) for n in z["names"]]
+    # cameras.json (SIBR, the reference render.py, web viewers) holds the cameras the Gaussians were
+    # fitted to, as `splat render` draws them: not the scene's unrefined ones
+    exported = json.loads((out / "cameras.json").read_text())
     for which in ("train", "test"):
         cams = _chosen(RenderConfig(views=which), scene, out)
         assert cams
         for v in cams:
             c = scene.cameras[v.index]
+            e = exported[v.index]
+            assert e["fx"] == pytest.approx(v.K[0, 0], rel=1e-12) and e["fx"] != pytest.approx(c.K[0, 0], rel=1e-6)
+            np.testing.assert_allclose(e["position"], -v.R.T @ v.t, atol=1e-12)
+            np.testing.assert_allclose(e["rotation"], v.R.T, atol=1e-12)
             np.testing.assert_allclose(v.K[0, 0], c.K[0, 0] * cr["focal_factor"], rtol=1e-9)
             np.testing.assert_allclose(v.K[0, 2], c.K[0, 2])
             if which == "test":
