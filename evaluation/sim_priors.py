@@ -64,12 +64,13 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
     import open3d as o3d
     from tqdm import tqdm
 
-    from geocues.atomic import atomic_dir, check_output_dir
+    from geocues.atomic import atomic_dir, check_output_dir, check_replaceable
     from geocues.scene import Scene, gt_mesh_file
     from geocues.sfm import link_scene
     from splat.floor import find_gt_depth_dir, load_gt_depth
 
     scene_dir, out = Path(scene_dir).resolve(), Path(out)
+    check_replaceable(out, "scene.json", "a scene folder", {"scene": scene_dir, "GT depth folder": cfg.gt_depth})
     if out.exists() and not overwrite:
         raise ValueError(f"{out} already exists; pass --overwrite to replace it")
     check_output_dir(out)

@@ -97,6 +97,39 @@ def check_output_dir(path: str | Path) -> Path:
     return path
 
 
+def check_not_input(path: str | Path, inputs: dict[str, str | Path | None]) -> None:
+    """Refuse the output folder ``path`` when it is, or holds, one of the command's inputs
+    (``inputs``: what it is called -> its path; None skipped): a command that replaces or fills its
+    output folder would delete or mix into it (`splat train SCENE -o SCENE --overwrite` removed the
+    scene). An output inside an input (``-o SCENE/cues``) is fine."""
+    out = Path(path).resolve()
+    for name, given in inputs.items():
+        if given is None:
+            continue
+        src = Path(given).resolve()
+        if src == out or out in src.parents:
+            raise ValueError(f"the output folder {path} {'is' if src == out else 'holds'} the {name} ({given}): "
+                             f"writing there would replace it; choose another output folder")
+
+
+def check_replaceable(path: str | Path, marker: str, what: str,
+                      inputs: dict[str, str | Path | None] | None = None) -> None:
+    """For a command that replaces its output folder whole: refuse, whatever ``--overwrite`` says, a
+    folder that is or holds an input (:func:`check_not_input`) and a non-empty folder without
+    ``marker``, the file every earlier output of the command holds (``what`` names such an output):
+    it is someone else's folder, and replacing it would delete what it holds. Hidden entries are
+    not counted."""
+    check_not_input(path, inputs or {})
+    path = Path(path)
+    if path.is_dir() and not (path / marker).exists():
+        others = sorted(e.name for e in path.iterdir() if not e.name.startswith("."))
+        if others:
+            shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
+            raise ValueError(f"{path} is not {what} (no {marker}) but holds {len(others)} "
+                             f"entr{'y' if len(others) == 1 else 'ies'} ({shown}); the output folder is "
+                             f"replaced whole, so choose a new or empty folder")
+
+
 def check_output_file(path: str | Path, overwrite: bool = False) -> Path:
     """Fail early, before any work, when the output file ``path`` cannot be written: it is a folder,
     it exists and ``overwrite`` is off (a finished output is replaced only when asked), or its folder

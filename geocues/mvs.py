@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from geocues.atomic import atomic_path, check_output_dir
+from geocues.atomic import atomic_path, check_not_input, check_output_dir
 from geocues.scene import Camera, Scene
 from geocues.sfm import link_scene
 
@@ -333,6 +333,7 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     if scene_dir.resolve() == out_dir.resolve():
         raise ValueError("geocues mvs writes a new scene folder: pass an OUT other than SCENE")
+    check_not_input(out_dir, {"scene": scene_dir})
     report_path = out_dir / "mvs_report.json"
     if report_path.is_file() and not overwrite:
         raise ValueError(f"{out_dir} holds MVS priors already; pass --overwrite to compute them again")

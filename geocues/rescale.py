@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geocues.atomic import atomic_dir, check_output_dir
+from geocues.atomic import atomic_dir, check_output_dir, check_replaceable
 from geocues.colmap_io import find_model_dir, load_reconstruction
 from geocues.nerfstudio_io import find_transforms, transforms_reconstruction
 from geocues.scene import ARBITRARY_SCALE, Scene, rescale_hint
@@ -133,6 +133,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     if out_dir.exists() and out_dir.resolve() == scene_dir.resolve():
         raise ValueError("geocues rescale writes a new scene folder: pass an OUT other than SCENE")
+    check_replaceable(out_dir, "scene.json", "a scene folder", {"scene": scene_dir})
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise ValueError(f"{out_dir} already exists; pass --overwrite to replace it")
     check_output_dir(out_dir)

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from geocues import sfm_steps as U
-from geocues.atomic import atomic_dir, atomic_path, check_output_dir
+from geocues.atomic import atomic_dir, atomic_path, check_not_input, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
 from geocues.nerfstudio_io import find_transforms, transforms_reconstruction, write_colmap_model
 from geocues.photos import missing_images_error
@@ -228,6 +228,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
                                 f"in {scene_dir / 'sparse' / '0'} or {scene_dir / 'sparse'}")
     in_place = out_dir is None or Path(out_dir).resolve() == scene_dir.resolve()
     root = scene_dir if in_place else Path(out_dir)
+    if not in_place:
+        check_not_input(root, {"scene": scene_dir})
     if in_place and not os.access(scene_dir, os.W_OK):
         raise ValueError(f"{scene_dir} is not writable: pass an output folder (-o OUT) to write a new scene")
     check_output_dir(root)

@@ -14,7 +14,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from geocues.atomic import atomic_dir, check_output_dir
+from geocues.atomic import atomic_dir, check_not_input, check_output_dir
 from geocues.colmap_io import camera_distortion, find_model_dir, is_pinhole, load_reconstruction
 from geocues.photos import missing_images_error
 from geocues.scene import no_images_folder
@@ -46,6 +46,7 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
         raise no_images_folder(image_dir)
     if out_dir.resolve() == scene_dir.resolve():
         raise ValueError(f"undistort writes a new scene: OUT must differ from SCENE ({scene_dir})")
+    check_not_input(out_dir, {"scene": scene_dir})
     if (out_dir / "sparse").exists() and not overwrite:
         raise ValueError(f"{out_dir / 'sparse'} exists; pass --overwrite to replace it")
     check_output_dir(out_dir)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geocues.atomic import atomic_dir, check_output_dir
+from geocues.atomic import atomic_dir, check_output_dir, check_replaceable
 
 log = logging.getLogger(__name__)
 
@@ -202,6 +202,7 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
     cfg.validate()
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir / "renders"
+    check_replaceable(out, "views.json", "a `splat render` output", {"run": run_dir})
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise ValueError(f"{out} already holds renders; pass --overwrite to replace them")
     check_output_dir(out)

@@ -341,7 +341,7 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     ``resume=True`` continues from it. A finished OUT is only replaced with ``overwrite=True``.
     """
     out_dir = Path(out_dir)
-    work, cues_ply, ckpt = open_run(cfg, out_dir, Path(cues), overwrite, resume)
+    work, cues_ply, ckpt = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
     device = resolve_device(cfg.device)
     rasterizer = describe_backend(cfg.backend, device)  # builds the kernels now, with a message, not in the first step
     torch.manual_seed(cfg.seed)

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from geocues.advice import few_views_warning
-from geocues.atomic import check_output_dir
+from geocues.atomic import check_output_dir, check_replaceable
 from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.plane_anchors import load_plane_anchors
 from geocues.rescale import metric_warning
@@ -36,8 +36,8 @@ from splat.views import ViewSet, warn_large_images
 log = logging.getLogger(__name__)
 
 
-def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resume: bool
-             ) -> tuple[Path, Path, dict | None]:
+def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resume: bool,
+             scene_dir: Path | None = None) -> tuple[Path, Path, dict | None]:
     """Check the inputs and the output folder before any work; return (the staging folder
     ``OUT.partial`` the run works in, the cue cloud's path, the checkpoint to resume from or None).
     Without ``resume`` an unfinished staging folder is removed."""
@@ -49,6 +49,7 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     if (out_dir / "report.json").is_file() and not overwrite:
         raise ValueError(f"{out_dir} holds a finished run; pass --overwrite to replace it")
     check_output_dir(out_dir)  # a file, or a folder that refuses files: one line, before any work
+    check_replaceable(out_dir, "report.json", "a `splat train` run", {"scene": scene_dir, "cues": cues})
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)

@@ -65,7 +65,7 @@ CASES = [
     (["geocues", "rescale", "{R}", "-o", "{B}/metric", "--scale", "2"], "{B}/metric", "scene.json"),
     (["geocues", "extract", "{R}", "-o", "{B}/cues_old"], "{B}/cues_old", "report.json"),
     (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{B}/train", "--iters", "2"], "{B}/train", "report.json"),
-    (["splat", "render", "{B}/run", "-o", "{B}/renders"], "{B}/renders", "panels/0.png"),
+    (["splat", "render", "{B}/run", "-o", "{B}/renders"], "{B}/renders", "views.json"),
     (["splat", "mesh", "{B}/run", "-o", "{B}/remesh.ply"], "{B}/remesh.ply", "file"),
     (["splat", "bench", "-o", "{B}/bench.json", "--sizes", "8", "8", "--counts", "10"], "{B}/bench.json", "file"),
     (["splat", "view", "{B}/run", "--screenshot", "{B}/view.png"], "{B}/view.png", "file"),
@@ -73,7 +73,7 @@ CASES = [
     (["evaluate", "mesh", "{R}/gt/mesh.ply", "{R}", "-o", "{B}/metrics2.json"], "{B}/metrics2.json", "file"),
     (["evaluate", "cues", "{B}/cues", "{R}", "-o", "{B}/cue_metrics.json"], "{B}/cue_metrics.json", "file"),
     (["evaluate", "report", "{B}/run"], "{B}/run", "report.md"),
-    (["evaluate", "make-room", "{B}/made", "--no-sfm"], "{B}/made", "scene.json"),
+    (["evaluate", "make-room", "{B}/made", "--no-sfm"], "{B}/made", "make_room_report.json"),
 ]
 
 
@@ -124,3 +124,60 @@ def test_overwrite_replaces_the_output(room, capsys):
     assert json.loads((base / "r" / "scene.json").read_text())["rescaled"]["scale"] == 2.0
     assert sorted(p.name for p in (base / "r").iterdir()) == ["gt", "images", "scene.json", "sparse"]
     assert not list(base.glob(".*"))  # no temporary sibling left behind
+
+
+# A command pointed at its own input, or at a folder holding it: refused with --overwrite too, the input
+# untouched (`splat train SCENE -c CUES -o SCENE --overwrite` deleted the scene; `splat render RUN -o RUN
+# --overwrite` the run). {R} the scene, {B} the base folder holding it and the cues, {B}/run a run.
+INPUT_CASES = [
+    (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{R}", "--iters", "2"], "the scene"),
+    (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{B}", "--iters", "2"], "the scene"),
+    (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{B}/cues", "--iters", "2"], "the cues"),
+    (["splat", "render", "{B}/run", "-o", "{B}/run"], "the run"),
+    (["geocues", "rescale", "{R}", "-o", "{B}", "--scale", "2"], "the scene"),
+    (["geocues", "sfm", "{R}", "-o", "{B}"], "the scene"),
+    (["geocues", "mvs", "{R}", "-o", "{B}"], "the scene"),
+    (["geocues", "undistort", "{R}", "-o", "{B}"], "the scene"),
+    (["evaluate", "simulate-priors", "{R}", "-o", "{B}"], "the scene"),
+]
+
+
+def _tree(folder: Path) -> list[tuple[str, int]]:
+    return sorted((str(p.relative_to(folder)), p.stat().st_size) for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.mark.parametrize("cmd, named", INPUT_CASES, ids=[" ".join(c[0][:2]) + f" -o {c[0][c[0].index('-o') + 1]}"
+                                                         for c in INPUT_CASES])
+def test_an_output_that_is_or_holds_an_input_is_refused_even_with_overwrite(room, capsys, cmd, named):
+    base, root = room
+    before = _tree(base)
+    prog, *args = [a.replace("{R}", str(root)).replace("{B}", str(base)) for a in cmd]
+    code = _main(prog)(args + ["--overwrite"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err, err
+    errors = [line for line in err.splitlines() if ": error: " in line]
+    assert len(errors) == 1 and named in errors[0] and "choose another output folder" in errors[0], err
+    assert _tree(base) == before  # nothing deleted, nothing added
+
+
+@pytest.mark.parametrize("prog, args", [
+    ("splat", ["train", "{R}", "-c", "{B}/cues", "--iters", "2"]),
+    ("splat", ["render", "{B}/run"]),
+    ("evaluate", ["make-room", "--no-sfm"]),
+    ("geocues", ["rescale", "{R}", "--scale", "2"]),
+], ids=["splat train", "splat render", "evaluate make-room", "geocues rescale"])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_folder_that_is_not_the_commands_output_is_never_replaced(room, capsys, prog, args, overwrite):
+    """These commands replace their output folder whole: a folder of other files (a user's notes,
+    other runs) is refused with and without --overwrite, where `splat train -o FOLDER` deleted them."""
+    base, root = room
+    other = base / f"someone_else_{prog}_{args[0]}_{overwrite}"
+    (other / "another_run").mkdir(parents=True)
+    (other / "notes.txt").write_text("mine")
+    args = [a.replace("{R}", str(root)).replace("{B}", str(base)) for a in args]
+    args = args[:1] + [str(other)] + args[1:] if args[0] == "make-room" else args + ["-o", str(other)]
+    code = _main(prog)(args + (["--overwrite"] if overwrite else []))
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err, err
+    assert "choose a new or empty folder" in err and "notes.txt" in err, err
+    assert (other / "notes.txt").read_text() == "mine" and (other / "another_run").is_dir()

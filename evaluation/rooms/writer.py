@@ -142,11 +142,12 @@ def make_room(out: str | Path, cfg: RoomConfig = RoomConfig(), overwrite: bool =
     """Generate, render and write the room scene folder ``out``; return its path."""
     import cv2
 
-    from geocues.atomic import atomic_dir, check_output_dir
+    from geocues.atomic import atomic_dir, check_output_dir, check_replaceable
     from geocues.colmap_io import RawImage, write_model
 
     out = Path(out)
     _check(cfg)
+    check_replaceable(out, "make_room_report.json", "a benchmark room of `evaluate make-room`")
     if out.exists() and not overwrite:
         raise ValueError(f"{out} already exists; pass overwrite=True (--overwrite) to replace it")
     check_output_dir(out)
