@@ -102,13 +102,15 @@ def ablation_markdown(summary: dict) -> str:
     counts = sorted({r["n_seeds"] for r in rows if r["status"] == "done"} or {cfg["seeds"]})
     seeds = (f"{counts[0]} seed(s) per row" if len(counts) == 1
              else f"{counts[0]}–{counts[-1]} seeds per row (the count beside a row with more than one)")
+    names = {r["row"] for r in rows}
     lines = [f"# Ablation on {summary['scene_label']}", "",
-             f"Scene `{summary['scene']}`, cues `{summary['cues']}`; {cfg['iters']} iterations per row "
-             f"(no-cues-long: 3x), {seeds} (mean ± std over seeds), "
+             f"Scene `{summary['scene']}`, cues `{summary['cues']}`; {cfg['iters']} iterations per row"
+             + (" (no-cues-long: 3x)" if "no-cues-long" in names else "") + f", {seeds} (mean ± std over seeds), "
              f"train options `{' '.join(summary['train_args']) or '(defaults)'}`. Mesh metrics: the "
              "`evaluate` protocol (MonoSDF sampling, culled to the scene's cameras, F-score at 5 cm). "
-             "Paper: IndoorGS Tab. 3 (ScanNet++, 30k iterations). Δ: against `full` (Chamfer in cm).", "",
-             "| row | paper C-L1 / F / NC | C-L1 (cm) | F@5cm | NC | ΔC-L1 | ΔF | ΔNC | test PSNR | train s |",
+             "Paper: IndoorGS Tab. 3 (ScanNet++, 30k iterations)."
+             + (" Δ: against `full` (Chamfer in cm)." if full is not None else ""), "",
+             "| row | paper C-L1 (cm) / F / NC | C-L1 (cm) | F@5cm | NC | ΔC-L1 | ΔF | ΔNC | test PSNR | train s |",
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     floor = summary.get("floor")
     if floor and floor.get("status") == "done":
@@ -125,7 +127,8 @@ def ablation_markdown(summary: dict) -> str:
         name = f"`{r['row']}` {r['label']}" + (" *(extension)*" if r.get("extension") else "")
         if len(counts) > 1 and r["status"] == "done" and r["n_seeds"] > 1:
             name += f" ({r['n_seeds']} seeds)"
-        paper = " / ".join(f"{v:.3f}" for v in r["paper"]) if r.get("paper") else "–"
+        paper = (f"{100 * r['paper'][0]:.1f} / {r['paper'][1]:.3f} / {r['paper'][2]:.3f}"
+                 if r.get("paper") else "–")
         if r["status"] == "n/a":
             lines.append(f"| {name} | {paper} | n/a ({r['reason']}) |  |  |  |  |  |  |  |")
         elif r["status"] == "diverged":
@@ -137,16 +140,25 @@ def ablation_markdown(summary: dict) -> str:
                          f"{_cell(r, 'normal_consistency')} | {_delta(r, full, 'chamfer_l1', 100, 2)} | "
                          f"{_delta(r, full, 'f_score')} | {_delta(r, full, 'normal_consistency')} | "
                          f"{_cell(r, 'psnr', 1, 2)} | {_cell(r, 'train_s', 1, 0)} |")
+    if not has_curves(summary):
+        lines += ["", "No row has finished: no plot of accuracy against time yet.", ""]
+        return "\n".join(lines)
     lines += ["", "![accuracy against training time](accuracy_vs_time.png)", "",
               "Accuracy against time: every row's metrics at its checkpoints "
               f"({', '.join(str(c) for c in cfg['checkpoints'])} of its run) against training seconds "
-              "(meshing and scoring not counted); the dashed line is the floor.", ""]
+              "(meshing and scoring not counted); the dotted black line is the floor, the `no-cues` rows "
+              "are dashed.", ""]
     return "\n".join(lines)
+
+
+def has_curves(summary: dict) -> bool:
+    """Whether any row has finished (a curve to plot)."""
+    return any(r["status"] == "done" for r in summary["rows"])
 
 
 def plot_accuracy_vs_time(summary: dict, path: Path) -> Path:
     """Four panels (C-L1, F, NC, PSNR) against training seconds, a curve per finished row (seed 0
-    drawn, other seeds thin), the floor as a dashed line."""
+    drawn, other seeds thin; `no-cues` rows dashed), the floor as a dotted black line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -183,10 +195,14 @@ def plot_accuracy_vs_time(summary: dict, path: Path) -> Path:
 
 
 def write_reports(summary: dict, out_dir: Path) -> None:
-    """OUT/ablation.json, OUT/report.md, OUT/accuracy_vs_time.png."""
+    """OUT/ablation.json, OUT/report.md, OUT/accuracy_vs_time.png (once a row has finished)."""
     out_dir = Path(out_dir)
     with atomic_path(out_dir / "ablation.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=str))
     with atomic_path(out_dir / "report.md") as tmp:
         tmp.write_text(ablation_markdown(summary))
-    plot_accuracy_vs_time(summary, out_dir / "accuracy_vs_time.png")
+    png = out_dir / "accuracy_vs_time.png"
+    if has_curves(summary):
+        plot_accuracy_vs_time(summary, png)
+    else:  # only n/a, diverged or pending rows: four empty panels would say nothing
+        png.unlink(missing_ok=True)

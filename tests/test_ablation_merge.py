@@ -58,3 +58,34 @@ def test_ablations_of_another_setup_are_refused(change, named):
     change(new)
     with pytest.raises(ValueError, match=named):
         merge_summaries(old, new)
+
+
+def test_the_report_names_what_the_figure_draws_and_only_rows_it_holds(tmp_path):
+    """report.md: the floor is the dotted line (the figure draws it so; `no-cues` rows are the dashed
+    ones), the paper's C-L1 in cm as ours, no note on rows the table lacks, and no figure of empty
+    panels when no row has finished."""
+    from evaluation.ablation_report import write_reports
+
+    done = _summary([("full", [_run(0, 0.05)]), ("no-cues", [_run(0, 0.08)])])
+    done["rows"][0]["paper"] = (0.040, 0.78, 0.86)
+    done["floor"]["final"] = _run(0, 0.01)["final"]
+    for r in done["rows"]:
+        r["runs"][0]["curve"][0]["train_s"] = 10.0
+    write_reports(done, tmp_path / "a")
+    text = (tmp_path / "a" / "report.md").read_text()
+    assert "dotted black line is the floor" in text and "dashed line is the floor" not in text
+    assert "| `full` full | 4.0 / 0.780 / 0.860 | 5.00" in text and "paper C-L1 (cm) / F / NC" in text
+    assert "no-cues-long" not in text and "Δ: against `full`" in text
+    assert (tmp_path / "a" / "accuracy_vs_time.png").stat().st_size > 0
+
+    na = _summary([("no-ld", []), ("paper", [])])
+    na["floor"]["final"] = _run(0, 0.01)["final"]
+    for r in na["rows"]:
+        r.update(status="n/a", reason="no depth priors")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "accuracy_vs_time.png").write_bytes(b"an earlier plot")
+    write_reports(na, tmp_path / "b")
+    text = (tmp_path / "b" / "report.md").read_text()
+    assert "No row has finished" in text and "accuracy_vs_time.png" not in text
+    assert "Δ: against `full`" not in text
+    assert not (tmp_path / "b" / "accuracy_vs_time.png").exists()
