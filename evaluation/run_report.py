@@ -55,6 +55,17 @@ def _plt():
     return plt
 
 
+MESH_PANELS = (("chamfer_l1", "Chamfer-L1 (cm)"), ("f_score", "F-score @ 5 cm"),
+               ("normal_consistency", "normal consistency"))
+
+
+def _gaussians(final) -> str:
+    """report.json's ``gaussians_final`` ({type: count}, or a count) as text."""
+    if isinstance(final, dict):
+        return f"{sum(final.values())} Gaussians (" + ", ".join(f"{k} {v}" for k, v in final.items()) + ")"
+    return f"{final} Gaussians" if final is not None else "Gaussians unknown"
+
+
 def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None) -> list[dict]:
     """Mesh metrics of each checkpoint mesh the run kept (paths relative to RUN; needs a GT mesh)."""
     from evaluation.mesh_metrics import evaluate_with_scene
@@ -112,24 +123,29 @@ def _draw_sheet(sheet: dict, path: Path) -> Path:
     cols = ["GT", "render", "depth (m)", "normals"] + (["|depth - GT| (m)"] if has_err else [])
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(3.2 * len(cols), 2.5 * len(rows)), squeeze=False,
                              constrained_layout=True)
+    errors = {e["view"]: e["median_abs_depth_error_m"] for e in sheet["depth_errors"]}
+    depth_cmap = plt.get_cmap("turbo").with_extremes(bad="black")  # black: no depth, as `splat render`
     for ri, (r, row) in enumerate(zip(axes, rows)):
         valid = row["depth"][row["depth"] > 0]
-        vmax = float(np.percentile(valid, 99)) if valid.size else 1.0
+        vmin, vmax = (float(np.percentile(valid, 1)), float(np.percentile(valid, 99))) if valid.size else (0.0, 1.0)
         panels = [row["gt"], row["render"], None, (1 - row["normal"]) / 2]
         for k, ax in enumerate(r):
             ax.set_xticks([]), ax.set_yticks([])
             if k == 2:
-                im = ax.imshow(np.where(row["depth"] > 0, row["depth"], np.nan), cmap="turbo", vmin=0, vmax=vmax)
-                fig.colorbar(im, ax=ax, fraction=0.04)
+                im = ax.imshow(np.where(row["depth"] > 0, row["depth"], np.nan), cmap=depth_cmap, vmin=vmin,
+                               vmax=vmax)
+                fig.colorbar(im, ax=ax, fraction=0.04, extend="both")
             elif k == 4:
                 if row["error"] is not None:
                     im = ax.imshow(row["error"], cmap="magma", vmin=0, vmax=0.1)
-                    fig.colorbar(im, ax=ax, fraction=0.04)
+                    fig.colorbar(im, ax=ax, fraction=0.04, extend="max")  # the arrow: 0.1 m and more
             else:
                 ax.imshow(np.clip(panels[k], 0, 1))
             if ri == 0:
                 ax.set_title(cols[k], fontsize=9)
-        r[0].set_ylabel(row["name"], fontsize=8)
+        err = errors.get(row["name"])
+        r[0].set_ylabel(row["name"] + (f"\nmedian |depth - GT| {100 * err:.1f} cm" if err is not None else ""),
+                        fontsize=8)
     return _save(fig, path)
 
 
@@ -158,8 +174,9 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     for t, pts in losses.items():
         if pts:
             ax.plot(*zip(*pts), label=t, lw=2 if t == "loss" else 1)
-    ax.set_yscale("log"), ax.set_xlabel("iteration"), ax.set_title("loss terms (unweighted; loss = weighted total)")
-    ax.legend(fontsize=8), ax.grid(alpha=0.3)
+    ax.set_yscale("log"), ax.set_xlabel("iteration"), ax.set_ylabel("value (log scale)")
+    ax.set_title("loss terms (unweighted; loss = weighted total)")
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.01, 0.5)), ax.grid(alpha=0.3)  # beside: no curve hidden
     _save(fig, run_dir / "report_losses.png")
 
     counts = {t: [(r["step"], r[t]) for r in log_rows if t in r] for t in TYPES}
@@ -175,10 +192,11 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
               for p in report.get("accuracy_vs_time", [])]
     meshes = mesh_curve(run_dir, report, Path(gt) if gt else None, scene_dir)
     panels = [("psnr", "test PSNR (dB)", images), ("ssim", "test SSIM", images)]
-    panels += [(k, k.replace("_", " "), meshes) for k in ("chamfer_l1", "f_score", "normal_consistency")] if meshes else []
+    panels += [(k, title, meshes) for k, title in MESH_PANELS] if meshes else []
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False, constrained_layout=True)
     for ax, (key, title, data) in zip(axes[0], panels):
-        pts = [(d["train_s"], d[key]) for d in data if d.get(key) is not None]
+        scale = 100.0 if key == "chamfer_l1" else 1.0  # metres -> cm, as every table of the project
+        pts = [(d["train_s"], d[key] * scale) for d in data if d.get(key) is not None]
         if pts:
             ax.plot(*zip(*pts), marker="o")
         ax.set_xlabel("training seconds"), ax.set_title(title), ax.grid(alpha=0.3)
@@ -193,10 +211,13 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     with atomic_path(run_dir / "report_data.json") as tmp:
         tmp.write_text(json.dumps(data, indent=1))
     final = report.get("test_metrics", {})
-    lines = [f"# `splat train` run: {run_dir.name}", "",
-             f"Scene `{scene_dir}`; {report['config']['iters']} iterations; test PSNR "
+    name = run_dir.resolve().name
+    if name == "train":  # `splat ablate`'s OUT/rows/<row>_s<seed>/train: the row names the run
+        name = f"{run_dir.resolve().parent.name}/train"
+    lines = [f"# `splat train` run: {name}", "",
+             f"Scene `{scene_dir.resolve()}`; {report['config']['iters']} iterations; test PSNR "
              f"{final.get('psnr') or float('nan'):.2f} dB, SSIM {final.get('ssim') or float('nan'):.3f} "
-             f"({final.get('n_views', 0)} views); Gaussians {report.get('gaussians_final')}; "
+             f"({final.get('n_views', 0)} views); {_gaussians(report.get('gaussians_final'))}; "
              f"training {report['timings']['train_s']:.0f} s.", ""]
     if meshes:
         m = meshes[-1]

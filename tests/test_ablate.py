@@ -4,6 +4,7 @@ the floor, presets, and Ray dispatch against --jobs 1."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import struct
 import zlib
@@ -495,6 +496,8 @@ def test_evaluate_report_of_a_run(ablation):
     assert (w, h) == (round(3.2 * 5 * 90), round(2.5 * 2 * 90))  # 5 panels x 2 views
     md = (run / "report.md").read_text()
     assert "report_views.png" in md and "Chamfer-L1" in md
+    assert md.startswith("# `splat train` run: full_s0/train")  # the row, not every row's "train"
+    assert re.search(r"; \d+ Gaussians \(SFM \d+, LINE \d+, PLANE \d+\);", md), md
     # a finished report is replaced only with --overwrite (views=1 would change the contact sheet)
     assert main(["report", str(run), "--views", "1"]) == 1
     assert png_size(run / "report_views.png") == (w, h)
