@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 from pathlib import Path
@@ -48,7 +49,7 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None):
     (options on the command line win)."""
     base = load_config_file(config_file) if config_file is not None else preset_config(preset_name)
 
-    def train(scene: tyro.conf.Positional[Path],
+    def train(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
               cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
               out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
               preset: PresetName = preset_name,
@@ -100,7 +101,7 @@ train = _train_command()
 train.from_argv = train_command  # dispatch picks the preset's defaults before parsing
 
 
-def ablate(scene: tyro.conf.Positional[Path],
+def ablate(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
            cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
            out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
            overwrite: bool = False,
@@ -134,7 +135,7 @@ def ablate_main(argv: list[str]) -> int:
     return 0
 
 
-def _ablate_args(scene: tyro.conf.Positional[Path],
+def _ablate_args(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
                  cues: Annotated[Path, tyro.conf.arg(aliases=("-c",))],
                  out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
                  overwrite: bool = False,
@@ -162,7 +163,7 @@ def render(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
     from splat.render_run import run as render_run
 
     done = render_run(cfg, run, out, overwrite=overwrite)
-    print(f"wrote {done}/panels/" + (f" and {done}/video.mp4" if cfg.video else ""))
+    print(f"wrote {done}/ (rgb, depth, normal, alpha, panels" + (", video.mp4)" if cfg.video else ")"))
     return 0
 
 
@@ -183,6 +184,27 @@ def mesh(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
 
     print(f"wrote {mesh_run(cfg, run, out, overwrite=overwrite)}")
     return 0
+
+
+@contextlib.contextmanager
+def _signals_deferred():
+    """Within the block SIGINT and SIGTERM are recorded, not raised: a KeyboardInterrupt raised inside
+    a library's start-up (viser's server threads) can be swallowed there, and the command served on
+    as if never stopped. Yields the list of signals received; the old handlers are back after."""
+    import signal
+
+    received: list[int] = []
+    old = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, lambda signum, _frame: received.append(signum))
+    except ValueError:  # not the main thread: nothing to defer
+        pass
+    try:
+        yield received
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
@@ -208,9 +230,10 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
     if screenshot is not None:
         check_output_file(screenshot, overwrite)
 
-    try:
+    with _signals_deferred() as stopped:  # a Ctrl-C inside viser's start-up was lost (it served on)
         server = view_run(cfg, run, block=False)
-    except KeyboardInterrupt:
+    if stopped:
+        stop(server)
         print("viewer stopped while loading")
         return 130
     if screenshot is None:

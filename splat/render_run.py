@@ -4,16 +4,17 @@ One stage, one entry: ``run(cfg, run_dir, out=None, *, overwrite=False) -> Path`
 ``RUN/renders``). For every chosen view it writes
 
     OUT/rgb/<name>.png      the render
-    OUT/depth/<name>.png    median depth, colour-mapped (turbo; the range is the 1st–99th percentile
-                            of the view, or of GT depth where that exists, so the two compare)
+    OUT/depth/<name>.png    median depth, colour-mapped (turbo, black where nothing was rendered; the
+                            range is the 1st–99th percentile of the view, or of GT depth where that
+                            exists, so the two compare; the panel's strip names it in metres)
     OUT/normal/<name>.png   rendered normals, camera frame, (1 - n) / 2 as in the contact sheets
     OUT/alpha/<name>.png    accumulated opacity, grey
     OUT/panels/<name>.png   GT | render | depth | normals | alpha, then GT depth, depth prior and normal
                             prior where the scene has them, each under a strip naming it (the
                             render's with its PSNR against GT)
 
-and with ``video`` an MP4 (H.264 through imageio-ffmpeg, render | depth side by side) along the
-chosen views in capture order: positions interpolated linearly, rotations by slerp, the first view's
+and with ``video`` an MP4 (H.264 through imageio-ffmpeg, render | depth side by side, the depth in one
+range for the whole video: the chosen views' 1st–99th percentile) along the chosen views in capture order: positions interpolated linearly, rotations by slerp, the first view's
 intrinsics. ``views`` is ``test``, ``train``, ``all`` or a ``cameras.json`` in the 3DGS reference
 format (what `splat train` writes into every run; ``cx, cy`` at the image centre there).
 """
@@ -201,6 +202,10 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
 
     cfg.validate()
     run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"no run folder at {run_dir}")
+    if cfg.views.endswith(".json") and not Path(cfg.views).is_file():  # before the scene is loaded
+        raise FileNotFoundError(f"--views {cfg.views}: no such camera file")
     out = Path(out) if out is not None else run_dir / "renders"
     check_replaceable(out, "views.json", "a `splat render` output", {"run": run_dir})
     if out.exists() and any(out.iterdir()) and not overwrite:
@@ -218,11 +223,13 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
 
     import imageio.v3 as iio
 
+    pooled = []  # every view's depths, subsampled: the video's one colour range
     with atomic_dir(out) as tmp:
         for sub in ("rgb", "depth", "normal", "alpha", "panels"):
             (tmp / sub).mkdir(parents=True)
         for v in tqdm(views, desc="splat render", unit="view"):
             r = draw(v)
+            pooled.append(r["median_depth"][::4, ::4])
             gt_img = gt_d = prior_d = prior_n = None
             if v.index is not None:
                 gt_img = scene.load_image(v.index)
@@ -244,16 +251,18 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
                 db = psnr(torch.from_numpy(np.clip(r["rgb"], 0, 1)), torch.from_numpy(gt_img))
                 render_title += f"  {db:.2f} dB"
             panel = ([titled(_u8(gt_img), "GT")] if gt_img is not None else []) + [
-                titled(img, t) for img, t in zip(tiles.values(), (render_title, "depth", "normals", "alpha"))]
+                titled(img, t) for img, t in zip(tiles.values(),
+                                                 (render_title, f"depth {lo:.2f}-{hi:.2f} m", "normals", "alpha"))]
             if gt_d is not None:
-                panel.append(titled(colorize_depth(gt_d, lo, hi), "GT depth"))
+                panel.append(titled(colorize_depth(gt_d, lo, hi), "GT depth (same range)"))
             if prior_d is not None:
-                panel.append(titled(colorize_depth(prior_d, *depth_range(prior_d)), "depth prior (own range)"))
+                plo, phi = depth_range(prior_d)
+                panel.append(titled(colorize_depth(prior_d, plo, phi), f"depth prior {plo:.2f}-{phi:.2f}"))
             if prior_n is not None:
                 panel.append(titled(_normal_u8(prior_n), "normal prior"))
             iio.imwrite(tmp / "panels" / f"{v.name}.png", np.concatenate(panel, axis=1))
         if cfg.video:
-            _write_video(tmp / "video.mp4", camera_path(views, cfg.frames), draw, cfg.fps)
+            _write_video(tmp / "video.mp4", camera_path(views, cfg.frames), draw, cfg.fps, depth_range(*pooled))
         (tmp / "views.json").write_text(json.dumps({"run": str(run_dir.resolve()), "views": cfg.views,
                                                     "names": [v.name for v in views],
                                                     "video_frames": cfg.frames if cfg.video else 0}, indent=1))
@@ -261,20 +270,23 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
     return out
 
 
-def _write_video(path: Path, path_cams: list[ViewCam], draw, fps: int) -> None:
-    """H.264 MP4 of render | depth per frame (imageio-ffmpeg; sizes padded to even numbers)."""
+def _write_video(path: Path, path_cams: list[ViewCam], draw, fps: int, depth_lo_hi: tuple[float, float]) -> None:
+    """H.264 MP4 of render | depth per frame (imageio-ffmpeg; sizes padded to even numbers), the depth
+    in one colour range for the whole video (``depth_lo_hi``, metres: the chosen views' 1st-99th
+    percentile, which the path between them stays within; a range from the first frame alone
+    saturated a third of the frames of a room), named in a strip above it."""
     import imageio.v2 as iio2
     from tqdm.auto import tqdm
 
     writer = iio2.get_writer(str(path), fps=fps, codec="libx264", quality=8, macro_block_size=1,
                              ffmpeg_log_level="error", pixelformat="yuv420p")
-    depth_lo_hi = None
+    lo, hi = depth_lo_hi
     try:
         for v in tqdm(path_cams, desc="splat render video", unit="frame"):
             r = draw(v)
-            if depth_lo_hi is None:  # one colour range for the whole video
-                depth_lo_hi = depth_range(r["median_depth"])
-            frame = np.concatenate([_u8(r["rgb"]), colorize_depth(r["median_depth"], *depth_lo_hi)], axis=1)
+            frame = np.concatenate([titled(_u8(r["rgb"]), "render"),
+                                    titled(colorize_depth(r["median_depth"], lo, hi), f"depth {lo:.2f}-{hi:.2f} m")],
+                                   axis=1)
             h, w = frame.shape[:2]
             writer.append_data(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0))))
     finally:

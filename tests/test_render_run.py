@@ -38,10 +38,15 @@ def fake_run(tmp_path_factory):
     return run_dir, scene
 
 
-def test_views_panels_and_video(fake_run, capsys):
+def test_views_panels_and_video(fake_run, capsys, monkeypatch):
+    import splat.render_run as render_run
     from cli.splat_cli import main
 
     run_dir, scene = fake_run
+    ranges, real_video, real_range = [], render_run._write_video, render_run.depth_range
+    monkeypatch.setattr(render_run, "_write_video", lambda *a: ranges.append(a[-1]) or real_video(*a))
+    pooled = []  # the maps each depth_range call was given
+    monkeypatch.setattr(render_run, "depth_range", lambda *maps: pooled.append(len(maps)) or real_range(*maps))
     assert main(["render", str(run_dir), "--video", "--frames", "10", "--fps", "5"]) == 0
     out = run_dir / "renders"
     names = [p.stem for p in sorted((out / "rgb").glob("*.png"))]
@@ -64,7 +69,10 @@ def test_views_panels_and_video(fake_run, capsys):
     np.testing.assert_array_equal(panel[18:, W:2 * W], iio.imread(out / "rgb" / f"{names[0]}.png"))
     assert iio.imread(out / "rgb" / f"{names[0]}.png").std() > 5  # the Gaussians are in view
     frames = iio.imread(out / "video.mp4")  # every frame, decoded by ffmpeg
-    assert frames.shape == (10, H, 2 * W, 3)
+    assert frames.shape == (10, H + 18, 2 * W, 3)  # render | depth, each under a strip naming it
+    # the video's one depth range is the rendered views' (a frame's own range saturated a third of a room's)
+    assert len(ranges) == 1 and 0 < ranges[0][0] < ranges[0][1]
+    assert pooled[-1] == len(names) == 2  # the video's range: every rendered view's depths pooled
     assert json.loads((out / "views.json").read_text())["video_frames"] == 10
     # a second run into the same folder needs --overwrite; the renders stay
     assert main(["render", str(run_dir)]) == 1
@@ -108,6 +116,10 @@ def test_bad_inputs_are_named(fake_run, tmp_path):
         run(RenderConfig(views="every"), run_dir, tmp_path / "a")
     with pytest.raises(FileNotFoundError, match="holds no report.json"):
         run(RenderConfig(), tmp_path, tmp_path / "b")
+    with pytest.raises(FileNotFoundError, match=f"no run folder at {tmp_path / 'nope'}"):
+        run(RenderConfig(), tmp_path / "nope")
+    with pytest.raises(FileNotFoundError, match="--views .*none.json: no such camera file"):
+        run(RenderConfig(views=str(tmp_path / "none.json")), run_dir, tmp_path / "c")
     (tmp_path / "bad.json").write_text(json.dumps([{"position": [0, 0, 0]}]))
     with pytest.raises(ValueError, match=r"bad.json: camera 0 lacks"):
         cameras_from_json(tmp_path / "bad.json")
