@@ -202,6 +202,10 @@ def _resolve(run_dir: Path, cfg: ViewConfig) -> dict[str, Path | None]:
             raise ValueError(f"{report_path} is not valid JSON: {e}") from e
     elif cfg.scene is None or cfg.cues is None:
         log.warning("%s holds no report.json: no scene or cues to show unless --scene/--cues are given", run_dir)
+    if cfg.scene and not Path(cfg.scene).is_dir():  # given, not recorded: an error, not a layer left out
+        raise FileNotFoundError(f"--scene {cfg.scene}: no such scene folder")
+    if cfg.cues and not Path(cfg.cues).exists():
+        raise FileNotFoundError(f"--cues {cfg.cues}: no such cue cloud or folder")
     scene = Path(cfg.scene) if cfg.scene else recorded_path(run_dir, report, "scene")
     cues = Path(cfg.cues) if cfg.cues else recorded_path(run_dir, report, "cues")
     if cues is not None and cues.is_dir():
@@ -335,8 +339,11 @@ def run(cfg: ViewConfig, run_dir: str | Path, *, port: int | None = None, block:
     run_dir = Path(run_dir)
     files = _resolve(run_dir, cfg)
     log.info("view %s: %s", run_dir, cfg)
+    wanted = cfg.port if port is None else port
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even with verbose=False
-        server = viser.ViserServer(host=cfg.host, port=cfg.port if port is None else port, verbose=False)
+        server = viser.ViserServer(host=cfg.host, port=wanted, verbose=False)
+    if wanted and server.get_port() != wanted:  # viser moves on to the next free port without a word
+        log.warning("port %d is busy: serving on %d instead (forward that one over SSH)", wanted, server.get_port())
     try:
         server.gui.configure_theme(show_share_button=False)
         server.gui.main_panel.dock_right()

@@ -148,6 +148,22 @@ class TestLayers:
             stop(server)
 
 
+    def test_a_busy_port_is_named(self, fake_run, caplog):
+        """viser moves to the next free port in silence; a user forwarding that port must be told."""
+        run_dir, _, _ = fake_run
+        first = run(ViewConfig(port=0), run_dir, block=False)
+        try:
+            busy = first.get_port()
+            second = run(ViewConfig(port=busy), run_dir, block=False)
+            try:
+                assert second.get_port() != busy
+                assert f"port {busy} is busy: serving on {second.get_port()} instead" in caplog.text
+            finally:
+                stop(second)
+        finally:
+            stop(first)
+
+
 class TestErrors:
     def test_bad_run_folders_are_named(self, tmp_path):
         with pytest.raises(FileNotFoundError, match=re.escape(f"no run folder at {tmp_path / 'nope'}")):
@@ -156,6 +172,13 @@ class TestErrors:
             run(ViewConfig(port=0), tmp_path, block=False)
         with pytest.raises(ValueError, match="unknown layers"):
             run(ViewConfig(port=0, show=("splats", "walls")), tmp_path, block=False)
+
+    def test_a_scene_or_cues_given_that_do_not_exist_are_errors(self, fake_run, tmp_path):
+        run_dir, _, _ = fake_run
+        with pytest.raises(FileNotFoundError, match=re.escape(f"--scene {tmp_path / 'nope'}: no such scene folder")):
+            run(ViewConfig(port=0, scene=str(tmp_path / "nope")), run_dir, block=False)
+        with pytest.raises(FileNotFoundError, match=re.escape(f"--cues {tmp_path / 'c'}: no such cue cloud")):
+            run(ViewConfig(port=0, cues=str(tmp_path / "c")), run_dir, block=False)
 
     def test_cli_prints_one_line(self, tmp_path, capsys):
         from cli.splat_cli import main
@@ -238,3 +261,30 @@ def test_ctrl_c_ends_with_one_line(fake_run):
     assert proc.returncode == 0, err
     assert out.strip().splitlines() == ["viewer stopped"], out
     assert "Traceback" not in err, err
+
+
+def test_ctrl_c_while_loading_stops_the_viewer_even_where_a_library_swallows_it(monkeypatch, tmp_path, capsys):
+    """A SIGINT during start-up ends the command (exit 130, one line), even when the code it lands in
+    swallows the KeyboardInterrupt (as viser's start-up did: the viewer served on until a second Ctrl-C)."""
+    import splat.viewer as viewer
+    from cli.splat_cli import main
+
+    calls = []
+
+    def loading_that_swallows(cfg, run_dir, *, port=None, block=True):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass  # a library's start-up
+        return "server"
+
+    monkeypatch.setattr(viewer, "run", loading_that_swallows)
+    monkeypatch.setattr(viewer, "serve", lambda server: calls.append("served"))
+    monkeypatch.setattr(viewer, "stop", lambda server: calls.append(f"stopped {server}"))
+    monkeypatch.setattr(viewer, "url_of", lambda server: "http://127.0.0.1:1")
+    before = signal.getsignal(signal.SIGINT)
+    assert main(["view", str(tmp_path), "--port", "0"]) == 130
+    assert calls == ["stopped server"]
+    assert capsys.readouterr().out.strip() == "viewer stopped while loading"
+    assert signal.getsignal(signal.SIGINT) is before  # the handlers are back
