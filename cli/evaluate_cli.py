@@ -65,9 +65,11 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
 
         result = evaluate_aligned(pred_mesh, scene, align_to, gt, cfg, icp=icp)
         a = result.protocol["alignment"]
+        res, icp_ = a["centre_residual_m"], a["icp"]
         print(f"aligned to {align_to}: scale {a['scale']:.4f} from {a['shared_images']} shared images, camera "
-              f"centre residual median {a['centre_residual_m']['median']:.4f} m, max {a['centre_residual_m']['max']:.4f} m"
-              + (f"; ICP {a['icp']['rotation_deg']:.3f} deg, {a['icp']['translation_m']:.4f} m" if a["icp"] else ""))
+              f"centre residual RMS {res['rms']:.4f} m, median {res['median']:.4f} m, max {res['max']:.4f} m"
+              + (f"; ICP {icp_['rotation_deg']:.3f} deg, {icp_['translation_m']:.4f} m, scale {icp_['scale']:.4f}, "
+                 f"fitness {icp_['fitness']:.3f}, inlier RMSE {icp_['inlier_rmse_m']:.4f} m" if icp_ else ""))
     else:
         if icp:
             raise ValueError("--icp refines an --align-to alignment; pass --align-to GT_SCENE")

@@ -18,7 +18,7 @@ from geocues.sfm import SfmConfig
 from geocues.undistort import UndistortConfig
 
 
-def sfm(scene: tyro.conf.Positional[Path],
+def sfm(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
         out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
         overwrite: bool = False,
         recompute: bool = False,
@@ -43,7 +43,7 @@ def sfm(scene: tyro.conf.Positional[Path],
     return 0
 
 
-def undistort(scene: tyro.conf.Positional[Path],
+def undistort(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
               out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
               overwrite: bool = False,
               cfg: tyro.conf.OmitArgPrefixes[UndistortConfig] = UndistortConfig()) -> int:
@@ -61,7 +61,7 @@ def undistort(scene: tyro.conf.Positional[Path],
     return 0
 
 
-def info(scene: tyro.conf.Positional[Path], downscale: float = 1.0, test_every: int = 8) -> int:
+def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")], downscale: float = 1.0, test_every: int = 8) -> int:
     """Print a summary of SCENE: cameras, image sizes, points, priors, train/test split.
 
     Args:
@@ -124,7 +124,7 @@ ExtractPresetName = Literal[tuple(EXTRACT_PRESETS)]  # type: ignore[valid-type]
 def _extract_command(preset_name: str = "paper"):
     """`geocues extract` with the defaults of preset ``preset_name`` (options on the command line win)."""
 
-    def extract(scene: tyro.conf.Positional[Path],
+    def extract(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
                 out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
                 preset: ExtractPresetName = preset_name,
                 overwrite: bool = False,
@@ -166,7 +166,7 @@ extract.from_argv = _extract_from_argv  # dispatch picks the preset's defaults b
 
 
 # Add commands here as {name: function}; each function's typed signature is its CLI (tyro).
-def mvs(scene: tyro.conf.Positional[Path],
+def mvs(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
         out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
         overwrite: bool = False,
         cfg: tyro.conf.OmitArgPrefixes[MvsConfig] = MvsConfig()) -> int:
@@ -187,7 +187,7 @@ def mvs(scene: tyro.conf.Positional[Path],
     return 0
 
 
-def rescale(scene: tyro.conf.Positional[Path],
+def rescale(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
             out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
             overwrite: bool = False,
             cfg: tyro.conf.OmitArgPrefixes[RescaleConfig] = RescaleConfig()) -> int:

@@ -10,7 +10,7 @@ import tyro
 from evaluation.rooms.writer import RoomConfig
 
 
-def make_room(out: Annotated[Path, tyro.conf.Positional],
+def make_room(out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")],
               cfg: Annotated[RoomConfig, tyro.conf.arg(name="")] = RoomConfig(),
               overwrite: bool = False) -> int:
     """Render a procedural benchmark room (images, poses, SfM points, GT mesh/depth/normals, simulated priors).

@@ -53,7 +53,7 @@ class MeshMetricsConfig:
     mode: Literal["point", "surface"] = "point"
     """point: to the nearest sample of the other surface (the protocol); surface: exact distance to the other mesh's triangles."""
     cull_to_frusta: bool = True
-    """when cameras are given (--scene): keep only surface inside at least one camera's view frustum."""
+    """when cameras are given (SCENE): keep only surface inside at least one camera's view frustum."""
     occlusion: Literal["none", "gt", "self"] = "none"
     """occlusion test with cameras: none; gt: a point must not lie behind the GT mesh as seen from the camera; self: not behind its own mesh (GO-Surf)."""
     occlusion_tolerance: float = 0.02
@@ -199,7 +199,7 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
     if cameras is not None and cfg.cull_to_frusta:
         cams = cameras if isinstance(cameras, CameraSet) else CameraSet.from_cameras(cameras, cfg.max_cameras)
     elif cfg.occlusion != "none":
-        raise ValueError(f"occlusion={cfg.occlusion!r} needs cameras (pass --scene) and cull_to_frusta")
+        raise ValueError(f"occlusion={cfg.occlusion!r} needs cameras (pass SCENE) and cull_to_frusta")
     log.info("mesh metrics: %s vs %s, mode=%s, n_samples=%d, culling=%s",
              pred.name, gt.name, cfg.mode, cfg.n_samples, _culling_name(cams, cfg))
     frame_warning = frame_mismatch(pred, gt, cfg.crop_margin)  # logged once the crop left something to score

@@ -48,7 +48,9 @@ class AblateConfig:
     """Options of `splat ablate` (every other option goes to each row's `splat train`)."""
 
     rows: tuple[str, ...] = DEFAULT_ROWS
-    """Presets to run (splat/presets.py; `splat train --preset` takes the same names)."""
+    """Presets to run (splat/presets.py; `splat train --preset` takes the same names); default: every
+    preset, the paper's rows and this project's extensions (several hours at 3000 iterations on a CPU:
+    name the rows you want, e.g. --rows full no-cues)."""
     iters: int = 3000
     """Training iterations of a row (no-cues-long: 3x)."""
     seeds: int = 1

@@ -4,6 +4,7 @@ GT frame through the shared camera centres (Umeyama), optionally refined by ICP,
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -93,7 +94,12 @@ def test_evaluate_align_to_scores_the_mesh_as_in_the_gt_frame(scenes, capsys):
     same = _self_score(gt_root)  # the GT mesh against itself: the protocol's sampling noise
     assert abs(m["chamfer_l1"] - same.chamfer_l1) < 1e-3 and m["f_score"] > 0.99, (m, same.chamfer_l1)
     assert m["protocol"]["alignment"]["centre_residual_m"]["max"] < 1e-6
-    assert "shared images" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "shared images" in printed and "residual RMS 0.0000 m" in printed  # what docs/evaluation.md says it prints
+    assert main([str(base / "pred_mesh.ply"), str(pred_root), "--align-to", str(gt_root), "--icp",
+                 "--n-samples", "20000"]) == 0
+    assert re.search(r"; ICP [\d.]+ deg, [\d.]+ m, scale [\d.]+, fitness [\d.]+, inlier RMSE [\d.]+ m",
+                     capsys.readouterr().out)
 
 
 def test_icp_refines_a_noisy_camera_alignment(scenes):

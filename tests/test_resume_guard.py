@@ -312,6 +312,22 @@ def test_quiet_and_verbose_are_in_every_help(capsys):
         assert "-v/--verbose" in out and "-q/--quiet" in out
 
 
+def test_every_usage_line_names_its_positional_arguments(capsys):
+    """`splat ablate --help` said `usage: splat ablate [-h] [OPTIONS] PATH` where the docs say SCENE."""
+    from cli.evaluate_cli import COMMANDS as evaluate_commands
+    from cli.evaluate_cli import main as evaluate
+    from cli.geocues_cli import COMMANDS as geocues_commands
+    from cli.geocues_cli import main as geocues
+    from cli.splat_cli import COMMANDS as splat_commands
+    from cli.splat_cli import main as splat
+
+    for main, commands in ((geocues, geocues_commands), (splat, splat_commands), (evaluate, evaluate_commands)):
+        for name in commands:
+            assert main([name, "--help"]) == 0
+            usage = capsys.readouterr().out.strip().splitlines()[0]
+            assert usage.startswith("usage: ") and " PATH" not in usage, usage
+
+
 def test_quiet_run_prints_no_progress_bars(scene, capsys):
     from cli.splat_cli import main
 
