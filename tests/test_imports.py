@@ -62,3 +62,25 @@ def test_usage_lines_are_whole_sentences():
     assert summary("Priors for a real scene (e.g. ICL-NUIM).\n\nArgs: x") == "Priors for a real scene (e.g. ICL-NUIM)."
     long = summary("word " * 40 + "end.")
     assert long.endswith(" ...") and len(long) <= 104
+
+
+def test_console_scripts_exist_and_a_ctrl_c_while_starting_is_one_line(monkeypatch, capsys):
+    """pyproject's scripts name callables that exist; a Ctrl-C while a command table imports torch &
+    co. (about two seconds) ends with one line and 130, not a traceback of the import."""
+    import importlib
+    import tomllib
+
+    import cli.entry as entry
+
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    assert sorted(scripts) == ["evaluate", "geocues", "splat"]
+    for target in scripts.values():
+        module, func = target.split(":")
+        assert callable(getattr(importlib.import_module(module), func)), target
+
+    def interrupted(name):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(entry.importlib, "import_module", interrupted)
+    assert entry.splat() == 130
+    assert capsys.readouterr().err.strip() == "splat: interrupted while starting"
