@@ -27,6 +27,12 @@ class ProjectionConfig:
     min_plane_cos: float = 0.01
     """Clamp of cos(view ray, plane normal) in the depth-plane slope (edge-on Gaussians)."""
 
+    def __post_init__(self) -> None:
+        if not 0 < self.near < self.far:  # a blank image otherwise, with no word
+            raise ValueError(f"near and far must satisfy 0 < near < far, got near={self.near}, far={self.far}")
+        if not self.eps2d >= 0:
+            raise ValueError(f"eps2d must be >= 0, got {self.eps2d}")
+
 
 class Projected(NamedTuple):
     """Per-Gaussian image-space quantities for one view (N = all Gaussians; culled have radii 0)."""

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Iterable
 import numpy as np
 from tqdm import tqdm
 
+from splat.camera import check_pinhole
 from splat.mesh_post import canonical_order, clean_mesh, write_mesh
 from splat.tsdf_config import TSDFConfig, open3d_device
 
@@ -79,28 +80,6 @@ def _as_rgb(rgb: np.ndarray, shape: tuple[int, int], where: str) -> np.ndarray:
         raise ValueError(f"{where}: rgb must be float in [0, 1], got dtype {rgb.dtype}")
     rgb = np.nan_to_num(rgb.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
     return np.clip(rgb, 0.0, 1.0)
-
-
-def _check_camera(K: np.ndarray, world_to_cam: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"{where}: K must be [3, 3], got shape {K.shape}")
-    if not np.isfinite(K).all() or not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise ValueError(f"{where}: K must be finite with fx, fy > 0, got {K.tolist()}")
-    if K[0, 1] != 0 or not np.array_equal(K[2], [0.0, 0.0, 1.0]):
-        raise ValueError(f"{where}: K must be a pinhole [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
-                         f"(Open3D ignores skew), got {K.tolist()}")
-    T = np.asarray(world_to_cam, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"{where}: world_to_cam must be [4, 4], got shape {T.shape}")
-    if not np.isfinite(T).all():
-        raise ValueError(f"{where}: world_to_cam has non-finite entries: {T.tolist()}")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        raise ValueError(f"{where}: world_to_cam's last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise ValueError(f"{where}: world_to_cam's rotation is not a rotation (R R^T != I or det < 0)")
-    return K, T
 
 
 def open3d_intrinsics(K: np.ndarray) -> np.ndarray:
@@ -162,7 +141,7 @@ class TSDFFuser:
         import open3d as o3d
         where = f"view {self.n_views}"
         depth = _as_depth(depth, where)
-        K, T = _check_camera(K, world_to_cam, where)
+        K, T = check_pinhole(K, world_to_cam, where)
         with_color = rgb is not None
         rgb = _as_rgb(rgb, depth.shape, where) if with_color else None
         if self.with_color is not None and with_color != self.with_color:

@@ -36,6 +36,9 @@ def check_params(params: dict[str, Tensor]) -> int:
     missing = [k for k in PARAM_KEYS if k not in params]
     if missing:
         raise ValueError(f"Gaussian params miss {missing}; expected keys {list(PARAM_KEYS)}")
+    for key in PARAM_KEYS:
+        if not isinstance(params[key], Tensor):
+            raise TypeError(f"params[{key!r}] must be a torch.Tensor, got {type(params[key]).__name__}")
     n = params["means"].shape[0]
     shapes = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,), "sh0": (n, 1, 3)}
     for key, shape in shapes.items():
@@ -45,6 +48,11 @@ def check_params(params: dict[str, Tensor]) -> int:
     if shn.dim() != 3 or shn.shape[0] != n or shn.shape[2] != 3:
         raise ValueError(f"params['shN'] must have shape ({n}, (d+1)^2-1, 3), got {tuple(shn.shape)}")
     sh_degree_of(shn)
+    dtype, device = params["means"].dtype, params["means"].device
+    for key in PARAM_KEYS:
+        if params[key].dtype != dtype or params[key].device != device:
+            raise ValueError(f"params[{key!r}] is {params[key].dtype} on {params[key].device}, params['means'] "
+                             f"{dtype} on {device}: every Gaussian tensor must share one dtype and device")
     return n
 
 

@@ -17,7 +17,7 @@ from torch import Tensor
 from splat import compiled
 from splat.camera import Camera
 from splat.composite import composite, resolve_backend
-from splat.projection import ProjectionConfig, project_gaussians
+from splat.projection import ProjectionConfig, check_params, project_gaussians
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,8 @@ def pixel_maps(features: Tensor, median: Tensor, alpha: Tensor) -> tuple[Tensor,
     return depth, median_depth, normal
 
 
-def _background(background: Tensor, dtype: torch.dtype, device: torch.device) -> Tensor:
+def _background(background, dtype: torch.dtype, device: torch.device) -> Tensor:
+    background = torch.as_tensor(background)  # a tuple or an array, as TrainConfig.background is
     if tuple(background.shape) != (3,):
         raise ValueError(f"background must have shape (3,), got {tuple(background.shape)}")
     return background.to(device=device, dtype=dtype)
@@ -98,6 +99,9 @@ def render(
       means2d [N, 2]          projected means (retain_grad() set when they require grad)
       radii [N] int32, visible [N] bool, n_contrib [H, W] int32
 
+    ``max_per_pixel``: the most Gaussians composited per pixel, front to back (every backend).
+    ``near``, ``far`` (metres, 0 < near < far): view-space depths outside are culled.
+
     ``maps=False`` composites the colour alone (3 channels, no median): rgb, alpha, means2d, radii,
     visible and n_contrib, the same values as with the maps; no depth, median_depth nor normal.
     With the Gaussians' geometry detached (``splat train --geometry-until``) its backward is the
@@ -105,6 +109,9 @@ def render(
     """
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a splat.camera.Camera, got {type(camera).__name__}")
+    if isinstance(max_per_pixel, bool) or not isinstance(max_per_pixel, int) or max_per_pixel < 1:
+        raise ValueError(f"max_per_pixel must be an int >= 1, got {max_per_pixel!r}")
+    check_params(params)  # before any backend reads them: types, shapes, one dtype and device
     cfg = ProjectionConfig(near=near, far=far, eps2d=eps2d, antialiased=antialiased)
     if "means" in params:
         backend = resolve_backend(backend, params["means"].device, params["means"].dtype)

@@ -328,7 +328,7 @@ class TestInputs:
             fuser.integrate(self.D.astype(np.uint16), None, self.K, np.eye(4))
         skew = self.K.copy()
         skew[0, 1] = 1.0
-        with pytest.raises(ValueError, match="Open3D ignores skew"):
+        with pytest.raises(ValueError, match="skew is not rendered"):
             fuser.integrate(self.D, None, skew, np.eye(4))
         with pytest.raises(ValueError, match="rotation is not a rotation"):
             fuser.integrate(self.D, None, self.K, np.diag([1.0, 1.0, -1.0, 1.0]))

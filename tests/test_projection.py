@@ -195,3 +195,56 @@ def test_gradcheck_projection():
         return proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depth_slopes, proj.normals
 
     assert torch.autograd.gradcheck(fn, leaves, eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_a_camera_that_renders_something_else_than_it_says_is_refused():
+    """The projection reads fx, fy, cx, cy, R and the centre: a K with skew, a scaled or reflected R,
+    a centre that is not viewmat's, a fractional size were rendered in silence (a 2 R doubled every
+    depth; a pose edited by dataclasses.replace kept its old centre)."""
+    import dataclasses
+
+    K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
+    cam = Camera.from_Rt(K, np.eye(3), np.zeros(3), 16, 12)
+    for R, t, match in [(2 * np.eye(3), np.zeros(3), "not a rotation"), (np.diag([1.0, 1, -1]), np.zeros(3), "not a rotation"),
+                        (np.full((3, 3), np.nan), np.zeros(3), "non-finite"), (np.eye(3), [0, 0, np.inf], "non-finite")]:
+        with pytest.raises(ValueError, match=match):
+            Camera.from_Rt(K, R, t, 16, 12)
+    for bad_K in (np.zeros((3, 3)), np.array([[20.0, 1, 8], [0, 20, 6], [0, 0, 1]]), np.array([[-20.0, 0, 8], [0, 20, 6], [0, 0, 1]])):
+        with pytest.raises(ValueError, match="K must be"):
+            Camera.from_Rt(bad_K, np.eye(3), np.zeros(3), 16, 12)
+    with pytest.raises(ValueError, match="positive whole number"):
+        Camera.from_Rt(K, np.eye(3), np.zeros(3), 16.5, 12)
+    vm = cam.viewmat.clone()
+    vm[:3, 3] = torch.tensor([0.3, 0.0, 0.5])
+    with pytest.raises(ValueError, match="disagrees with viewmat"):
+        dataclasses.replace(cam, viewmat=vm)
+    moved = dataclasses.replace(cam, viewmat=vm, center=None)  # recomputed: the moved camera
+    fresh = Camera.from_Rt(K, np.eye(3), [0.3, 0.0, 0.5], 16, 12)
+    torch.testing.assert_close(moved.center, fresh.center)
+    vm_scaled = cam.viewmat.clone()
+    vm_scaled[:3, :3] *= 2
+    with pytest.raises(ValueError, match="not a rotation"):
+        Camera(cam.K, vm_scaled, 16, 12)
+    with pytest.raises(TypeError, match="Camera viewmat must be a torch.Tensor, got ndarray"):
+        Camera(cam.K, np.eye(4), 16, 12)
+    # far from the origin (1e4 m) a float32 viewmat and the float64 centre agree within the tolerance
+    far = Camera.from_Rt(K, np.eye(3), [1e4, -2e4, 3e4], 16, 12)
+    Camera(far.K, far.viewmat, 16, 12, center=far.center)
+
+
+def test_render_names_bad_params_and_options():
+    from splat.rasterize import render
+
+    cam = make_camera(dtype=torch.float32)
+    params = make_params(n=5, dtype=torch.float32)
+    with pytest.raises(TypeError, match=r"params\['means'\] must be a torch.Tensor, got ndarray"):
+        render({k: v.numpy() for k, v in params.items()}, cam)
+    with pytest.raises(ValueError, match=r"params\['quats'\] is torch.float64 on cpu, params\['means'\] torch.float32"):
+        render({**params, "quats": params["quats"].double()}, cam, backend="torch")
+    with pytest.raises(ValueError, match="0 < near < far"):
+        render(params, cam, near=10.0, far=1.0)
+    with pytest.raises(ValueError, match="max_per_pixel must be an int >= 1"):
+        render(params, cam, max_per_pixel=0)
+    a = render(params, cam, background=(1.0, 1.0, 1.0))  # a tuple, as TrainConfig.background
+    b = render(params, cam, background=torch.ones(3))
+    torch.testing.assert_close(a["rgb"], b["rgb"])
