@@ -159,10 +159,7 @@ def has_curves(summary: dict) -> bool:
 def plot_accuracy_vs_time(summary: dict, path: Path) -> Path:
     """Four panels (C-L1, F, NC, PSNR) against training seconds, a curve per finished row (seed 0
     drawn, other seeds thin; `no-cues` rows dashed), the floor as a dotted black line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from evaluation import figures as plt  # detached figures: the user's matplotlib backend is left alone
 
     fig, axes = plt.subplots(2, 2, figsize=(12, 8), constrained_layout=True)
     floor = summary.get("floor") or {}
@@ -190,7 +187,6 @@ def plot_accuracy_vs_time(summary: dict, path: Path) -> Path:
     fig.suptitle(f"accuracy against time: {summary['scene_label']}")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
     return path
 
 

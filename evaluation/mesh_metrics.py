@@ -195,6 +195,7 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
     """
     cfg = cfg or MeshMetricsConfig()
     cfg.validate()
+    pred, gt = TriMesh.of(pred, "pred"), TriMesh.of(gt, "gt")
     cams = None
     if cameras is not None and cfg.cull_to_frusta:
         cams = cameras if isinstance(cameras, CameraSet) else CameraSet.from_cameras(cameras, cfg.max_cameras)

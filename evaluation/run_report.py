@@ -38,21 +38,17 @@ def _read_log(run_dir: Path) -> list[dict]:
 
 
 def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
     return path
 
 
 def _plt():
-    import matplotlib
+    """pyplot's subplots and get_cmap on detached figures (evaluation/figures.py: the user's
+    matplotlib backend is left alone)."""
+    from evaluation import figures
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return figures
 
 
 MESH_PANELS = (("chamfer_l1", "Chamfer-L1 (cm)"), ("f_score", "F-score @ 5 cm"),

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import open3d as o3d
@@ -41,6 +41,19 @@ class TriMesh:
         self.face_normals = cross / np.maximum(norm, 1e-300)[:, None]  # [F, 3], zero-area faces: 0
         if not self.areas.sum() > 0:
             raise ValueError(f"{self.name}: mesh has zero surface area")
+
+    @classmethod
+    def of(cls, mesh: Any, name: str) -> "TriMesh":
+        """``mesh`` as a TriMesh: a TriMesh, an Open3D TriangleMesh (what splat.mesh returns) or any
+        object with ``vertices`` and ``faces`` arrays (trimesh); else TypeError naming ``name``."""
+        if isinstance(mesh, cls):
+            return mesh
+        if hasattr(mesh, "vertices") and hasattr(mesh, "triangles"):  # Open3D (legacy)
+            return cls(np.asarray(mesh.vertices), np.asarray(mesh.triangles), name)
+        if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+            return cls(np.asarray(mesh.vertices), np.asarray(mesh.faces), name)
+        raise TypeError(f"{name} must be a TriMesh, an Open3D TriangleMesh or a mesh with vertices and faces "
+                        f"(evaluation.surfaces.load_mesh reads a file), got {type(mesh).__name__}")
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:

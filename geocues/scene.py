@@ -328,11 +328,17 @@ class Scene:
     def __len__(self) -> int:
         return len(self.cameras)
 
+    def camera(self, i: int) -> Camera:
+        """Camera ``i`` (0 <= i < len): IndexError naming the scene otherwise (a -1 read the last)."""
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < len(self.cameras):
+            raise IndexError(f"camera index {i!r} outside 0..{len(self.cameras) - 1} of the scene {self.root}")
+        return self.cameras[i]
+
     def load_image(self, i: int) -> np.ndarray:
         """RGB image of camera ``i`` at the scene's scale, float32 [H, W, 3] in [0, 1]."""
         import cv2
 
-        cam = self.cameras[i]
+        cam = self.camera(i)
         # the stored pixel grid, as COLMAP reads it: an EXIF orientation tag (a phone held upright) is not
         # applied, or a portrait photo would come out turned against its camera's intrinsics
         bgr = cv2.imread(str(cam.image_path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
@@ -346,7 +352,7 @@ class Scene:
     def _prior_path(self, kind: str, i: int) -> Path | None:
         if kind == "depth" and i in self.depth_files:  # named by transforms.json (depth_file_path)
             return self.depth_files[i]
-        base = self.root / "priors" / kind / self.cameras[i].stem
+        base = self.root / "priors" / kind / self.camera(i).stem
         for ext in (".npy", ".png"):
             if base.with_suffix(ext).is_file():
                 return base.with_suffix(ext)
@@ -389,7 +395,7 @@ class Scene:
         if bad.any():  # NaN / Inf are invalid pixels (0), counted once per file
             log.warning("depth prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
             d[bad] = 0.0
-        cam = self.cameras[i]
+        cam = self.camera(i)
         if d.shape != (cam.height, cam.width):  # nearest keeps 0 = invalid intact
             d = cv2.resize(d, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
         return d
@@ -414,7 +420,7 @@ class Scene:
         if bad.any():
             log.warning("normal prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
             n[bad] = 0.0
-        cam = self.cameras[i]
+        cam = self.camera(i)
         if n.shape[:2] != (cam.height, cam.width):
             n = cv2.resize(n, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
@@ -453,7 +459,7 @@ class Scene:
         away = total = 0
         for i in idx[:: max(1, len(idx) // max_images)][:max_images]:
             n = self.normal_prior(i)
-            rays = self.cameras[i].pixel_rays()
+            rays = self.camera(i).pixel_rays()
             valid = np.linalg.norm(n, axis=-1) > 0.5
             dots = (n * rays.reshape(n.shape)).sum(-1)
             away += int((dots[valid] > 0).sum())

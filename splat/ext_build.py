@@ -67,7 +67,7 @@ def build_lock(out_dir: Path):
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            log.info("another process is building in %s; waiting for it", out_dir)
+            log.warning("another process is building in %s; waiting for it", out_dir)
             fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from geocues.presets import apply_overrides
+from splat.config_types import typed
 
 # The paper's ScanNet++ ablation (Tab. 3): Chamfer-L1 (m), F-score at 5 cm, normal consistency.
 PAPER_TAB3 = {
@@ -159,23 +160,8 @@ def config_from_dict(cls, data: dict) -> Any:
             value = config_from_dict(type(sub), value)
         elif isinstance(value, list):
             value = tuple(value)
-        kwargs[f.name] = _typed(cls, f, value)
+        kwargs[f.name] = typed(cls, f, value)
     return cls(**kwargs)
-
-
-def _typed(cls, f: dataclasses.Field, value: Any) -> Any:
-    """``value`` checked against the type of field ``f``'s default (bool, int, float, str, tuple; a float
-    field takes an int): a config file edited by hand names the field, not a TypeError deep in a run."""
-    default = f.default
-    if default is dataclasses.MISSING or default is None or value is None:
-        return value
-    kinds = {bool: (bool,), int: (int,), float: (int, float), str: (str,), tuple: (tuple,)}
-    want = kinds.get(type(default))
-    ok = want is not None and isinstance(value, want) and not (isinstance(value, bool) and type(default) is not bool)
-    if want is not None and not ok:
-        raise ValueError(f"{cls.__name__}.{f.name} must be {type(default).__name__} (like its default "
-                         f"{default!r}), got {value!r}")
-    return float(value) if type(default) is float else value
 
 
 def load_config_file(path: str | Path) -> Any:

@@ -330,7 +330,7 @@ class _Loop:
             self.log_bytes = log_file.tell()  # every row: the state after the loop is whole (see run())
 
 
-def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
+def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, resume: bool = False) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
     holding it); write the outputs (module docstring) to ``out_dir``; return ``out_dir``.
@@ -340,6 +340,11 @@ def run(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: str 
     of training and on SIGINT / SIGTERM (then :class:`TrainingInterrupted` is raised);
     ``resume=True`` continues from it. A finished OUT is only replaced with ``overwrite=True``.
     """
+    if cfg is None:  # as geocues.extract.run: the defaults
+        cfg = TrainConfig()
+    elif not isinstance(cfg, TrainConfig):
+        raise TypeError(f"cfg must be a TrainConfig (or None for the defaults; splat.presets.preset_config "
+                        f"for a preset), got {type(cfg).__name__}")
     out_dir = Path(out_dir)
     work, cues_ply, ckpt = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
     device = resolve_device(cfg.device)

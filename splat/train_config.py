@@ -10,6 +10,7 @@ import math
 from dataclasses import asdict, dataclass, field
 
 from geocues.types import CueType
+from splat.config_types import check_types
 from splat.gaussians import InitConfig
 from splat.guard import GuardConfig
 from splat.losses import LossConfig, without_priors
@@ -130,12 +131,17 @@ class TrainConfig:
             if not (math.isfinite(value) and (value >= 0 if zero_ok else value > 0)):
                 raise ValueError(f"--{name} must be a finite number {'>= 0' if zero_ok else '> 0'}, got {value}")
 
+        check_types(self)  # a value of another type (10.5 iterations, "abc") names its field first
         if self.adam not in ("fused", "torch"):
             raise ValueError(f"--adam must be 'fused' or 'torch', got {self.adam!r}")
         if self.loss.kernels not in ("fused", "torch"):
             raise ValueError(f"--loss.kernels must be 'fused' or 'torch', got {self.loss.kernels!r}")
         if self.iters <= 0:
             raise ValueError(f"--iters must be positive, got {self.iters}")
+        if len(self.background) != 3 or not all(math.isfinite(c) for c in self.background):
+            raise ValueError(f"--background must be three finite numbers (RGB), got {self.background!r}")
+        if self.strategy.max_gaussians < 0:
+            raise ValueError(f"--strategy.max-gaussians must be >= 0 (0: no limit), got {self.strategy.max_gaussians}")
         finite_pos("downscale", self.downscale)
         finite_pos("pose-lr", self.pose_lr)
         finite_pos("focal-lr", self.focal_lr)

@@ -95,7 +95,7 @@ def test_every_file_with_its_keys(ablation):
     assert rows["no-ln"]["status"] == "n/a" and "normal" in rows["no-ln"]["reason"]
     md = (out / "report.md").read_text()
     assert "n/a (no normal priors)" in md and "**floor**" in md
-    assert "0.040 / 0.776 / 0.877" in md  # the paper's full row beside ours
+    assert "4.0 / 0.776 / 0.877" in md  # the paper's full row beside ours (its C-L1 in cm, as ours)
     assert png_size(out / "accuracy_vs_time.png") == (1080, 720)
 
 

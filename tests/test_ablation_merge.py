@@ -89,3 +89,22 @@ def test_the_report_names_what_the_figure_draws_and_only_rows_it_holds(tmp_path)
     assert "No row has finished" in text and "accuracy_vs_time.png" not in text
     assert "Δ: against `full`" not in text
     assert not (tmp_path / "b" / "accuracy_vs_time.png").exists()
+
+
+def test_writing_a_report_leaves_the_users_matplotlib_backend_alone(tmp_path):
+    """From a notebook: the reports switched the whole process to Agg (inline figures stopped showing)."""
+    import matplotlib
+
+    from evaluation.ablation_report import write_reports
+
+    summary = _summary([("full", [_run(0, 0.05)])])
+    summary["floor"]["final"] = _run(0, 0.01)["final"]
+    summary["rows"][0]["runs"][0]["curve"][0]["train_s"] = 10.0
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")
+    try:
+        write_reports(summary, tmp_path)
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)
+    assert (tmp_path / "accuracy_vs_time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -68,6 +68,16 @@ class TestKnownCases:
         assert r.normal_consistency == pytest.approx(1.0, abs=1e-6)
         assert r.protocol["mode"] == "surface" and "surface" in r.protocol["distance"]
 
+    def test_an_open3d_mesh_from_splat_mesh_is_taken_and_other_types_named(self):
+        """fuse_views / clean_mesh return Open3D meshes: a notebook passes them straight in."""
+        b = box()
+        o3d_box = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(b.vertices), o3d.utility.Vector3iVector(b.faces))
+        cfg = MeshMetricsConfig(n_samples=5_000, mode="surface")
+        r = evaluate_meshes(o3d_box, b, cfg)
+        assert r.chamfer_l1 < 1e-6 and r.f_score == 1.0
+        with pytest.raises(TypeError, match="gt must be a TriMesh, an Open3D TriangleMesh .* got str"):
+            evaluate_meshes(b, "gt.ply", cfg)
+
     def test_identical_point_mode_is_sampling_spacing(self):
         n = 20_000
         r = evaluate_meshes(box(), box(), MeshMetricsConfig(n_samples=n, mode="point"))

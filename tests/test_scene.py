@@ -362,3 +362,14 @@ def test_transparent_photos_are_warned_about(tmp_path, caplog):
         with caplog.at_level(logging.WARNING, logger="geocues"):
             Scene.load(tmp_path / name)
         assert ("alpha channel (25% of its pixels" in caplog.text) == (name == "clear"), caplog.text
+
+
+def test_a_camera_index_outside_the_scene_is_named(tmp_path):
+    """load_image(-1) returned the last image; 999 a bare IndexError."""
+    make_scene(tmp_path / "s")
+    s = Scene.load(tmp_path / "s")
+    assert s.load_image(len(s) - 1).shape[2] == 3
+    for bad in (-1, len(s), 1.0):
+        for method in (s.load_image, s.depth_prior, s.normal_prior, s.depth_prior_path):
+            with pytest.raises(IndexError, match=rf"camera index {bad!r} outside 0\.\.{len(s) - 1} of the scene"):
+                method(bad)

@@ -10,7 +10,9 @@ takes the options without error and seeds nothing.
 from __future__ import annotations
 
 import json
+import re
 
+import numpy as np
 import pytest
 
 from cues_synth import make_room_scene
@@ -153,3 +155,31 @@ def test_a_room_or_mvs_preset_on_other_cues_is_named(tmp_path):
     assert cue_preset_mismatch("mvs", tmp_path / "mvs") is None
     assert cue_preset_mismatch("full", tmp_path / "paper") is None  # the paper's recipe takes any cues
     assert cue_preset_mismatch("room", tmp_path / "nowhere") is None  # no record: nothing to say
+
+
+def _cfg(**top):
+    """A TrainConfig with top-level fields, or nested ones as section={field: value}, replaced."""
+    from dataclasses import replace
+
+    from splat.train_config import TrainConfig
+
+    cfg = TrainConfig()
+    for key, value in top.items():
+        cfg = replace(cfg, **{key: replace(getattr(cfg, key), **value) if isinstance(value, dict) else value})
+    return cfg
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(iters="abc"), "TrainConfig.iters must be int (like its default 30000), got 'abc'"),
+    (dict(iters=10.5), "TrainConfig.iters must be int (like its default 30000), got 10.5"),
+    (dict(sh_degree=True), "TrainConfig.sh_degree must be int"),
+    (dict(background=(0.0, 0.0)), "--background must be three finite numbers"),
+    (dict(strategy={"max_gaussians": -1}), "--strategy.max-gaussians must be >= 0"),
+    (dict(loss={"lambda_depth": "0.1"}), "LossConfig.lambda_depth must be float"),
+], ids=["str iters", "fractional iters", "bool sh degree", "two-number background", "negative budget", "str weight"])
+def test_a_config_from_python_is_type_checked_before_any_work(change, message):
+    """From Python, TrainConfig(iters="abc") failed deep in a run with a TypeError, 10.5 iterations
+    trained 11, a two-number background failed nine frames deep after loading the scene."""
+    with pytest.raises(ValueError, match=re.escape(message)):
+        _cfg(**change).validate()
+    _cfg(iters=np.int64(100), downscale=np.float32(2.0), loss={"flat_types": [1, 2]}).validate()  # numpy, a list
