@@ -74,6 +74,25 @@ class TestAlignDepthPrior:
         assert al.residual_median_m < 0.005 and al.n_anchors > 200
         np.testing.assert_allclose(al.apply(prior)[depths[1] > 0], depths[1][depths[1] > 0], atol=0.01)
 
+    @pytest.mark.parametrize("unit", [1.0, 1000.0, 1e6, 1e-3])
+    def test_a_prior_in_any_unit_aligns(self, room, unit):
+        """Millimetres (scale ~ 1e-3) fell under an absolute scale floor of 1e-3 on 9 of 24 views of a
+        room as 'degenerate fit (scale 0.0009986, ...)'; the floor is relative to the prior's values."""
+        scene, depths = room
+        for i in (0, 1, 2):
+            prior = np.where(depths[i] > 0, unit * depths[i] * 1.001, 0).astype(np.float32)  # just under 1/unit
+            al = align_depth_prior(scene.cameras[i], prior, _surface_points(scene, depths, i), DepthAlignConfig())
+            assert al.ok, (unit, i, al.reason)
+            assert al.scale == pytest.approx(1 / (1.001 * unit), rel=2e-3)
+
+    def test_a_flat_fit_is_still_degenerate(self):
+        rng = np.random.default_rng(0)
+        z = rng.uniform(1, 4, 200)
+        d = rng.uniform(1, 4, 200)  # unrelated to z: the best affine map is nearly flat
+        from geocues.depth_align import _degenerate
+        assert _degenerate(1e-5, float(np.mean(z)), d, z, "depth", DepthAlignConfig())
+        assert not _degenerate(1e-3, 0.0, 1000 * z, z, "depth", DepthAlignConfig())
+
     def test_points_behind_walls_are_occluded(self, room):
         """Anchors seen by another camera but hidden in this one must not bias the fit."""
         scene, depths = room
