@@ -16,6 +16,7 @@ from torch import Tensor
 
 from geocues.advice import few_views_warning
 from geocues.atomic import check_output_dir, check_replaceable
+from geocues.cue_io import read_cue_report
 from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.plane_anchors import load_plane_anchors
 from geocues.rescale import metric_warning
@@ -88,6 +89,11 @@ def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
         kind = load_prior_kind(cues_ply.parent, default=scene.depth_kind)
     except FileNotFoundError:  # a bare cues.ply without its extract folder
         kind = scene.depth_kind
+    chosen = read_cue_report(cues_ply).get("config", {}).get("prior_kind", "scene")  # --prior-kind of the extract
+    if scene.has_depth_priors and kind != scene.depth_kind and chosen == "scene":  # scene.json changed since
+        raise ValueError(f"the cues in {cues_ply.parent} were extracted with the depth priors read as {kind}, "
+                         f"but {scene.root} now says {scene.depth_kind} (scene.json priors.depth_kind): run "
+                         f"`geocues extract {scene.root} -o {cues_ply.parent} --overwrite` again")
     alignments = {}
     if cfg.loss.lambda_anchor > 0 or kind == "disparity":  # L_a, or depth for L_d from disparity
         try:

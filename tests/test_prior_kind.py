@@ -160,6 +160,27 @@ class TestExtract:
         modes = rep["planes"]["plane_modes"]
         assert modes["prior_free"] == 0 and modes["prior"] > 0, modes
 
+    def test_cues_of_another_prior_kind_than_the_scene_says_now_are_refused(self, room, tmp_path, fake_lines):
+        """Extracted while scene.json said nothing (depth), trained after it declared disparity: the
+        cues' alignments fit the other model and trained in silence (C-L1 21.0 against 17.7 cm)."""
+        import shutil
+
+        from splat.train_config import TrainConfig
+        from splat.train_setup import cue_report_priors
+
+        scene, _ = room
+        as_scene = ex.run(None, scene.root, tmp_path / "from_scene")  # disparity, from scene.json
+        chosen = ex.run(ex.ExtractConfig(prior_kind="disparity"), scene.root, tmp_path / "chosen")
+        copy = tmp_path / "room_now_depth"
+        shutil.copytree(scene.root, copy)
+        (copy / "scene.json").write_text(json.dumps({"priors": {"depth": "exact, for tests"}}))  # kind: depth
+        now = Scene.load(copy)
+        with pytest.raises(ValueError, match="extracted with the depth priors read as disparity, but .* now says "
+                                             "depth .* run `geocues extract"):
+            cue_report_priors(TrainConfig(), now, as_scene / "cues.ply")
+        assert cue_report_priors(TrainConfig(), now, chosen / "cues.ply")[1] == "disparity"  # chosen with --prior-kind
+        assert cue_report_priors(TrainConfig(), scene, as_scene / "cues.ply")[1] == "disparity"
+
     def test_cli_option_parses(self, room, tmp_path, monkeypatch, capsys):
         from cli.geocues_cli import main
 
