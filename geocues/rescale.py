@@ -83,13 +83,19 @@ def metric_warning(scene: Scene) -> str | None:
 
 
 def scale_from_priors(scene: Scene, min_points: int = 20) -> tuple[float, int]:
-    """(metric / scene-unit factor, views used) from the depth priors at the SfM points each view sees."""
+    """(metric / scene-unit factor, views used) from the depth priors at the SfM points each view sees
+    (its track's points where the model has tracks: points behind a wall project into the view too,
+    and pulled an exact prior's factor 1.3 % low). The priors must be metric depth, not disparity."""
+    if scene.has_depth_priors and scene.depth_kind != "depth":
+        raise ValueError(f"--from-priors needs metric depth priors; {scene.root}'s are {scene.depth_kind} "
+                         "(scene.json priors.depth_kind), which has no unit: give --scale or --median-depth")
     ratios = []
     for i, cam in enumerate(scene.cameras):
         d = scene.depth_prior(i)
         if d is None:
             continue
-        uv, z = cam.project(scene.points.xyz)
+        seen = scene.points.visible_in.get(i)
+        uv, z = cam.project(scene.points.xyz[seen] if seen is not None and len(seen) >= min_points else scene.points.xyz)
         uv, z = uv[z > 0], z[z > 0]
         col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         inside = (col >= 0) & (col < d.shape[1]) & (row >= 0) & (row < d.shape[0])
@@ -141,6 +147,11 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     scale, used = cfg.scale, None
     if cfg.from_priors:
         scale, used = scale_from_priors(scene)
+        extent = scene_extent(scene) * scale
+        if not 0.5 <= extent <= 100.0:  # a room is neither 12 cm nor 5 km across
+            log.warning("--from-priors: the factor %.6g makes the scene %.3g m across: are the priors in "
+                        "metres? (millimetres: scene.json priors.depth_png_scale 1000 for PNG, or divide the "
+                        ".npy files; 8-bit PNG depth cannot hold metric depth)", scale, extent)
     if cfg.median_depth is not None:
         depth = median_view_depth(scene)
         if depth is None:
