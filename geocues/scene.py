@@ -168,6 +168,17 @@ def _has_colmap_model(root: Path) -> bool:
         return False
 
 
+def _read_png(path: Path, what: str) -> np.ndarray:
+    """An image file as stored (any bit depth, channels BGR), else ValueError naming it (OpenCV
+    returns None for a damaged or truncated file)."""
+    import cv2
+
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"cannot read the {what} {path} (damaged, truncated or not an image)")
+    return raw
+
+
 def _load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray:
     """np.load with an error that names the file (truncated or foreign .npy files)."""
     try:
@@ -296,6 +307,8 @@ class Scene:
                 path = self._prior_path(kind, cam.index)
                 if path is None:
                     continue
+                if kind == "depth" and path.suffix != ".npy":
+                    self._depth_png_scale(path)  # a PNG's unit is scene.json's: named here, not mid-extract
                 shape = (_load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
                          else _read_image_size(path)[::-1])
                 want = "HxW" + ("x3" if kind == "normal" else "")
@@ -383,12 +396,7 @@ class Scene:
         if path.suffix == ".npy":
             d = _load_npy(path, "depth prior").astype(np.float32)
         else:
-            scale = self.metadata.get("depth_png_scale")
-            if scale is None:
-                raise ValueError(f"{path} is a PNG depth prior but {self.root / 'scene.json'} "
-                                 f"has no 'depth_png_scale' (units per metre)")
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            d = raw.astype(np.float32) / float(scale)
+            d = _read_png(path, "depth prior").astype(np.float32) / self._depth_png_scale(path)
         if d.ndim != 2:
             raise ValueError(f"the depth prior {path} has shape {d.shape}; expected [H, W]")
         bad = ~np.isfinite(d)
@@ -410,8 +418,12 @@ class Scene:
         if path.suffix == ".npy":
             n = _load_npy(path, "normal prior").astype(np.float32)
         else:
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+            raw = _read_png(path, "normal prior")
+            if raw.ndim != 3 or raw.shape[2] != 3:
+                raise ValueError(f"the normal prior {path} has shape {raw.shape}; expected an RGB image [H, W, 3]")
+            raw = raw[:, :, ::-1]
             n = raw.astype(np.float32) / float(np.iinfo(raw.dtype).max) * 2.0 - 1.0
+            n[(raw == 0).all(-1)] = 0.0  # black: no normal (a PNG cannot hold the .npy's all-zero vector)
         if n.ndim != 3 or n.shape[2] != 3:
             raise ValueError(f"the normal prior {path} has shape {n.shape}; expected [H, W, 3]")
         if self.normal_axes == "opengl":  # OpenGL camera axes (x right, y up, z back) -> OpenCV, once, here
@@ -425,6 +437,20 @@ class Scene:
             n = cv2.resize(n, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
         norm = np.linalg.norm(n, axis=-1, keepdims=True)
         return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+
+    def _depth_png_scale(self, path: Path) -> float:
+        """scene.json's ``depth_png_scale`` (PNG units per metre; for disparity, any positive factor),
+        a positive number, else ValueError naming the PNG and the key."""
+        scale = self.metadata.get("depth_png_scale")
+        what = ("units per metre, e.g. 1000 for millimetres" if self.depth_kind == "depth"
+                else "any positive factor for disparity, e.g. 1")
+        if scale is None:
+            raise ValueError(f"{path} is a PNG depth prior but {self.root / 'scene.json'} has no "
+                             f"'depth_png_scale' ({what})")
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"{self.root / 'scene.json'}: depth_png_scale must be a positive number ({what}), "
+                             f"got {scale!r}")
+        return float(scale)
 
     def _prior_option(self, key: str, allowed: tuple[str, ...]) -> str:
         """scene.json ``{"priors": {key: value}}``, one of ``allowed`` (the first is the default)."""

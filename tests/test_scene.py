@@ -252,7 +252,9 @@ class TestBadInput:
         (scene_dir / "priors" / "depth").mkdir(parents=True)
         png = scene_dir / "priors" / "depth" / "00000.png"
         cv2.imwrite(str(png), np.full((H, W), 1000, np.uint16))
-        s = Scene.load(scene_dir)
+        with pytest.raises(ValueError, match=str(png) + ".*depth_png_scale"):  # at load, as docs/scenes.md says
+            Scene.load(scene_dir)
+        s = Scene.load(scene_dir, check_priors=False)
         with pytest.raises(ValueError, match=str(png) + ".*depth_png_scale"):
             s.depth_prior(0)
 
@@ -373,3 +375,38 @@ def test_a_camera_index_outside_the_scene_is_named(tmp_path):
         for method in (s.load_image, s.depth_prior, s.normal_prior, s.depth_prior_path):
             with pytest.raises(IndexError, match=rf"camera index {bad!r} outside 0\.\.{len(s) - 1} of the scene"):
                 method(bad)
+
+
+def test_png_priors_a_user_brings_are_read_or_named(tmp_path):
+    """A black PNG normal pixel is no normal (it read as (-1,-1,-1)/sqrt 3, a valid direction); a
+    grey-scale normal PNG, a truncated depth PNG and a depth_png_scale that is not a positive number
+    are one error naming the file or key (they were an IndexError, an AttributeError, a float())."""
+    import cv2
+
+    make_scene(tmp_path / "s")
+    s = Scene.load(tmp_path / "s")
+    cam = s.cameras[0]
+    (tmp_path / "s" / "priors" / "normal").mkdir(parents=True)
+    png = np.full((cam.height, cam.width, 3), (128, 128, 255), np.uint8)  # BGR: facing the camera (z -1)
+    png[: cam.height // 4] = 0
+    path = tmp_path / "s" / "priors" / "normal" / f"{cam.stem}.png"
+    cv2.imwrite(str(path), png)
+    n = Scene.load(tmp_path / "s").normal_prior(0)
+    assert (n[: cam.height // 4] == 0).all() and (np.abs(np.linalg.norm(n[cam.height // 4:], axis=-1) - 1) < 1e-5).all()
+    cv2.imwrite(str(path), png[..., 0])  # one channel
+    with pytest.raises(ValueError, match=f"the normal prior {path} has shape .* expected an RGB image"):
+        Scene.load(tmp_path / "s").normal_prior(0)
+    path.unlink()
+    (tmp_path / "s" / "priors" / "depth").mkdir(parents=True)
+    dpath = tmp_path / "s" / "priors" / "depth" / f"{cam.stem}.png"
+    cv2.imwrite(str(dpath), np.full((cam.height, cam.width), 2000, np.uint16))
+    meta = tmp_path / "s" / "scene.json"
+    for bad in ("mm", 0, -1000):
+        meta.write_text(json.dumps({"depth_png_scale": bad}))
+        with pytest.raises(ValueError, match=f"depth_png_scale must be a positive number .* got {bad!r}"):
+            Scene.load(tmp_path / "s")
+    meta.write_text(json.dumps({"depth_png_scale": 1000}))
+    assert Scene.load(tmp_path / "s").depth_prior(0).max() == pytest.approx(2.0)
+    dpath.write_bytes(dpath.read_bytes()[:60])  # a valid header, the data cut off
+    with pytest.raises(ValueError, match=f"cannot read the depth prior {dpath}"):
+        Scene.load(tmp_path / "s", check_priors=False).depth_prior(0)
