@@ -93,10 +93,10 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
               f"distortion): `geocues undistort {s.root} -o OUT` makes the PINHOLE scene the other commands read")
     print(f"priors     depth {n_depth}/{len(s)}" + (f" ({s.depth_kind})" if n_depth else "")
           + f"  normal {n_normal}/{len(s)}" + (f" ({s.normal_axes} axes)" if n_normal else ""))
-    away = s.normals_facing_away()
-    if away is not None and away > 0.5:
-        print(f"warning    {away:.0%} of the normal-prior pixels face away from the camera: the priors look like "
-              "OpenGL camera axes (y up, z back); set {\"priors\": {\"normal_axes\": \"opengl\"}} in scene.json")
+    from geocues.advice import normal_axes_warning
+
+    if away := normal_axes_warning(s):
+        print(f"warning    {away}")
     from geocues.rescale import metric_warning, scene_extent
 
     print(f"extent     {scene_extent(s):.3g} units (5-95 % box of the {'points' if len(pts) >= 10 else 'cameras'})")

@@ -103,8 +103,10 @@ def contact_sheet(run_dir: Path, scene_dir: Path, n_views: int, gt_depth: Path |
 
             try:
                 gt = load_gt_depth(depth_dir, cam.stem, depth.shape, 1000.0)
-                err = np.where((gt > 0) & (depth > 0), np.abs(depth - gt), np.nan)
-                errors.append({"view": cam.name, "median_abs_depth_error_m": float(np.nanmedian(err))})
+                both = (gt > 0) & (depth > 0)
+                err = np.where(both, np.abs(depth - gt), np.nan)
+                errors.append({"view": cam.name,  # None: nothing rendered where GT has depth (JSON has no NaN)
+                               "median_abs_depth_error_m": float(np.median(err[both])) if both.any() else None})
             except FileNotFoundError:
                 err = None
         rows.append({"name": cam.name, "gt": scene.load_image(i), "render": out["rgb"].clamp(0, 1).numpy(),
@@ -139,7 +141,7 @@ def _draw_sheet(sheet: dict, path: Path) -> Path:
                 ax.imshow(np.clip(panels[k], 0, 1))
             if ri == 0:
                 ax.set_title(cols[k], fontsize=9)
-        err = errors.get(row["name"])
+        err = errors.get(row["name"])  # None: no rendered depth where GT has some
         r[0].set_ylabel(row["name"] + (f"\nmedian |depth - GT| {100 * err:.1f} cm" if err is not None else ""),
                         fontsize=8)
     return _save(fig, path)
@@ -205,7 +207,7 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
             "images_vs_time": images, "mesh_vs_time": meshes,
             "views": [r["name"] for r in sheet["rows"]], "depth_errors": sheet["depth_errors"]}
     with atomic_path(run_dir / "report_data.json") as tmp:
-        tmp.write_text(json.dumps(data, indent=1))
+        tmp.write_text(json.dumps(data, indent=1, allow_nan=False))
     final = report.get("test_metrics", {})
     name = run_dir.resolve().name
     if name == "train":  # `splat ablate`'s OUT/rows/<row>_s<seed>/train: the row names the run

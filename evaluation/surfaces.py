@@ -12,6 +12,8 @@ from typing import Any, Callable
 import numpy as np
 import open3d as o3d
 
+from splat.mesh_post import ply_element_counts
+
 log = logging.getLogger(__name__)
 
 
@@ -62,20 +64,6 @@ class TriMesh:
         return used.min(axis=0), used.max(axis=0)
 
 
-def _ply_header_counts(path: Path) -> dict[str, int]:
-    """Element counts declared in a PLY header ({"vertex": n, "face": m, ...})."""
-    counts = {}
-    with open(path, "rb") as f:
-        for _ in range(10_000):
-            line = f.readline()
-            if not line or line.strip() == b"end_header":
-                break
-            parts = line.split()
-            if len(parts) == 3 and parts[0] == b"element":
-                counts[parts[1].decode(errors="replace")] = int(parts[2])
-    return counts
-
-
 def load_mesh(path: str | Path) -> TriMesh:
     """Read a triangle mesh (PLY/OBJ/OFF/...) with Open3D; errors name the path."""
     path = Path(path)
@@ -87,7 +75,7 @@ def load_mesh(path: str | Path) -> TriMesh:
     if len(faces) == 0:
         raise ValueError(f"{path}: no triangles in this file (empty mesh, point cloud or unreadable)")
     if path.suffix.lower() == ".ply":  # Open3D returns what it read of a truncated file without error
-        want = _ply_header_counts(path)
+        want = ply_element_counts(path)
         got = {"vertex": len(mesh.vertices), "face": len(faces)}
         short = {k: (got[k], want[k]) for k in got if k in want and got[k] < want[k]}
         if short:

@@ -24,6 +24,24 @@ def few_views_warning(n_views: int, what: str = "images") -> str | None:
             "a room wants dozens of overlapping photos")
 
 
+def normal_axes_warning(scene: Scene) -> str | None:
+    """A sentence when most of the scene's normal-prior pixels face away from their camera, else None.
+    OpenGL camera axes are one cause and have a setting; negated, world-frame or [0, 1]-valued normals
+    give the same symptom and have none (setting opengl for them hid the warning and kept them wrong)."""
+    away = scene.normals_facing_away()
+    if away is None or away <= 0.5:
+        return None
+    where = scene.root / "scene.json"
+    if scene.normal_axes == "opengl":
+        return (f"{100 * away:.0f}% of the normal-prior pixels face away from the camera although {where} says "
+                "normal_axes opengl: the files hold normals in another convention (negated, in the world frame, "
+                "or in [0, 1] instead of [-1, 1]); convert them to camera-frame normals facing the camera")
+    return (f"{100 * away:.0f}% of the normal-prior pixels face away from the camera (OpenCV camera axes: x "
+            "right, y down, z forward; visible surfaces face the camera). With OpenGL camera axes (y up, z back) "
+            f"set {{\"priors\": {{\"normal_axes\": \"opengl\"}}}} in {where}; negated, world-frame or [0, 1]-valued "
+            "normals look the same and have no setting: convert those files")
+
+
 def _sibling(root: Path, suffix: str) -> str:
     """ROOT_suffix beside ``root`` (in the working folder when root's folder is not writable, e.g. a
     shared dataset), quoted for a shell."""

@@ -30,6 +30,7 @@ from typing import Literal
 
 import numpy as np
 
+from geocues.advice import normal_axes_warning
 from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.camera_signature import camera_signature
@@ -224,11 +225,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()
     cache = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
-    away = scene.normals_facing_away()
-    if away is not None and away > 0.5:
-        log.warning("%.0f%% of the normal-prior pixels face away from the camera: the priors look like OpenGL "
-                    "camera axes (y up, z back); set {\"priors\": {\"normal_axes\": \"opengl\"}} in %s",
-                    100 * away, scene.root / "scene.json")
+    if away := normal_axes_warning(scene):
+        log.warning("%s", away)
     n_img = len(scene.cameras)
     timings: dict[str, float] = {}
     rejections: dict[str, dict] = {}

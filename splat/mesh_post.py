@@ -125,4 +125,18 @@ def write_mesh(mesh: o3d.geometry.TriangleMesh, path: str | Path) -> Path:
     return path
 
 
-__all__ = ["canonical_order", "clean_mesh", "write_mesh"]
+def ply_element_counts(path: str | Path) -> dict[str, int]:
+    """Element counts declared in a PLY header ({"vertex": n, "face": m, ...}), without reading the data."""
+    counts = {}
+    with open(path, "rb") as f:
+        for _ in range(10_000):
+            line = f.readline()
+            if not line or line.strip() == b"end_header":
+                break
+            parts = line.split()
+            if len(parts) == 3 and parts[0] == b"element":
+                counts[parts[1].decode(errors="replace")] = int(parts[2])
+    return counts
+
+
+__all__ = ["canonical_order", "clean_mesh", "ply_element_counts", "write_mesh"]

@@ -45,6 +45,7 @@ from splat.mesh import write_mesh
 from splat.multiview import SourceView, source_view
 from splat.strategy import PAPER_ITERS, IndoorStrategy
 from splat.init_gaussians import initial_gaussians, load_init_cloud  # noqa: F401  (re-exported)
+from splat.mesh_post import ply_element_counts
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.train_setup import (TrainingSetup, cue_report_priors, make_optimizers,  # noqa: F401  (re-exported)
                                open_run, setup_training, type_counts)
@@ -381,6 +382,10 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
             f"{loop.ckpt_path}; continue with the same command and --resume (the outputs are written, "
             "nothing trained again)") from None
     timings["total_s"] = loop.wall_s()  # earlier sessions of a resumed run included
+    mesh = None
+    if cfg.mesh and (work / "mesh.ply").is_file():
+        counts = ply_element_counts(work / "mesh.ply")
+        mesh = {"vertices": counts.get("vertex", 0), "triangles": counts.get("face", 0)}
     paths = {f"{name}{k}": v for name, path in (("scene", scene_dir), ("cues", cues_ply))
              for k, v in run_paths.record(path, out_dir).items()}  # readable from any folder (splat/run_paths.py)
     report = {"config": asdict(cfg), **paths, "device": str(device),
@@ -390,7 +395,7 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
               "test_per_view": final.get("per_view", []), "accuracy_vs_time": loop.curve, "timings": timings,
               "resumed_from_step": step0 if ckpt is not None else None, "guard_events": s.guard.events,
-              "camera_refinement": s.refiner.summary() if s.refiner is not None else None}
+              "camera_refinement": s.refiner.summary() if s.refiner is not None else None, "mesh": mesh}
     with atomic_path(work / "report.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2, allow_nan=False))
     if not cfg.keep_ckpt:
@@ -398,4 +403,8 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
     publish(work, out_dir)
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
              _db(final["psnr"]), len(s.state["cue_type"]), out_dir)
+    if mesh is not None and mesh["triangles"] == 0:  # a finished run whose mesh says nothing: said last
+        log.warning("the mesh of %s is EMPTY (no rendered depth was fused: test PSNR %s%s); the model did not fit "
+                    "the scene: check the cameras (geocues info) and the learning rates (--lr.*)", out_dir,
+                    _db(final["psnr"]), f", {len(s.guard.events)} steps rolled back" if s.guard.events else "")
     return out_dir

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geocues.advice import few_views_warning
+from geocues.advice import few_views_warning, normal_axes_warning
 from geocues.atomic import check_output_dir, check_replaceable
 from geocues.cue_io import read_cue_report
 from geocues.depth_align import load_alignments, load_prior_kind
@@ -153,7 +153,8 @@ def _load_views(cfg: TrainConfig, scene: Scene, scene_dir: Path, cues_ply: Path,
                           plane_views=cfg.loss.plane_views, anchor_override=fused)
     test_views = ViewSet(scene, scene.test_indices, device, load_priors=False, desc="test views")
     if len(train_views) == 0:
-        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every})")
+        raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every} holds out "
+                         f"every {cfg.test_every}th of its {len(scene)} images): --test-every 0 trains on all of them")
     if few := few_views_warning(len(train_views), "training views"):
         log.warning("%s: %s", scene_dir, few)
     if cfg.loss.use_depth and not train_views.has_depth_priors:
@@ -168,6 +169,8 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
     what steps them. Every iteration count of the paper's schedule is scaled to ``cfg.iters``."""
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     warn_large_images(scene, cfg.downscale)
+    if cfg.loss.use_normal and (away := normal_axes_warning(scene)):  # L_n would pull towards them as they are
+        log.warning("%s", away)
     if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
         log.warning("%s", far)
     train_views, test_views = _load_views(cfg, scene, scene_dir, cues_ply, device)

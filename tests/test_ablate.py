@@ -647,3 +647,22 @@ def test_the_floor_does_not_depend_on_the_rows(tiny, ablation):
     mvs = data["floors"]["mvs"]
     assert mvs["status"] == "done" and mvs["key"] != data["floor"]["key"] and (out / "floor_mvs" / "mesh.ply").is_file()
     assert "**floor** through `mvs`'s meshing" in (out / "report.md").read_text()
+
+
+def test_a_report_of_a_run_that_rendered_no_depth_is_strict_json(ablation, tmp_path, monkeypatch):
+    """A run that rendered nothing where GT has depth (fx 1e6) wrote NaN into report_data.json (not JSON)."""
+    import splat.rasterize
+    from evaluation.run_report import write_run_report
+
+    run = tmp_path / "run"
+    shutil.copytree(ablation / "rows" / "full_s0" / "train", run)
+    real = splat.rasterize.render
+
+    def no_depth(*a, **k):
+        out = real(*a, **k)
+        return {**out, "median_depth": out["median_depth"] * 0}
+
+    monkeypatch.setattr(splat.rasterize, "render", no_depth)
+    write_run_report(run, n_views=1, overwrite=True)
+    data = json.loads((run / "report_data.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
+    assert [e["median_abs_depth_error_m"] for e in data["depth_errors"]] == [None]

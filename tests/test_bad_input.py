@@ -170,13 +170,21 @@ def test_opengl_normal_priors_are_detected_and_converted(room, capsys):
         np.save(root / "priors" / "normal" / f"{cam.stem}.npy", (n * [1, -1, -1]).astype(np.float32))
     assert Scene.load(root).normals_facing_away() > 0.8  # all but the far off-axis pixels
     assert geocues(["info", str(root)]) == 0
-    assert "look like OpenGL camera axes" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "face away from the camera" in out and '"normal_axes": "opengl"' in out
+    assert "negated, world-frame or [0, 1]-valued normals look the same" in out  # the other causes, no setting
     (root / "scene.json").write_text(json.dumps({"priors": {"normal_axes": "opengl"}}))
     fixed = Scene.load(root)
     assert fixed.normals_facing_away() < 0.05
     n = fixed.normal_prior(0)
     ref = -scene.cameras[0].pixel_rays() / np.linalg.norm(scene.cameras[0].pixel_rays(), axis=-1, keepdims=True)
     np.testing.assert_allclose(n, ref, atol=1e-5)
+    # negated normals with opengl set: still facing away, and said so (the setting had hidden it)
+    for cam in scene.cameras:
+        n = cam.pixel_rays() / np.linalg.norm(cam.pixel_rays(), axis=-1, keepdims=True)
+        np.save(root / "priors" / "normal" / f"{cam.stem}.npy", (n * [1, -1, -1]).astype(np.float32))
+    assert geocues(["info", str(root)]) == 0
+    assert "although" in (out := capsys.readouterr().out) and "says normal_axes opengl" in out, out
 
 
 def test_non_finite_sfm_points_are_dropped_and_poses_refused(room, caplog, capsys):

@@ -328,6 +328,24 @@ def test_every_usage_line_names_its_positional_arguments(capsys):
             assert usage.startswith("usage: ") and " PATH" not in usage, usage
 
 
+def test_an_empty_mesh_is_the_last_warning(scene, monkeypatch, caplog):
+    """A run whose Gaussians left the room (--lr.means 1e3 on a benchmark room) fused an empty mesh and
+    ended 'done' with one warning deep in its log: now report.json counts the mesh and the last line says."""
+    import logging
+
+    import open3d as o3d
+
+    import splat.train_outputs as outputs
+    from splat.train import TrainConfig, run
+
+    base, root, cues = scene
+    monkeypatch.setattr(outputs, "fuse_mesh", lambda *a, **k: o3d.geometry.TriangleMesh())
+    with caplog.at_level(logging.INFO, logger="splat"):
+        out = run(TrainConfig(iters=5, sh_degree=0, checkpoints=()), root, cues, base / "empty_mesh")
+    assert json.loads((out / "report.json").read_text())["mesh"] == {"vertices": 0, "triangles": 0}
+    assert "is EMPTY" in caplog.records[-1].getMessage() and caplog.records[-1].levelname == "WARNING"
+
+
 def test_quiet_run_prints_no_progress_bars(scene, capsys):
     from cli.splat_cli import main
 
