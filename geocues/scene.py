@@ -52,6 +52,8 @@ def no_images_folder(image_dir: Path) -> FileNotFoundError:
                              f"scene keeps them in images/ (COLMAP's layout): {fix}")
 
 
+MIN_SIDE = 8  # pixels: the smallest image side a downscale may leave
+
 GT_MESH_FILES = ("gt/mesh.ply", "reference_mesh.ply")  # the scene layout's, then a dataset's at its root (ICL-NUIM)
 
 
@@ -255,6 +257,10 @@ class Scene:
             if not (np.isfinite(im.K).all() and np.isfinite(im.R).all() and np.isfinite(im.t).all()):
                 raise ValueError(f"image {im.name} in {model_dir} has a non-finite pose or intrinsics")
             nw, nh = max(1, int(round(im.width / downscale))), max(1, int(round(im.height / downscale)))
+            if min(nw, nh) < MIN_SIDE:  # 1-px images trained to a PSNR that meant nothing
+                raise ValueError(f"downscale {downscale:g} makes {im.name} ({im.width}x{im.height}) {nw}x{nh} px; "
+                                 f"a side under {MIN_SIDE} px shows no scene: use at most "
+                                 f"{min(im.width, im.height) / MIN_SIDE:g}")
             S = np.diag([nw / im.width, nh / im.height, 1.0])  # exact under COLMAP pixel centres
             cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path,
                                   width=nw, height=nh, K=S @ im.K, R=im.R, t=im.t))

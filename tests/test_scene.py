@@ -410,3 +410,13 @@ def test_png_priors_a_user_brings_are_read_or_named(tmp_path):
     dpath.write_bytes(dpath.read_bytes()[:60])  # a valid header, the data cut off
     with pytest.raises(ValueError, match=f"cannot read the depth prior {dpath}"):
         Scene.load(tmp_path / "s", check_priors=False).depth_prior(0)
+
+
+def test_a_downscale_that_leaves_no_image_is_refused(tmp_path):
+    """--downscale 1000 on 320-px images trained on 1-px images and reported a PSNR."""
+    make_scene(tmp_path / "s")
+    s = Scene.load(tmp_path / "s")
+    w, h = s.cameras[0].width, s.cameras[0].height
+    with pytest.raises(ValueError, match=rf"downscale 1000 makes .* \({w}x{h}\) \d+x\d+ px; a side under 8 px"):
+        Scene.load(tmp_path / "s", downscale=1000)
+    Scene.load(tmp_path / "s", downscale=min(w, h) / 8)  # the largest allowed
