@@ -93,6 +93,11 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
               f"distortion): `geocues undistort {s.root} -o OUT` makes the PINHOLE scene the other commands read")
     print(f"priors     depth {n_depth}/{len(s)}" + (f" ({s.depth_kind})" if n_depth else "")
           + f"  normal {n_normal}/{len(s)}" + (f" ({s.normal_axes} axes)" if n_normal else ""))
+    for kind in ("depth", "normal"):
+        if stray := s.stray_priors(kind):
+            print(f"warning    {len(stray)} file(s) in priors/{kind}/ are no image's prior and are ignored "
+                  f"({', '.join(p.name for p in stray[:3])}{', ...' if len(stray) > 3 else ''}): a prior is named "
+                  f"after its image's stem (images/{s.cameras[0].name} -> priors/{kind}/{s.cameras[0].stem}.npy)")
     from geocues.advice import normal_axes_warning
 
     if away := normal_axes_warning(s):

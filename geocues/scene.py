@@ -371,11 +371,21 @@ class Scene:
     def _prior_path(self, kind: str, i: int) -> Path | None:
         if kind == "depth" and i in self.depth_files:  # named by transforms.json (depth_file_path)
             return self.depth_files[i]
-        base = self.root / "priors" / kind / self.camera(i).stem
-        for ext in (".npy", ".png"):
-            if base.with_suffix(ext).is_file():
-                return base.with_suffix(ext)
+        folder, stem = self.root / "priors" / kind, self.camera(i).stem
+        for ext in (".npy", ".png"):  # stem + ext: with_suffix would make frame.0001 -> frame.npy
+            if (folder / (stem + ext)).is_file():
+                return folder / (stem + ext)
         return None
+
+    def stray_priors(self, kind: str) -> list[Path]:
+        """Files in priors/<kind>/ that are no image's prior (named after no image stem, e.g.
+        00005_depth.npy or 00005.png.npy): ignored, so listed for a warning."""
+        folder = self.root / "priors" / kind
+        if not folder.is_dir():
+            return []
+        stems = {c.stem for c in self.cameras}
+        return sorted(p for p in folder.iterdir() if p.suffix in (".npy", ".png") and p.stem not in stems
+                      and not p.name.startswith("."))
 
     def depth_prior_path(self, i: int) -> Path | None:
         return self._prior_path("depth", i)

@@ -420,3 +420,29 @@ def test_a_downscale_that_leaves_no_image_is_refused(tmp_path):
     with pytest.raises(ValueError, match=rf"downscale 1000 makes .* \({w}x{h}\) \d+x\d+ px; a side under 8 px"):
         Scene.load(tmp_path / "s", downscale=1000)
     Scene.load(tmp_path / "s", downscale=min(w, h) / 8)  # the largest allowed
+
+
+def test_prior_files_that_match_no_image_are_named_and_dotted_stems_find_theirs(tmp_path, capsys):
+    """00005_depth.npy, 00005.png.npy, 99999.npy were ignored without a word; a stem with a dot
+    (frame.0001) looked for frame.npy (Path.with_suffix), another image's name."""
+    from cli.geocues_cli import main
+
+    make_scene(tmp_path / "s")
+    s = Scene.load(tmp_path / "s")
+    depth = tmp_path / "s" / "priors" / "depth"
+    depth.mkdir(parents=True)
+    cam = s.cameras[0]
+    for name in (f"{cam.stem}_depth.npy", f"{cam.name}.npy", "99999.npy", f"{cam.stem}.npy"):
+        np.save(depth / name, np.ones((cam.height, cam.width), np.float32))
+    assert [p.name for p in Scene.load(tmp_path / "s").stray_priors("depth")] == sorted(
+        [f"{cam.stem}_depth.npy", f"{cam.name}.npy", "99999.npy"])
+    assert main(["info", str(tmp_path / "s")]) == 0
+    out = capsys.readouterr().out
+    assert "3 file(s) in priors/depth/ are no image's prior and are ignored" in out and "99999.npy" in out
+    from dataclasses import replace
+    s = Scene.load(tmp_path / "s")
+    s.cameras[1] = replace(s.cameras[1], name="frame.0001.png")  # stem frame.0001
+    np.save(depth / "frame.npy", np.ones((cam.height, cam.width), np.float32))
+    assert s.depth_prior_path(1) is None  # not frame.npy
+    np.save(depth / "frame.0001.npy", np.ones((cam.height, cam.width), np.float32))
+    assert s.depth_prior_path(1) == depth / "frame.0001.npy"
