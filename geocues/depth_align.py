@@ -376,6 +376,11 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     res.width, res.height = cam.width, cam.height
     if len(d) < max(cfg.min_anchors, 2):
         res.reason = f"too few anchors ({len(d)} < {cfg.min_anchors})"
+        share = float(np.mean(depth > 0)) if depth.size else 0.0  # the prior itself: empty, or mostly <= 0?
+        if share < 0.5:
+            negative = float(np.mean(depth < 0)) if depth.size else 0.0
+            res.reason += (f": the prior has valid (positive, finite) depth in {100 * share:.0f}% of its pixels"
+                           + (f", {100 * negative:.0f}% negative (negated?)" if negative > 0.1 else ""))
         return res
     spread = float((np.percentile(z, 90) - np.percentile(z, 10)) / np.median(z))
     if cfg.fit_shift and spread < cfg.min_depth_spread:  # scale and shift are not separable

@@ -174,6 +174,13 @@ class TestAlignDepthPrior:
         assert al.to_dict()["scale"] is None
         with pytest.raises(ValueError, match="no alignment"):
             al.apply(depths[0])
+        assert "valid" not in al.reason  # the prior is fine: the anchors were few
+        # an all-zero (or all-NaN, set to 0 at load) and a negated prior: the reason says what the file holds
+        X = _surface_points(scene, depths, 0)
+        empty = align_depth_prior(cam, np.zeros_like(depths[0]), X, DepthAlignConfig())
+        assert "valid (positive, finite) depth in 0% of its pixels" in empty.reason, empty.reason
+        negated = align_depth_prior(cam, -depths[0], X, DepthAlignConfig())
+        assert "negative (negated?)" in negated.reason, negated.reason
 
     def test_anchors_on_depth_edges_are_not_used(self, room):
         scene, depths = room
