@@ -98,7 +98,10 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
             print(f"warning    {len(stray)} file(s) in priors/{kind}/ are no image's prior and are ignored "
                   f"({', '.join(p.name for p in stray[:3])}{', ...' if len(stray) > 3 else ''}): a prior is named "
                   f"after its image's stem (images/{s.cameras[0].name} -> priors/{kind}/{s.cameras[0].stem}.npy)")
-    from geocues.advice import normal_axes_warning
+    from geocues.advice import fov_warning, normal_axes_warning
+
+    if odd := fov_warning(s):
+        print(f"warning    {odd}")
 
     if away := normal_axes_warning(s):
         print(f"warning    {away}")

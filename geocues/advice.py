@@ -24,6 +24,27 @@ def few_views_warning(n_views: int, what: str = "images") -> str | None:
             "a room wants dozens of overlapping photos")
 
 
+FOV_RANGE_DEG = (10.0, 150.0)  # horizontal fields of view a room's photos can have (phones ~65, fisheye ~120)
+
+
+def fov_warning(scene: Scene) -> str | None:
+    """A sentence when a camera's horizontal field of view is outside :data:`FOV_RANGE_DEG` (a focal in
+    the wrong unit or for another image size: fx 1e6 or 1 on 320-px images trained to an empty mesh)."""
+    import math
+
+    odd = []
+    for cam in scene.cameras:
+        fov = math.degrees(2 * math.atan(cam.width / (2 * cam.K[0, 0])))
+        if not FOV_RANGE_DEG[0] <= fov <= FOV_RANGE_DEG[1]:
+            odd.append((cam.name, fov, cam.K[0, 0], cam.width))
+    if not odd:
+        return None
+    name, fov, fx, width = odd[0]
+    return (f"{len(odd)} camera(s) have a horizontal field of view outside {FOV_RANGE_DEG[0]:g}-{FOV_RANGE_DEG[1]:g} "
+            f"degrees ({name}: {fov:.3g} deg, fx {fx:.4g} px for {width} px wide): is the focal length in "
+            "pixels of these images (not millimetres, not another resolution's)?")
+
+
 def normal_axes_warning(scene: Scene) -> str | None:
     """A sentence when most of the scene's normal-prior pixels face away from their camera, else None.
     OpenGL camera axes are one cause and have a setting; negated, world-frame or [0, 1]-valued normals

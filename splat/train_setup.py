@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geocues.advice import few_views_warning, normal_axes_warning
+from geocues.advice import few_views_warning, fov_warning, normal_axes_warning
 from geocues.atomic import check_output_dir, check_replaceable
 from geocues.cue_io import read_cue_report
 from geocues.depth_align import load_alignments, load_prior_kind
@@ -169,6 +169,8 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
     what steps them. Every iteration count of the paper's schedule is scaled to ``cfg.iters``."""
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     warn_large_images(scene, cfg.downscale)
+    if odd := fov_warning(scene):
+        log.warning("%s", odd)
     if cfg.loss.use_normal and (away := normal_axes_warning(scene)):  # L_n would pull towards them as they are
         log.warning("%s", away)
     if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres

@@ -87,3 +87,20 @@ def test_a_geocues_mvs_scene_is_advised_its_recipe(rooms, tmp_path):
     cmds = _commands(mvs)
     assert cmds[0] == f"geocues extract {mvs} -o {mvs}_cues --preset mvs"
     assert cmds[1].startswith(f"splat train {mvs} -c {mvs}_cues -o {mvs}_run --preset mvs")
+
+
+def test_a_focal_length_in_another_unit_is_named(rooms):
+    """fx 1e6 or 1 on 320-px images trained to an empty mesh with no word on the cameras."""
+    from dataclasses import replace
+
+    from geocues.advice import fov_warning
+
+    s = Scene.load(rooms[1])
+    assert fov_warning(s) is None  # the test rooms' cameras
+    for fx, fov in ((1e6, "0.00367 deg"), (1.0, "176 deg")):
+        K = s.cameras[0].K.copy()
+        K[0, 0] = fx
+        odd = Scene.load(rooms[1])
+        odd.cameras[0] = replace(odd.cameras[0], K=K)
+        msg = fov_warning(odd)
+        assert msg is not None and msg.startswith("1 camera(s) have a horizontal field of view outside 10-150") and fov in msg, msg
