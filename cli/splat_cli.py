@@ -188,16 +188,23 @@ def mesh(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
 
 @contextlib.contextmanager
 def _signals_deferred():
-    """Within the block SIGINT and SIGTERM are recorded, not raised: a KeyboardInterrupt raised inside
-    a library's start-up (viser's server threads) can be swallowed there, and the command served on
-    as if never stopped. Yields the list of signals received; the old handlers are back after."""
+    """Within the block the first SIGINT or SIGTERM is recorded, not raised: a KeyboardInterrupt raised
+    inside a library's start-up (viser's server threads) can be swallowed there, and the command
+    served on as if never stopped. A second one raises at once (a slow load can still be stopped).
+    Yields the list of signals received; the old handlers are back after."""
     import signal
 
     received: list[int] = []
     old = {}
+
+    def record(signum, _frame):
+        received.append(signum)
+        if len(received) > 1:
+            raise KeyboardInterrupt(signal.Signals(signum).name)
+
     try:
         for sig in (signal.SIGINT, signal.SIGTERM):
-            old[sig] = signal.signal(sig, lambda signum, _frame: received.append(signum))
+            old[sig] = signal.signal(sig, record)
     except ValueError:  # not the main thread: nothing to defer
         pass
     try:
@@ -230,8 +237,12 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
     if screenshot is not None:
         check_output_file(screenshot, overwrite)
 
-    with _signals_deferred() as stopped:  # a Ctrl-C inside viser's start-up was lost (it served on)
-        server = view_run(cfg, run, block=False)
+    try:
+        with _signals_deferred() as stopped:  # a Ctrl-C inside viser's start-up was lost (it served on)
+            server = view_run(cfg, run, block=False)
+    except KeyboardInterrupt:  # the second one: view_run stops what it started on the way out
+        print("viewer stopped while loading")
+        return 130
     if stopped:
         stop(server)
         print("viewer stopped while loading")

@@ -50,9 +50,9 @@ class TriMesh:
         object with ``vertices`` and ``faces`` arrays (trimesh); else TypeError naming ``name``."""
         if isinstance(mesh, cls):
             return mesh
-        if hasattr(mesh, "vertices") and hasattr(mesh, "triangles"):  # Open3D (legacy)
+        if isinstance(mesh, o3d.geometry.TriangleMesh):
             return cls(np.asarray(mesh.vertices), np.asarray(mesh.triangles), name)
-        if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):  # trimesh (whose .triangles are coordinates)
             return cls(np.asarray(mesh.vertices), np.asarray(mesh.faces), name)
         raise TypeError(f"{name} must be a TriMesh, an Open3D TriangleMesh or a mesh with vertices and faces "
                         f"(evaluation.surfaces.load_mesh reads a file), got {type(mesh).__name__}")

@@ -101,31 +101,55 @@ def check_not_input(path: str | Path, inputs: dict[str, str | Path | None]) -> N
     """Refuse the output folder ``path`` when it is, or holds, one of the command's inputs
     (``inputs``: what it is called -> its path; None skipped): a command that replaces or fills its
     output folder would delete or mix into it (`splat train SCENE -o SCENE --overwrite` removed the
-    scene). An output inside an input (``-o SCENE/cues``) is fine."""
+    scene). An output inside an input (``-o SCENE/cues``) is fine. What an input folder links to (a
+    derived scene's images/ and priors/ are links to its source's) counts as the input too."""
     out = Path(path).resolve()
     for name, given in inputs.items():
         if given is None:
             continue
-        src = Path(given).resolve()
-        if src == out or out in src.parents:
-            raise ValueError(f"the output folder {path} {'is' if src == out else 'holds'} the {name} ({given}): "
-                             f"writing there would replace it; choose another output folder")
+        given = Path(given)
+        linked = [c for c in given.iterdir() if c.is_symlink()] if given.is_dir() and not given.is_symlink() else []
+        for src, what in [(given.resolve(), f"the {name} ({given})")] + [
+                (c.resolve(), f"what the {name}'s {c.name} links to ({c.resolve()})") for c in linked]:
+            if src == out or out in src.parents:
+                raise ValueError(f"the output folder {path} {'is' if src == out else 'holds'} {what}: "
+                                 f"writing there would replace it; choose another output folder")
+
+
+JUNK = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})  # what file browsers leave in any folder
+
+
+def _json_has(path: Path, key: str) -> bool:
+    """Whether the JSON file ``path`` holds the dotted ``key`` (``"priors.simulated"``)."""
+    import json
+
+    try:
+        node = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
 
 
 def check_replaceable(path: str | Path, marker: str, what: str,
-                      inputs: dict[str, str | Path | None] | None = None) -> None:
+                      inputs: dict[str, str | Path | None] | None = None, key: str | None = None) -> None:
     """For a command that replaces its output folder whole: refuse, whatever ``--overwrite`` says, a
     folder that is or holds an input (:func:`check_not_input`) and a non-empty folder without
-    ``marker``, the file every earlier output of the command holds (``what`` names such an output):
-    it is someone else's folder, and replacing it would delete what it holds. Hidden entries are
-    not counted."""
+    ``marker``, the file every earlier output of the command holds and no other command writes (with
+    ``key``: a JSON file holding that dotted key; ``what`` names such an output): it is someone
+    else's folder, and replacing it would delete what it holds. Only file browsers' litter
+    (:data:`JUNK`) does not count: a folder holding just ``.git`` is someone's too."""
     check_not_input(path, inputs or {})
     path = Path(path)
-    if path.is_dir() and not (path / marker).exists():
-        others = sorted(e.name for e in path.iterdir() if not e.name.startswith("."))
+    ours = (path / marker).exists() and (key is None or _json_has(path / marker, key))
+    if path.is_dir() and not ours:
+        others = sorted(e.name for e in path.iterdir() if e.name not in JUNK)
         if others:
             shown = ", ".join(others[:3]) + (", ..." if len(others) > 3 else "")
-            raise ValueError(f"{path} is not {what} (no {marker}) but holds {len(others)} "
+            raise ValueError(f"{path} is not {what} (no {marker}{f' with {key!r}' if key else ''}) but holds {len(others)} "
                              f"entr{'y' if len(others) == 1 else 'ies'} ({shown}); the output folder is "
                              f"replaced whole, so choose a new or empty folder")
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from geocues.advice import normal_axes_warning
 from geocues.anchors import Anchors
-from geocues.atomic import atomic_path, check_output_dir
+from geocues.atomic import atomic_path, check_not_input, check_output_dir
 from geocues.camera_signature import camera_signature
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
@@ -203,6 +203,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
         raise ValueError(f"downscale must be > 0, got {cfg.downscale}")
     cfg.line.validate()
     cfg.floor.validate()
+    check_not_input(out_dir, {"scene": scene_dir})  # cues.ply and report.json written into a scene mix with it
     check_output_dir(out_dir)
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
     far = metric_warning(scene)

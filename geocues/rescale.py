@@ -139,7 +139,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     if out_dir.exists() and out_dir.resolve() == scene_dir.resolve():
         raise ValueError("geocues rescale writes a new scene folder: pass an OUT other than SCENE")
-    check_replaceable(out_dir, "scene.json", "a scene folder", {"scene": scene_dir})
+    check_replaceable(out_dir, "scene.json", "a scene `geocues rescale` wrote", {"scene": scene_dir}, key="rescaled")
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise ValueError(f"{out_dir} already exists; pass --overwrite to replace it")
     check_output_dir(out_dir)

@@ -51,14 +51,16 @@ class ScenePriors:
         return None
 
     def stray_priors(self, kind: str) -> list[Path]:
-        """Files in priors/<kind>/ that are no image's prior (named after no image stem, e.g.
-        00005_depth.npy or 00005.png.npy): ignored, so listed for a warning."""
+        """Files in priors/<kind>/ that are no image's prior: named after no image stem (00005_depth.npy,
+        00005.png.npy) or in a format that is not read (.exr, .tif, .PNG): ignored, so listed for a
+        warning. Depth files a transforms.json names for its frames are priors wherever they are."""
         folder = self.root / "priors" / kind
         if not folder.is_dir():
             return []
-        stems = {c.stem for c in self.cameras}
-        return sorted(p for p in folder.iterdir() if p.suffix in (".npy", ".png") and p.stem not in stems
-                      and not p.name.startswith("."))
+        used = {c.stem + ext for c in self.cameras for ext in (".npy", ".png")}
+        named = {p.resolve() for p in self.depth_files.values()} if kind == "depth" else set()
+        return sorted(p for p in folder.iterdir() if p.name not in used and not p.name.startswith(".")
+                      and p.resolve() not in named)
 
     def depth_prior_path(self, i: int) -> Path | None:
         return self._prior_path("depth", i)

@@ -22,6 +22,11 @@ def typed(cls, f: dataclasses.Field, value: Any) -> Any:
     if want is not None and not ok:
         raise ValueError(f"{cls.__name__}.{f.name} must be {type(default).__name__} (like its default "
                          f"{default!r}), got {value!r}")
+    if isinstance(default, tuple) and default and all(isinstance(d, numbers.Real) and not isinstance(d, bool)
+                                                      for d in default):
+        bad = [v for v in value if isinstance(v, bool) or not isinstance(v, numbers.Real)]
+        if bad:  # a YAML `background: [a, b, c]` failed as a TypeError in the first check that added them
+            raise ValueError(f"{cls.__name__}.{f.name} must hold numbers (like its default {default!r}), got {value!r}")
     return float(value) if type(default) is float else value
 
 
@@ -30,7 +35,11 @@ def check_types(cfg: Any) -> None:
     (a list is taken where a tuple is due, as from Python one would write it). Raises ValueError."""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
+        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory):
+            if not dataclasses.is_dataclass(value):  # `loss: null` in a config file
+                raise ValueError(f"{type(cfg).__name__}.{f.name} must be a {f.default_factory.__name__} section, "
+                                 f"got {value!r}")
         if dataclasses.is_dataclass(value):
             check_types(value)
-        elif not (isinstance(value, list) and isinstance(f.default, tuple)):
-            typed(type(cfg), f, value)
+        else:  # a list where a tuple is due, as one writes it from Python: its elements still checked
+            typed(type(cfg), f, tuple(value) if isinstance(value, list) and isinstance(f.default, tuple) else value)

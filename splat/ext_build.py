@@ -99,6 +99,27 @@ def compiler_error(exc: Exception, width: int = 200) -> str:
     return text if len(text) <= width else text[:width - 3] + "..."
 
 
+@contextmanager
+def _quoted_torch_lib_path():
+    """torch writes ``-L{TORCH_LIB_PATH}`` into ninja's link line unquoted (its compile flags it
+    quotes): a checkout under a folder with a space (``~/My Projects``, the venv inside it) failed to
+    link (``ld: cannot find dir/main/.venv/...``). Within the block the path is shell-quoted, as ninja
+    runs the line through the shell; restored after."""
+    import shlex
+
+    import torch.utils.cpp_extension as cpp
+
+    lib = cpp.TORCH_LIB_PATH
+    if lib == shlex.quote(lib):
+        yield
+        return
+    cpp.TORCH_LIB_PATH = shlex.quote(lib)
+    try:
+        yield
+    finally:
+        cpp.TORCH_LIB_PATH = lib
+
+
 def build_or_load(name: str, sources: tuple[Path, ...], out_dir: Path, what: str, *, cflags: list[str],
                   cuda_cflags: list[str] | None = None, ldflags: list[str] | None = None) -> ModuleType:
     """Import the finished build in ``out_dir`` or compile ``sources`` there with torch's JIT loader.
@@ -122,9 +143,10 @@ def build_or_load(name: str, sources: tuple[Path, ...], out_dir: Path, what: str
         t0 = time.perf_counter()
         log.info("building the %s (first run only, about 1-2 min) in %s", what, out_dir)
         try:
-            module = load(name=name, sources=[str(p) for p in sources], extra_cflags=cflags,
-                          extra_cuda_cflags=cuda_cflags, extra_ldflags=ldflags, build_directory=str(out_dir),
-                          verbose=False)
+            with _quoted_torch_lib_path():
+                module = load(name=name, sources=[str(p) for p in sources], extra_cflags=cflags,
+                              extra_cuda_cflags=cuda_cflags, extra_ldflags=ldflags, build_directory=str(out_dir),
+                              verbose=False)
         except Exception as exc:  # noqa: BLE001 - ninja/compiler errors come as RuntimeError/OSError/...
             raise ImportError(f"building {name} in {out_dir} failed: {exc}") from exc
         (out_dir / MARKER).write_text(f"{torch.__version__}\n")

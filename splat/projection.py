@@ -216,8 +216,8 @@ def project_gaussians(params: dict[str, Tensor], camera: Camera, *, sh_degree: i
         from splat.project_cpu import project_gaussians_cpu  # built with the compositing kernel
 
         return project_gaussians_cpu(params, camera, sh_degree, cfg)
-    cam = Camera(K=camera.K.to(device=device, dtype=dtype), viewmat=camera.viewmat.to(device=device, dtype=dtype),
-                 width=camera.width, height=camera.height, center=camera.center.to(device=device, dtype=dtype))
+    cam = Camera._derived(camera.K.to(device=device, dtype=dtype), camera.viewmat.to(device=device, dtype=dtype),
+                          camera.width, camera.height, camera.center.to(device=device, dtype=dtype))
     with torch.no_grad():
         _, _, in_depth, _, _, conics, _, lam, means2d = _ewa_stage(
             means, params["quats"], params["scales"], cam, cfg)

@@ -47,10 +47,11 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
         raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
     cfg.validate()
     work = staging_dir(out_dir)
-    if (out_dir / "report.json").is_file() and not overwrite:
+    # cfg_args: only a run writes it (an extract's folder has a report.json too)
+    check_replaceable(out_dir, "cfg_args", "a `splat train` run", {"scene": scene_dir, "cues": cues})
+    if (out_dir / "cfg_args").is_file() and not overwrite:  # OUT is published whole: a finished run
         raise ValueError(f"{out_dir} holds a finished run; pass --overwrite to replace it")
     check_output_dir(out_dir)  # a file, or a folder that refuses files: one line, before any work
-    check_replaceable(out_dir, "report.json", "a `splat train` run", {"scene": scene_dir, "cues": cues})
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)

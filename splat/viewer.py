@@ -342,9 +342,10 @@ def run(cfg: ViewConfig, run_dir: str | Path, *, port: int | None = None, block:
     wanted = cfg.port if port is None else port
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner even with verbose=False
         server = viser.ViserServer(host=cfg.host, port=wanted, verbose=False)
-    if wanted and server.get_port() != wanted:  # viser moves on to the next free port without a word
-        log.warning("port %d is busy: serving on %d instead (forward that one over SSH)", wanted, server.get_port())
     try:
+        if wanted and server.get_port() != wanted:  # viser moves on to the next free port without a word
+            log.warning("port %d is busy: serving on %d instead (forward that one over SSH)", wanted,
+                        server.get_port())
         server.gui.configure_theme(show_share_button=False)
         server.gui.main_panel.dock_right()
         build(server, cfg, files)

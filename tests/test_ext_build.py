@@ -123,3 +123,23 @@ def test_a_cached_build_that_does_not_import_is_built_again(tmp_path, monkeypatc
 def test_missing_sources_are_an_import_error(tmp_path):
     with pytest.raises(ImportError, match="sources not found"):
         ext_build.build_or_load("nothing", (tmp_path / "absent.cpp",), tmp_path / "b", "test kernels", cflags=[])
+
+
+def test_the_torch_library_path_is_quoted_for_the_link_line_while_building(monkeypatch):
+    """torch writes -L{TORCH_LIB_PATH} into ninja's link line unquoted: a checkout under a folder with a
+    space (the venv inside it) failed to link ('ld: cannot find dir/main/.venv/...'), found by CI run
+    from '/tmp/ci dir'. The CI of that path builds the real extensions; this checks the quoting."""
+    import shlex
+
+    import torch.utils.cpp_extension as cpp
+
+    from splat.ext_build import _quoted_torch_lib_path
+
+    monkeypatch.setattr(cpp, "TORCH_LIB_PATH", "/home/me/My Projects/indoorgs/.venv/torch/lib")
+    with _quoted_torch_lib_path():
+        assert cpp.TORCH_LIB_PATH == "'/home/me/My Projects/indoorgs/.venv/torch/lib'"
+        assert shlex.split(f"-L{cpp.TORCH_LIB_PATH}") == ["-L/home/me/My Projects/indoorgs/.venv/torch/lib"]
+    assert cpp.TORCH_LIB_PATH == "/home/me/My Projects/indoorgs/.venv/torch/lib"
+    monkeypatch.setattr(cpp, "TORCH_LIB_PATH", "/usr/lib/torch/lib")
+    with _quoted_torch_lib_path():
+        assert cpp.TORCH_LIB_PATH == "/usr/lib/torch/lib"  # nothing to quote: unchanged

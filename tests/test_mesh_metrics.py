@@ -75,6 +75,10 @@ class TestKnownCases:
         cfg = MeshMetricsConfig(n_samples=5_000, mode="surface")
         r = evaluate_meshes(o3d_box, b, cfg)
         assert r.chamfer_l1 < 1e-6 and r.f_score == 1.0
+        import trimesh  # its .triangles are [F, 3, 3] coordinates: taken by its faces
+
+        r = evaluate_meshes(trimesh.Trimesh(b.vertices, b.faces, process=False), b, cfg)
+        assert r.chamfer_l1 < 1e-6 and r.f_score == 1.0
         with pytest.raises(TypeError, match="gt must be a TriMesh, an Open3D TriangleMesh .* got str"):
             evaluate_meshes(b, "gt.ply", cfg)
 

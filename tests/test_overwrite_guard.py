@@ -53,7 +53,9 @@ def _finished(path, kind: str):
     path.mkdir(parents=True, exist_ok=True)
     marker = path / kind
     marker.parent.mkdir(parents=True, exist_ok=True)
-    marker.write_text(json.dumps({"config_key": "another configuration"}) if kind == "report.json" else OLD)
+    marker.write_text(json.dumps({"config_key": "another configuration"}) if kind == "report.json"
+                      else json.dumps({"rescaled": {"scale": 3.0}, "priors": {"simulated": True}}) if kind == "scene.json"
+                      else OLD)  # scene.json: what rescale / simulate-priors write into theirs
     return marker
 
 
@@ -64,7 +66,7 @@ CASES = [
     (["geocues", "mvs", "{R}", "-o", "{B}/mvs"], "{B}/mvs", "mvs_report.json"),
     (["geocues", "rescale", "{R}", "-o", "{B}/metric", "--scale", "2"], "{B}/metric", "scene.json"),
     (["geocues", "extract", "{R}", "-o", "{B}/cues_old"], "{B}/cues_old", "report.json"),
-    (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{B}/train", "--iters", "2"], "{B}/train", "report.json"),
+    (["splat", "train", "{R}", "-c", "{B}/cues", "-o", "{B}/train", "--iters", "2"], "{B}/train", "cfg_args"),
     (["splat", "render", "{B}/run", "-o", "{B}/renders"], "{B}/renders", "views.json"),
     (["splat", "mesh", "{B}/run", "-o", "{B}/remesh.ply"], "{B}/remesh.ply", "file"),
     (["splat", "bench", "-o", "{B}/bench.json", "--sizes", "8", "8", "--counts", "10"], "{B}/bench.json", "file"),
@@ -114,12 +116,13 @@ def test_overwrite_replaces_the_output(room, capsys):
          base / "c.json"),
         ("geocues", ["rescale", str(root), "-o", str(base / "r"), "--scale", "2"], base / "r" / "scene.json"),
     ]:
-        _finished(out, "file")
+        marker = _finished(out.parent, out.name) if out.name == "scene.json" else _finished(out, "file")
+        before = marker.read_text()
         assert _main(prog)(args) == 1
-        assert out.read_text() == OLD
+        assert out.read_text() == before
         assert _main(prog)(args + ["--overwrite"]) == 0, capsys.readouterr().err
         data = json.loads(out.read_text())  # a whole new JSON file, not the old text
-        assert data and out.read_text() != OLD
+        assert data and out.read_text() != before
     assert json.loads((base / "m.json").read_text())["chamfer_l1"] < 1e-4  # the GT against itself
     assert json.loads((base / "r" / "scene.json").read_text())["rescaled"]["scale"] == 2.0
     assert sorted(p.name for p in (base / "r").iterdir()) == ["gt", "images", "scene.json", "sparse"]
@@ -139,6 +142,7 @@ INPUT_CASES = [
     (["geocues", "mvs", "{R}", "-o", "{B}"], "the scene"),
     (["geocues", "undistort", "{R}", "-o", "{B}"], "the scene"),
     (["evaluate", "simulate-priors", "{R}", "-o", "{B}"], "the scene"),
+    (["geocues", "extract", "{R}", "-o", "{R}"], "the scene"),
 ]
 
 
@@ -181,3 +185,43 @@ def test_a_folder_that_is_not_the_commands_output_is_never_replaced(room, capsys
     assert code == 1 and "Traceback" not in err, err
     assert "choose a new or empty folder" in err and "notes.txt" in err, err
     assert (other / "notes.txt").read_text() == "mine" and (other / "another_run").is_dir()
+
+
+def test_the_guard_is_not_fooled_by_lookalike_or_hidden_folders(room, capsys):
+    """A review found three holes: an extract's folder has a report.json too (splat train took it for a
+    run and replaced it with --overwrite), a folder holding only .git was replaced without
+    --overwrite, and every user scene has a scene.json (rescale replaced one with --overwrite), or
+    is the source a derived scene's images/ link to (rescale DERIVED -o SOURCE deleted the photos)."""
+    import shutil
+
+    base, root = room
+    cues_like = base / "an_extract"
+    cues_like.mkdir()
+    (cues_like / "report.json").write_text(json.dumps({"config_key": "x"}))
+    dot_git = base / "a_repo"
+    (dot_git / ".git").mkdir(parents=True)
+    (dot_git / ".git" / "HEAD").write_text("ref")
+    user_scene = base / "user_scene"
+    shutil.copytree(root, user_scene)
+    (user_scene / "scene.json").write_text(json.dumps({"depth_png_scale": 1000}))
+    derived = base / "derived"
+    assert _main("geocues")(["rescale", str(user_scene), "-o", str(derived), "--scale", "2"]) == 0
+    assert (derived / "images").is_symlink()
+    capsys.readouterr()
+    for prog, args, kept in [
+        ("splat", ["train", str(root), "-c", str(base / "cues"), "-o", str(cues_like), "--iters", "2", "--overwrite"],
+         cues_like / "report.json"),
+        ("splat", ["train", str(root), "-c", str(base / "cues"), "-o", str(dot_git), "--iters", "2"], dot_git / ".git" / "HEAD"),
+        ("geocues", ["rescale", str(root), "-o", str(user_scene), "--scale", "2", "--overwrite"], user_scene / "scene.json"),
+        ("geocues", ["rescale", str(derived), "-o", str(user_scene), "--scale", "2", "--overwrite"],
+         next((user_scene / "images").iterdir())),
+    ]:
+        before = kept.read_bytes()
+        assert _main(prog)(args) == 1, args
+        err = capsys.readouterr().err
+        assert "choose a" in err and "Traceback" not in err, err
+        assert kept.read_bytes() == before
+    from geocues.atomic import check_not_input
+
+    with pytest.raises(ValueError, match="holds what the scene's (images|gt) links to"):  # the link guard on its own
+        check_not_input(user_scene, {"scene": derived})

@@ -212,8 +212,9 @@ def test_a_camera_that_renders_something_else_than_it_says_is_refused():
     for bad_K in (np.zeros((3, 3)), np.array([[20.0, 1, 8], [0, 20, 6], [0, 0, 1]]), np.array([[-20.0, 0, 8], [0, 20, 6], [0, 0, 1]])):
         with pytest.raises(ValueError, match="K must be"):
             Camera.from_Rt(bad_K, np.eye(3), np.zeros(3), 16, 12)
-    with pytest.raises(ValueError, match="positive whole number"):
-        Camera.from_Rt(K, np.eye(3), np.zeros(3), 16.5, 12)
+    for bad in (16.5, float("inf"), float("nan"), 0):
+        with pytest.raises(ValueError, match="positive whole number"):
+            Camera.from_Rt(K, np.eye(3), np.zeros(3), bad, 12)
     vm = cam.viewmat.clone()
     vm[:3, 3] = torch.tensor([0.3, 0.0, 0.5])
     with pytest.raises(ValueError, match="disagrees with viewmat"):

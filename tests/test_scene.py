@@ -434,11 +434,12 @@ def test_prior_files_that_match_no_image_are_named_and_dotted_stems_find_theirs(
     cam = s.cameras[0]
     for name in (f"{cam.stem}_depth.npy", f"{cam.name}.npy", "99999.npy", f"{cam.stem}.npy"):
         np.save(depth / name, np.ones((cam.height, cam.width), np.float32))
+    (depth / f"{s.cameras[1].stem}.exr").write_bytes(b"not read")  # a format the loader does not read
     assert [p.name for p in Scene.load(tmp_path / "s").stray_priors("depth")] == sorted(
-        [f"{cam.stem}_depth.npy", f"{cam.name}.npy", "99999.npy"])
+        [f"{cam.stem}_depth.npy", f"{cam.name}.npy", "99999.npy", f"{s.cameras[1].stem}.exr"])
     assert main(["info", str(tmp_path / "s")]) == 0
     out = capsys.readouterr().out
-    assert "3 file(s) in priors/depth/ are no image's prior and are ignored" in out and "99999.npy" in out
+    assert "4 file(s) in priors/depth/ are no image's prior and are ignored" in out and "00000_depth.npy" in out, out
     from dataclasses import replace
     s = Scene.load(tmp_path / "s")
     s.cameras[1] = replace(s.cameras[1], name="frame.0001.png")  # stem frame.0001

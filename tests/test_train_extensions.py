@@ -176,7 +176,11 @@ def _cfg(**top):
     (dict(background=(0.0, 0.0)), "--background must be three finite numbers"),
     (dict(strategy={"max_gaussians": -1}), "--strategy.max-gaussians must be >= 0"),
     (dict(loss={"lambda_depth": "0.1"}), "LossConfig.lambda_depth must be float"),
-], ids=["str iters", "fractional iters", "bool sh degree", "two-number background", "negative budget", "str weight"])
+    (dict(background=("a", "b", "c")), "TrainConfig.background must hold numbers"),
+    (dict(checkpoints=[0.5, "x"]), "TrainConfig.checkpoints must hold numbers"),
+    (dict(loss=None), "TrainConfig.loss must be a LossConfig section, got None"),
+], ids=["str iters", "fractional iters", "bool sh degree", "two-number background", "negative budget", "str weight",
+        "str background", "str checkpoint", "null section"])
 def test_a_config_from_python_is_type_checked_before_any_work(change, message):
     """From Python, TrainConfig(iters="abc") failed deep in a run with a TypeError, 10.5 iterations
     trained 11, a two-number background failed nine frames deep after loading the scene."""

@@ -288,3 +288,21 @@ def test_ctrl_c_while_loading_stops_the_viewer_even_where_a_library_swallows_it(
     assert calls == ["stopped server"]
     assert capsys.readouterr().out.strip() == "viewer stopped while loading"
     assert signal.getsignal(signal.SIGINT) is before  # the handlers are back
+
+
+def test_a_second_ctrl_c_stops_a_slow_load(monkeypatch, tmp_path, capsys):
+    import splat.viewer as viewer
+    from cli.splat_cli import main
+
+    def slow_load(cfg, run_dir, *, port=None, block=True):
+        os.kill(os.getpid(), signal.SIGINT)  # recorded
+        time.sleep(0.1)
+        os.kill(os.getpid(), signal.SIGINT)  # raises: the user insists
+        time.sleep(5)
+        raise AssertionError("the second Ctrl-C did not stop the load")
+
+    monkeypatch.setattr(viewer, "run", slow_load)
+    before = signal.getsignal(signal.SIGINT)
+    assert main(["view", str(tmp_path), "--port", "0"]) == 130
+    assert capsys.readouterr().out.strip() == "viewer stopped while loading"
+    assert signal.getsignal(signal.SIGINT) is before
