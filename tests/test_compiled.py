@@ -8,6 +8,7 @@ without a GPU; on one, the CUDA tests below check the Triton path the trainer ta
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import pytest
 import torch
@@ -70,6 +71,13 @@ def _value_and_grads(fn, args, grad_idx, use_compiled):
     return [o.detach() for o in outs], grads
 
 
+# torch's inductor links its CPU code with `-L<torch>/lib` unquoted: under a folder whose path has a space
+# (`/tmp/ci dir`, `~/My Projects`) nothing compiles and the code runs eagerly with one warning (the
+# fallback test below); these comparisons need a compiled graph.
+INDUCTOR_CANNOT_LINK = any(c.isspace() for c in str(Path(torch.__file__).parent))
+
+
+@pytest.mark.skipif(INDUCTOR_CANNOT_LINK, reason="torch inductor cannot link under a path with a space (torch's bug)")
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_compiled_graph_gives_the_eager_values_and_gradients(case):
     fn, make, grad_idx = CASES[case]
