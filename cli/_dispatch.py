@@ -35,20 +35,25 @@ GLOBAL_HELP = ("global options (every command): -v/--verbose debug logging and t
 
 
 @contextlib.contextmanager
-def progress_bars_off():
-    """Within the block every tqdm bar created is disabled (modules hold the class itself, so its
-    constructor's default is changed; TQDM_DISABLE is only read at import); restored after, so a
-    quiet command does not silence the next one in the same process."""
+def _tqdm_defaults(**defaults):
+    """Within the block every tqdm bar created takes ``defaults`` (modules hold the class itself, so
+    its constructor's defaults are changed; TQDM_* variables are only read at import); restored
+    after, so one command's bars do not change the next one's in the same process."""
     from functools import partialmethod
 
     import tqdm
 
     init = tqdm.tqdm.__init__
-    tqdm.tqdm.__init__ = partialmethod(init, disable=True)
+    tqdm.tqdm.__init__ = partialmethod(init, **defaults)
     try:
         yield
     finally:
         tqdm.tqdm.__init__ = init
+
+
+def progress_bars_off():
+    """Within the block every tqdm bar is disabled (`-q`)."""
+    return _tqdm_defaults(disable=True)
 
 
 LOG_PROGRESS_INTERVAL_S = 30.0  # with stderr in a file or a pipe: a bar's line at most this often
@@ -73,22 +78,12 @@ class _ProgressLines:
         return False
 
 
-@contextlib.contextmanager
 def progress_bars_as_lines():
     """Within the block every tqdm bar writes whole lines, at most one per bar every
     ``LOG_PROGRESS_INTERVAL_S`` seconds and none for work shorter than that: what a log of a
-    redirected command should hold. Restored after, as ``progress_bars_off``."""
-    from functools import partialmethod
-
-    import tqdm
-
-    init = tqdm.tqdm.__init__
-    tqdm.tqdm.__init__ = partialmethod(init, file=_ProgressLines(), mininterval=LOG_PROGRESS_INTERVAL_S,
-                                       delay=LOG_PROGRESS_INTERVAL_S, ascii=True, ncols=100)
-    try:
-        yield
-    finally:
-        tqdm.tqdm.__init__ = init
+    redirected command should hold."""
+    return _tqdm_defaults(file=_ProgressLines(), mininterval=LOG_PROGRESS_INTERVAL_S,
+                          delay=LOG_PROGRESS_INTERVAL_S, ascii=True, ncols=100)
 
 
 def _progress_mode(quiet: bool):

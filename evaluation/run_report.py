@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from evaluation import figures as plt  # pyplot's calls on detached figures: the user's backend is left alone
+from evaluation.ablation_report import PANELS
 from geocues.atomic import atomic_path, check_output_file
 
 log = logging.getLogger(__name__)
@@ -41,18 +43,6 @@ def _save(fig, path: Path) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
     return path
-
-
-def _plt():
-    """pyplot's subplots and get_cmap on detached figures (evaluation/figures.py: the user's
-    matplotlib backend is left alone)."""
-    from evaluation import figures
-
-    return figures
-
-
-MESH_PANELS = (("chamfer_l1", "Chamfer-L1 (cm)"), ("f_score", "F-score @ 5 cm"),
-               ("normal_consistency", "normal consistency"))
 
 
 def _gaussians(final) -> str:
@@ -115,7 +105,6 @@ def contact_sheet(run_dir: Path, scene_dir: Path, n_views: int, gt_depth: Path |
 
 
 def _draw_sheet(sheet: dict, path: Path) -> Path:
-    plt = _plt()
     rows = sheet["rows"]
     has_err = any(r["error"] is not None for r in rows)
     cols = ["GT", "render", "depth (m)", "normals"] + (["|depth - GT| (m)"] if has_err else [])
@@ -165,7 +154,6 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
         raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; give the scene after "
                                 f"RUN: `evaluate report {run_dir} SCENE`")
     log_rows = _read_log(run_dir)
-    plt = _plt()
 
     losses = {t: [(r["step"], r[t]) for r in log_rows if r.get(t) is not None] for t in LOSS_TERMS}
     fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
@@ -189,11 +177,10 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     images = [{k: p.get(k) for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")}
               for p in report.get("accuracy_vs_time", [])]
     meshes = mesh_curve(run_dir, report, Path(gt) if gt else None, scene_dir)
-    panels = [("psnr", "test PSNR (dB)", images), ("ssim", "test SSIM", images)]
-    panels += [(k, title, meshes) for k, title in MESH_PANELS] if meshes else []
+    panels = [("psnr", "test PSNR (dB)", 1.0, images), ("ssim", "test SSIM", 1.0, images)]
+    panels += [(k, title, scale, meshes) for k, title, scale in PANELS[:3]] if meshes else []  # C-L1 in cm
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False, constrained_layout=True)
-    for ax, (key, title, data) in zip(axes[0], panels):
-        scale = 100.0 if key == "chamfer_l1" else 1.0  # metres -> cm, as every table of the project
+    for ax, (key, title, scale, data) in zip(axes[0], panels):
         pts = [(d["train_s"], d[key] * scale) for d in data if d.get(key) is not None]
         if pts:
             ax.plot(*zip(*pts), marker="o")

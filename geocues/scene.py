@@ -32,7 +32,7 @@ import numpy as np
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
 from geocues.photos import IMAGE_EXTS, is_image, list_images, missing_images_error  # noqa: F401  (re-exported)
 from geocues.nerfstudio_io import find_transforms, read_transforms
-from geocues.scene_priors import ScenePriors, _load_npy
+from geocues.scene_priors import ScenePriors, load_npy
 
 log = logging.getLogger(__name__)
 
@@ -297,7 +297,7 @@ class Scene(ScenePriors):
                     continue
                 if kind == "depth" and path.suffix != ".npy":
                     self._depth_png_scale(path)  # a PNG's unit is scene.json's: named here, not mid-extract
-                shape = (_load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
+                shape = (load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
                          else _read_image_size(path)[::-1])
                 want = "HxW" + ("x3" if kind == "normal" else "")
                 if path.suffix == ".npy" and (len(shape) != (3 if kind == "normal" else 2)

@@ -29,7 +29,7 @@ def _read_png(path: Path, what: str) -> np.ndarray:
     return raw
 
 
-def _load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray:
+def load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray:
     """np.load with an error that names the file (truncated or foreign .npy files)."""
     try:
         return np.load(path, mmap_mode=mmap_mode)
@@ -85,7 +85,7 @@ class ScenePriors:
         if path is None:
             return None
         if path.suffix == ".npy":
-            d = _load_npy(path, "depth prior").astype(np.float32)
+            d = load_npy(path, "depth prior").astype(np.float32)
         else:
             d = _read_png(path, "depth prior").astype(np.float32) / self._depth_png_scale(path)
         if d.ndim != 2:
@@ -107,7 +107,7 @@ class ScenePriors:
         if path is None:
             return None
         if path.suffix == ".npy":
-            n = _load_npy(path, "normal prior").astype(np.float32)
+            n = load_npy(path, "normal prior").astype(np.float32)
         else:
             raw = _read_png(path, "normal prior")
             if raw.ndim != 3 or raw.shape[2] != 3:

@@ -14,7 +14,8 @@ One stage, one entry: ``run(cfg, run_dir, out=None, *, overwrite=False) -> Path`
                             render's with its PSNR against GT)
 
 and with ``video`` an MP4 (H.264 through imageio-ffmpeg, render | depth side by side, the depth in one
-range for the whole video: the chosen views' 1st–99th percentile) along the chosen views in capture order: positions interpolated linearly, rotations by slerp, the first view's
+range for the whole video: the chosen views' 1st–99th percentile) along the chosen views in capture
+order: positions interpolated linearly, rotations by slerp, the first view's
 intrinsics. ``views`` is ``test``, ``train``, ``all`` or a ``cameras.json`` in the 3DGS reference
 format (what `splat train` writes into every run; ``cx, cy`` at the image centre there).
 """
