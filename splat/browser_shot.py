@@ -127,10 +127,18 @@ def screenshot(url: str, png: str | Path, *, width: int = 1280, height: int = 72
     png = Path(png)
     png.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="indoorgs-chromium-") as profile:
+    with tempfile.TemporaryDirectory(prefix="indoorgs-chromium-") as tmpdir:
+        # the profile and the browser's scratch folders (TMPDIR/org.chromium.Chromium.*, which it
+        # leaves behind when it is ended) both live in one temporary folder, removed afterwards;
+        # unless that path is too long for the unix socket Chromium makes there (108 bytes)
+        profile, scratch = Path(tmpdir) / "profile", Path(tmpdir) / "t"
+        scratch.mkdir()
+        env = dict(os.environ)
+        if len(os.fsencode(scratch / "org.chromium.Chromium.XXXXXX/SingletonSocket")) < 108:
+            env["TMPDIR"] = str(scratch)
         # own session: the browser's helper processes are ended with it, by its group id
         proc = subprocess.Popen([exe, *CHROMIUM_FLAGS, f"--window-size={width},{height}",
-                                 "--remote-debugging-port=0", f"--user-data-dir={profile}", "about:blank"],
+                                 "--remote-debugging-port=0", f"--user-data-dir={profile}", "about:blank"], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
         try:
             port = _devtools_port(proc, timeout=60.0)

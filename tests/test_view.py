@@ -6,9 +6,11 @@ from __future__ import annotations
 import json
 import re
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
 from pathlib import Path
@@ -210,12 +212,16 @@ def _near(img: np.ndarray, rgb, tol: int = 40) -> np.ndarray:
 
 
 @needs_chromium
-def test_browser_draws_the_splats(fake_run, tmp_path):
+def test_browser_draws_the_splats(fake_run, tmp_path, monkeypatch):
     """The page served by `splat view` as Chromium draws it with software WebGL: the magenta splats
-    fill part of the canvas; with only the cue layer on, the cue-type colours show instead."""
+    fill part of the canvas; with only the cue layer on, the cue-type colours show instead. Nothing
+    is left in the temporary folder (Chromium's org.chromium.Chromium.* scratch folders were)."""
     from cli.splat_cli import main
 
     run_dir, _, _ = fake_run
+    tmp_root = Path(tempfile.mkdtemp(prefix="igs"))  # short: Chromium makes a unix socket in it
+    monkeypatch.setenv("TMPDIR", str(tmp_root))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # gettempdir() reads TMPDIR again
     png = tmp_path / "view.png"
     assert main(["view", str(run_dir), "--screenshot", str(png), "--size", "640", "480", "--port", "0"]) == 0
     img = iio.imread(png)
@@ -233,6 +239,9 @@ def test_browser_draws_the_splats(fake_run, tmp_path):
     for t in CueType:
         share = _near(canvas, CUE_TYPE_COLORS[t]).mean()
         assert share > 1e-4, f"no {t.name} cue colour {CUE_TYPE_COLORS[t]} in the picture ({share:.2%})"
+    left = sorted(tmp_root.iterdir())
+    shutil.rmtree(tmp_root)
+    assert not left, f"left in the temporary folder: {left}"
 
 
 def test_ctrl_c_ends_with_one_line(fake_run):
