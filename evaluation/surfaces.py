@@ -12,7 +12,6 @@ from typing import Any, Callable
 import numpy as np
 import open3d as o3d
 
-from splat.mesh_post import ply_element_counts
 
 log = logging.getLogger(__name__)
 
@@ -65,23 +64,12 @@ class TriMesh:
 
 
 def load_mesh(path: str | Path) -> TriMesh:
-    """Read a triangle mesh (PLY/OBJ/OFF/...) with Open3D; errors name the path."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mesh file not found: {path}")
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh = o3d.io.read_triangle_mesh(filename=str(path))
-    faces = np.asarray(mesh.triangles)
-    if len(faces) == 0:
-        raise ValueError(f"{path}: no triangles in this file (empty mesh, point cloud or unreadable)")
-    if path.suffix.lower() == ".ply":  # Open3D returns what it read of a truncated file without error
-        want = ply_element_counts(path)
-        got = {"vertex": len(mesh.vertices), "face": len(faces)}
-        short = {k: (got[k], want[k]) for k in got if k in want and got[k] < want[k]}
-        if short:
-            raise ValueError(f"{path} is truncated or damaged: read " + ", ".join(
-                f"{g} of {w} {k} elements" for k, (g, w) in short.items()))
-    return TriMesh(np.asarray(mesh.vertices), faces, name=str(path))
+    """Read a triangle mesh file (PLY, OBJ, OFF, STL, GLB/GLTF, FBX: ``evaluation.mesh_files``, which
+    reads it whole or fails); errors name the path."""
+    from evaluation.mesh_files import read_mesh_file
+
+    vertices, faces = read_mesh_file(path)
+    return TriMesh(vertices, faces, name=str(path))
 
 
 def sample_surface(mesh: TriMesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
