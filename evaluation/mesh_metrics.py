@@ -146,6 +146,11 @@ FRAME_INSIDE_MIN = 0.5
 """frame check: least share of the predicted surface inside the GT mesh's bounds (plus the crop margin)."""
 FRAME_SIZE_MAX = 3.0
 """frame check: most the predicted surface may span (robust diagonal) over the GT's."""
+FRAME_SIZE_MIN = 1 / 30
+"""frame check: least the predicted surface may span over the GT's (a GT in millimetres: 0.001)."""
+GT_SPAN_M = (0.3, 300.0)
+"""unit check: the GT surface's robust diagonal, in metres, of a scene the metrics are made for
+(the F-score's threshold is in metres: a GT in millimetres spans thousands)."""
 
 
 def frame_mismatch(pred: TriMesh, gt: TriMesh, margin: float = 0.05, n: int = 20_000) -> str | None:
@@ -156,7 +161,8 @@ def frame_mismatch(pred: TriMesh, gt: TriMesh, margin: float = 0.05, n: int = 20
     Two whole-surface figures on ``n`` samples of each mesh (an own generator: the metrics' samples
     are not touched): the share of the predicted surface inside the GT's bounds plus ``margin``
     (< ``FRAME_INSIDE_MIN``: another origin or axes) and the ratio of the two surfaces' robust
-    diagonals (2nd-98th percentile box; > ``FRAME_SIZE_MAX``: another unit). A mesh of a part of the
+    diagonals (2nd-98th percentile box; > ``FRAME_SIZE_MAX`` or < ``FRAME_SIZE_MIN``: another unit),
+    and the GT's own diagonal (outside ``GT_SPAN_M``: not in metres). A mesh of a part of the
     GT (one room of a house) passes both; one in a smaller unit inside the GT's box, or in the right unit
     but another frame that overlaps the GT's box (an images-only ICL model at the exact scale: 54 %
     inside), cannot be told: the scene's mark (`geocues sfm --mode map`) is the other check. A mesh
@@ -172,12 +178,20 @@ def frame_mismatch(pred: TriMesh, gt: TriMesh, margin: float = 0.05, n: int = 20
     def diagonal(x: np.ndarray) -> float:
         return float(np.linalg.norm(np.percentile(x, 98, axis=0) - np.percentile(x, 2, axis=0)))
 
-    ratio = diagonal(p) / max(diagonal(g), 1e-12)
-    if inside >= FRAME_INSIDE_MIN and ratio <= FRAME_SIZE_MAX:
-        return None
-    return (f"{100 * (1 - inside):.0f} % of {pred.name} lies outside the bounds of the GT mesh {gt.name} "
-            f"(cropped away) and it spans {ratio:.2g} times the GT's size: a mesh in its own frame or unit "
-            "(geocues sfm from images alone) is scored with `evaluate PRED_MESH SCENE --align-to GT_SCENE`")
+    gt_span = diagonal(g)
+    ratio = diagonal(p) / max(gt_span, 1e-12)
+    said = []
+    if not GT_SPAN_M[0] <= gt_span <= GT_SPAN_M[1]:
+        said.append(f"the GT mesh {gt.name} spans {gt_span:.3g} units across: the metrics take metres (a GT in "
+                    f"millimetres or centimetres must be scaled to metres first, or every distance and the "
+                    f"F-score's threshold are in its unit)")
+    if ratio < FRAME_SIZE_MIN:
+        said.append(f"{pred.name} spans {ratio:.2g} times the GT's size: are both in metres?")
+    if inside < FRAME_INSIDE_MIN or ratio > FRAME_SIZE_MAX:
+        said.append(f"{100 * (1 - inside):.0f} % of {pred.name} lies outside the bounds of the GT mesh {gt.name} "
+                    f"(cropped away) and it spans {ratio:.2g} times the GT's size: a mesh in its own frame or unit "
+                    "(geocues sfm from images alone) is scored with `evaluate PRED_MESH SCENE --align-to GT_SCENE`")
+    return "; ".join(said) or None
 
 
 def _culling_name(cams: CameraSet | None, cfg: MeshMetricsConfig) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,6 +199,17 @@ class TestFrameCheck:
             r = evaluate_meshes(six, gt, MeshMetricsConfig(n_samples=5_000))
         assert r.protocol["frame_warning"] == msg
         assert sum(msg in rec.getMessage() for rec in caplog.records) == 1
+
+    def test_a_gt_in_millimetres_is_named(self):
+        """A GT in millimetres scored 2170 "m" (and F 0) without a word: the metre prediction lies
+        inside its box, and spans 0.001 times its size."""
+        gt_mm = self.room(scale=1000.0)
+        msg = frame_mismatch(self.room(), gt_mm)
+        assert msg is not None and re.search(r"spans 5.59e\+03 units across: the metrics take metres", msg)
+        assert "spans 0.001 times the GT's size: are both in metres?" in msg
+        both_mm = frame_mismatch(self.room(scale=1000.0, shift=(30.0, 0, 0)), gt_mm)
+        assert both_mm is not None and "the metrics take metres" in both_mm and "times the GT's" not in both_mm
+        assert frame_mismatch(self.room(scale=0.5), self.room()) is None  # half the size: a part of it
 
     def test_another_origin_is_named_in_the_crop_error(self):
         gt = self.room()
