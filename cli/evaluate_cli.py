@@ -57,6 +57,11 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
     if renders is not None and scene is None:
         raise ValueError("--renders needs SCENE (the test images are the scene's): "
                          "evaluate PRED_MESH SCENE --renders DIR")
+    images = None
+    if renders is not None:  # first: a bad folder is named before the minute the mesh metrics take
+        from evaluation.image_metrics import evaluate_renders
+
+        images = evaluate_renders(renders, scene, test_every, lpips)
     if align_to is not None:
         if scene is None:
             raise ValueError("--align-to needs SCENE, the scene whose frame the mesh is in: "
@@ -76,11 +81,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         _warn_own_frame(scene)
         result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
     print(format_table(result))
-    images = None
-    if renders is not None:
-        from evaluation.image_metrics import evaluate_renders
-
-        images = evaluate_renders(renders, scene, test_every, lpips)
+    if images is not None:
         lp = f", LPIPS {images['lpips']:.4f}" if images["lpips"] is not None else ""
         print(f"held-out views: {images['n_images']}, PSNR {images['psnr']:.2f} dB, SSIM {images['ssim']:.4f}{lp}")
     if json is not None:

@@ -167,13 +167,22 @@ def load_image(path: str | Path) -> torch.Tensor:
     return torch.from_numpy(arr.astype(np.float32) / scale)
 
 
+PSNR_MAX = 100.0
+"""dB: an image's PSNR is counted at most this (identical images' +inf made the mean +inf and the JSON
+invalid; a single 8-bit step in one pixel of 640x480 already reads 108 dB)."""
+
+
+def _size(x: torch.Tensor) -> str:
+    return f"{x.shape[1]}x{x.shape[0]}" + (f"x{x.shape[2]}" if x.ndim == 3 and x.shape[2] != 3 else "")
+
+
 def evaluate_images(imgs: Sequence[torch.Tensor | str | Path], refs: Sequence[torch.Tensor | str | Path],
                     lpips_weights: str | Path | None = None,
                     padding: Literal["same", "valid"] = "same") -> dict:
     """Mean PSNR / SSIM (and LPIPS when weights are given) over image pairs (tensors or paths).
 
     Returns ``{"psnr", "ssim", "lpips" (or None), "n_images", "per_image": [...]}``; the mean PSNR is
-    the mean of per-image PSNRs (as 3DGS's metrics.py).
+    the mean of per-image PSNRs (as 3DGS's metrics.py), each at most ``PSNR_MAX``.
     """
     if len(imgs) != len(refs):
         raise ValueError(f"{len(imgs)} images but {len(refs)} references")
@@ -185,7 +194,10 @@ def evaluate_images(imgs: Sequence[torch.Tensor | str | Path], refs: Sequence[to
         name = str(img) if isinstance(img, (str, Path)) else f"#{len(rows)}"
         a = load_image(img) if isinstance(img, (str, Path)) else img
         b = load_image(ref) if isinstance(ref, (str, Path)) else ref
-        row = {"name": name, "psnr": psnr(a, b), "ssim": ssim(a, b, padding=padding)}
+        if a.shape != b.shape:
+            raise ValueError(f"{name} is {_size(a)} and its reference {ref if isinstance(ref, (str, Path)) else ''} "
+                             f"{_size(b)}: an image and its reference must have one size")
+        row = {"name": name, "psnr": min(psnr(a, b), PSNR_MAX), "ssim": ssim(a, b, padding=padding)}
         row["lpips"] = lpips(a, b, model) if model is not None else None
         rows.append(row)
     mean = lambda k: float(np.mean([r[k] for r in rows]))
@@ -208,15 +220,21 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
     renders_dir = Path(renders_dir)
     if not renders_dir.is_dir():
         raise FileNotFoundError(f"no renders folder at {renders_dir}")
+    if test_every < 1:
+        raise ValueError(f"--test-every must be >= 1 for --renders (every n-th image is a test view), got {test_every}")
+    if (renders_dir / "test_renders").is_dir():
+        raise ValueError(f"{renders_dir} is a run folder: its held-out renders are {renders_dir / 'test_renders'}")
     files = {p.stem: p for p in sorted(renders_dir.iterdir()) if p.suffix.lower() in (".png", ".jpg", ".jpeg")}
     if not files:
         raise ValueError(f"{renders_dir} holds no PNG/JPEG renders")
+    _warn_other_scene(renders_dir, scene_dir)
     scene = Scene.load(scene_dir, test_every=test_every, check_priors=False)
-    first = load_image(next(iter(files.values())))
+    first_path = next(iter(files.values()))
+    first = load_image(first_path)
     cam0 = scene.cameras[0]
     downscale = cam0.width / first.shape[1]
     if abs(cam0.height / downscale - first.shape[0]) > 1:
-        raise ValueError(f"render size {first.shape[1]}x{first.shape[0]} is not a downscale of the "
+        raise ValueError(f"render {first_path} is {first.shape[1]}x{first.shape[0]}, not a downscale of the "
                          f"scene's {cam0.width}x{cam0.height}")
     scene = Scene.load(scene_dir, downscale=downscale, test_every=test_every, check_priors=False)
     tests = {scene.cameras[i].stem: i for i in scene.test_indices}
@@ -225,9 +243,28 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
     if extra:
         raise ValueError(f"renders {extra[:5]} are not test views of {scene_dir} (test_every={test_every})")
     if missing:
-        log.warning("%d test views have no render (e.g. %s); they are left out", len(missing), missing[:3])
+        log.warning("%d of %d test views have no render (e.g. %s); the means are over the other %d, so they "
+                    "compare only with figures over the same views", len(missing), len(tests), missing[:3],
+                    len(tests) - len(missing))
     stems = [s for s in tests if s in files]
     refs = [torch.from_numpy(scene.load_image(tests[s])) for s in stems]
     result = evaluate_images([files[s] for s in stems], refs, lpips_weights)
     result["renders"], result["scene"], result["downscale"] = str(renders_dir), str(scene_dir), downscale
+    result["n_test_views"], result["missing_views"] = len(tests), missing
     return result
+
+
+def _warn_other_scene(renders_dir: Path, scene_dir: str | Path) -> None:
+    """One warning when the run the renders come from (RUN/test_renders, RUN/report.json) was trained
+    on another scene: renders are matched to test views by name alone, and two scenes share names
+    (a room's renders scored against ICL: 8.6 dB, without a word)."""
+    import json
+
+    report = renders_dir.parent / "report.json"
+    try:
+        trained = json.loads(report.read_text()).get("scene")
+    except (OSError, ValueError, AttributeError):
+        return
+    if isinstance(trained, str) and Path(trained).resolve() != Path(scene_dir).resolve():
+        log.warning("the renders in %s come from a run trained on %s, not %s: is SCENE the run's scene?",
+                    renders_dir, trained, scene_dir)

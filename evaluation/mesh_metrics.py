@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Sequence
@@ -73,14 +74,17 @@ class MeshMetricsConfig:
         """Raise ValueError on an impossible setting."""
         if self.n_samples <= 0:
             raise ValueError(f"n_samples must be positive, got {self.n_samples}")
-        if self.threshold <= 0:
-            raise ValueError(f"threshold must be positive, got {self.threshold}")
+        if not 0 < self.threshold < math.inf:  # nan: every F-score 0; inf: every one 1
+            raise ValueError(f"threshold must be a positive number of metres, got {self.threshold}")
         if self.mode not in ("point", "surface"):
             raise ValueError(f"mode must be 'point' or 'surface', got {self.mode!r}")
         if self.occlusion not in ("none", "gt", "self"):
             raise ValueError(f"occlusion must be 'none', 'gt' or 'self', got {self.occlusion!r}")
-        if self.occlusion_tolerance < 0 or self.crop_margin < 0 or self.max_cameras < 0:
-            raise ValueError("occlusion_tolerance, crop_margin and max_cameras must be >= 0")
+        for name in ("occlusion_tolerance", "crop_margin", "max_cameras"):
+            if not 0 <= getattr(self, name) < math.inf:  # a nan margin cropped everything away
+                raise ValueError(f"{name} must be >= 0 and finite, got {getattr(self, name)}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
 
 
 def accuracy(dist_pred_to_gt: np.ndarray) -> float:

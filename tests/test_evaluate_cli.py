@@ -213,3 +213,63 @@ def test_report_and_cues_take_scene_positionally(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):  # SCENE is required for cues
         main(["cues", "C"])
     capsys.readouterr()
+
+
+def _strict(text: str) -> dict:
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_renders_are_checked_first_and_scored_to_strict_json(tmp_path, capsys, monkeypatch, caplog):
+    """A render identical to its image wrote "psnr": Infinity; a bad --renders was named only after
+    the mesh metrics; a run folder, --test-every 0 and another scene's run were not named at all."""
+    import cli.evaluate_cli as cli
+
+    scene = make_scene(tmp_path / "scene")
+    pred = write_mesh(tmp_path / "pred.ply", *rects((-1, 1, -1, 1, 2.0)))
+    run = tmp_path / "run"
+    (run / "test_renders").mkdir(parents=True)
+    cv2.imwrite(str(run / "test_renders" / "00000.png"), np.full((100, 100, 3), 128, np.uint8))
+    out = tmp_path / "m.json"
+    assert main([str(pred), str(scene), "--renders", str(run / "test_renders"), "-o", str(out),
+                 "--n-samples", "2000"]) == 0
+    images = _strict(out.read_text())["images"]
+    assert images["psnr"] == 100.0 and images["n_test_views"] == 1 and images["missing_views"] == []
+    assert "PSNR 100.00 dB" in capsys.readouterr().out
+
+    def no_mesh_metrics(*a, **k):
+        raise AssertionError("the mesh was scored before --renders was checked")
+
+    monkeypatch.setattr(cli, "evaluate_with_scene", no_mesh_metrics)
+    for renders, extra, said in [(run, [], f"{run} is a run folder: its held-out renders are"),
+                                 (run / "test_renders", ["--test-every", "0"], "--test-every must be >= 1"),
+                                 (tmp_path, [], "holds no PNG/JPEG renders")]:
+        assert main([str(pred), str(scene), "--renders", str(renders), *extra]) == 1
+        assert said in capsys.readouterr().err
+    (run / "report.json").write_text(json.dumps({"scene": str(tmp_path / "another_room")}))
+    from evaluation.image_metrics import evaluate_renders
+
+    with caplog.at_level("WARNING", logger="evaluation.image_metrics"):
+        evaluate_renders(run / "test_renders", scene)
+    assert f"come from a run trained on {tmp_path / 'another_room'}, not {scene}" in caplog.text
+
+
+def test_a_render_of_another_size_is_named(tmp_path):
+    from evaluation.image_metrics import evaluate_images
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((20, 30, 3), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((40, 60, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"b.png is 60x40 and its reference .*a.png 30x20"):
+        evaluate_images([tmp_path / "b.png"], [tmp_path / "a.png"])
+
+
+@pytest.mark.parametrize("option", [["--threshold", "nan"], ["--threshold", "inf"], ["--crop-margin", "nan"],
+                                    ["--seed", "-1"]])
+def test_non_finite_options_are_refused(tmp_path, capsys, option):
+    """--threshold nan gave F 0 and "threshold": NaN in the JSON, inf F 1; a nan crop margin blamed the
+    mesh's frame."""
+    pred, gt = box_files(tmp_path, 0.0)
+    assert main([str(pred), "--gt", str(gt), *option]) == 1
+    err = capsys.readouterr().err
+    assert option[0][2:].replace("-", "_") in err and "Traceback" not in err
