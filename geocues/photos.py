@@ -35,3 +35,59 @@ def missing_images_error(model_dir: Path, paths: list[Path]) -> FileNotFoundErro
     more = f" and {len(gone) - 3} more" if len(gone) > 3 else ""
     return FileNotFoundError(f"{len(gone)} of {len(paths)} images listed in {model_dir} are missing on disk: "
                              + ", ".join(str(p) for p in gone[:3]) + more)
+
+
+def photos_in_subfolders(image_dir: Path) -> int:
+    """How many photos lie in subfolders of ``image_dir`` that :func:`list_images` leaves out
+    (it takes only the folder's own files when there are any)."""
+    image_dir = Path(image_dir)
+    if not any(p.is_file() and is_image(p) and not p.name.startswith(".") for p in image_dir.iterdir()):
+        return 0
+    return sum(1 for p in image_dir.rglob("*") if p.is_file() and is_image(p) and p.parent != image_dir
+               and not any(part.startswith(".") for part in p.relative_to(image_dir).parts))
+
+
+def _listed(paths: list[str], more: int = 3) -> str:
+    return ", ".join(paths[:more]) + (f" and {len(paths) - more} more" if len(paths) > more else "")
+
+
+def check_photos(image_dir: Path, names: list[str]) -> dict[tuple[int, int], list[str]]:
+    """Check the photos ``names`` of ``image_dir`` before feature extraction and group them by pixel
+    size ((width, height) -> names, the stored pixels: EXIF orientation is not applied, as COLMAP).
+
+    ValueError listing every photo that cannot be decoded (empty, not an image, truncated: COLMAP
+    extracted from the part before the cut and `geocues undistort` filled the rest grey), names with
+    whitespace (COLMAP's pair lists are whitespace-separated: no pair of them was ever matched) and
+    two photos with one file stem in different subfolders (their priors and outputs share a name).
+    A JPEG is decoded at 1/8 scale, which still reads every byte (211 ICL photos: 0.4 s)."""
+    from PIL import Image
+
+    bad, sizes = [], {}
+    for name in names:
+        path = Path(image_dir) / name
+        try:
+            if path.stat().st_size == 0:
+                raise OSError("empty file")
+            with Image.open(path) as im:
+                size = im.size
+                if im.format == "JPEG":
+                    im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))
+                im.load()
+        except (OSError, ValueError, SyntaxError) as e:  # PIL raises each of them for a damaged file
+            bad.append(f"{path} ({e})")
+            continue
+        sizes.setdefault(size, []).append(name)
+    if bad:
+        raise ValueError(f"cannot read {len(bad)} of {len(names)} photos: {_listed(bad)}; "
+                         "replace or remove them")
+    spaced = [n for n in names if any(ch.isspace() for ch in n)]
+    if spaced:
+        raise ValueError(f"{len(spaced)} photo names hold a space ({_listed(spaced)}): COLMAP's pair lists are "
+                         "whitespace-separated, so they cannot be matched; rename them (e.g. spaces to '_')")
+    seen: dict[str, str] = {}
+    for n in names:
+        if seen.setdefault(Path(n).stem, n) != n:
+            raise ValueError(f"photos {seen[Path(n).stem]} and {n} in {image_dir} share the file stem "
+                             f"'{Path(n).stem}', which names their priors and outputs: rename one "
+                             f"(e.g. {n.replace('/', '_')})")
+    return sizes

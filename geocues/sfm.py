@@ -11,8 +11,9 @@ Two modes:
   COLMAP's incremental mapper; the largest model is kept. When the scene had a posed model, the new
   model is aligned to its camera centres (similarity) so it lives in the scene's frame.
 
-The database is cached in ``OUT/cache/sfm/`` with the parameters that made it; a re-run reuses the
-features (and the matches) unless ``recompute`` or the parameters changed. The model is written
+The database is cached in ``OUT/cache/sfm/`` with the parameters and the photos (names, sizes and
+modification times) that made it; a re-run reuses the features (and the matches) unless
+``recompute``, the parameters or a photo changed. The model is written
 atomically; the report goes to ``OUT/sfm_report.json``. Entry: ``run(cfg, scene, out=None, *,
 overwrite=False, recompute=False) -> OUT`` (SCENE itself when written in place).
 """
@@ -36,7 +37,7 @@ from geocues import sfm_steps as U
 from geocues.atomic import atomic_dir, atomic_path, check_not_input, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
 from geocues.nerfstudio_io import find_transforms, transforms_reconstruction, write_colmap_model
-from geocues.photos import missing_images_error
+from geocues.photos import check_photos, missing_images_error, photos_in_subfolders
 from geocues.scene import ARBITRARY_SCALE, OWN_FRAME, list_images, no_images_folder, rescale_hint
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -253,6 +254,13 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         names = list_images(image_dir)
         if len(names) < 2:
             raise ValueError(f"map mode needs at least 2 images in {image_dir}, found {len(names)}")
+        if hidden := photos_in_subfolders(image_dir):
+            log.warning("%d photos in subfolders of %s are left out: the folder holds photos of its own, and "
+                        "then only those are the scene's; move them all to one level", hidden, image_dir)
+    sizes = check_photos(image_dir, names)
+    if len(sizes) > 1 and not posed:
+        log.info("sfm: photos of %d pixel sizes, one camera each: %s", len(sizes),
+                 ", ".join(f"{w}x{h} ({len(g)})" for (w, h), g in sizes.items()))
     if not in_place:
         link_scene(scene_dir, root)
 
@@ -261,7 +269,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     cache.mkdir(parents=True, exist_ok=True)
     db_path, state_path = cache / "database.db", cache / "state.json"
     cams = ({int(c): str(ref.cameras[c]) for c in ref.cameras} if ref is not None else cfg.camera_model)
-    extract_key = _key({"names": names, "cams": cams, "size": cfg.max_image_size,
+    stats = [(n, (image_dir / n).stat().st_size, (image_dir / n).stat().st_mtime_ns) for n in names]
+    extract_key = _key({"names": stats, "cams": cams, "size": cfg.max_image_size,
                         "n": cfg.max_num_features, "peak": cfg.peak_threshold})
     state = json.loads(state_path.read_text()) if state_path.is_file() else {}
     if recompute or state.get("extract") != extract_key:
@@ -274,7 +283,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     t0 = time.perf_counter()
     if not db_path.exists() and ref is not None:
         U.database_from_model(db_path, ref)
-    U.extract(db_path, image_dir, names, cfg, camera_model=None if ref is not None else cfg.camera_model)
+    U.extract(db_path, image_dir, names, cfg, camera_model=None if ref is not None else cfg.camera_model,
+              sizes=sizes)
     state["extract"] = extract_key
     state_path.write_text(json.dumps(state))
     seconds["extract"] = time.perf_counter() - t0

@@ -52,14 +52,25 @@ def database_from_model(db_path: Path, ref: "pycolmap.Reconstruction") -> None:
 
 
 def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
-            camera_model: str | None) -> None:
+            camera_model: str | None, sizes: dict[tuple[int, int], list[str]] | None = None) -> None:
     """SIFT features (CPU) for ``names`` that have none yet; images already in the database keep
-    their ids and cameras. ``camera_model`` is used for images new to the database (one camera)."""
+    their ids and cameras. ``camera_model`` is used for images new to the database: one camera per
+    pixel size (``sizes``: size -> names, from ``geocues.photos.check_photos``; with one shared
+    camera COLMAP skipped every photo of another size, and a phone's portrait photos)."""
     import pycolmap
 
     db = pycolmap.Database.open(str(db_path))
     try:
         todo = [n for n in names if not _has_keypoints(db, n)]
+        groups = [(None, todo)]
+        known: dict = {}  # size -> the camera of a photo of that size already in the database
+        if camera_model is not None and sizes:
+            left = set(todo)
+            groups = [(size, [n for n in group if n in left]) for size, group in sizes.items()]
+            for size, group in sizes.items():
+                done = [n for n in group if n not in left and db.exists_image(n)]
+                if done:
+                    known[size] = int(db.read_image_with_name(done[0]).camera_id)
     finally:
         db.close()
     if not todo:
@@ -76,15 +87,17 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = max(level, 2)  # skip the per-call "maximum number of threads" warning
     with tqdm(total=len(todo), desc="sfm: SIFT", unit="img") as bar:
-        for k in range(0, len(todo), EXTRACT_CHUNK):
-            chunk = todo[k:k + EXTRACT_CHUNK]
-            pycolmap.extract_features(str(db_path), str(image_dir), image_names=chunk,
-                                      camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=opts,
-                                      device=pycolmap.Device.cpu)
-            if camera_model is not None and reader.existing_camera_id < 0:
-                reader.existing_camera_id = _shared_camera_id(db_path, chunk, image_dir)
-            bar.update(len(chunk))
+        for size, group in groups:
+            reader.existing_camera_id = known.get(size, -1)
+            for k in range(0, len(group), EXTRACT_CHUNK):
+                chunk = group[k:k + EXTRACT_CHUNK]
+                pycolmap.extract_features(str(db_path), str(image_dir), image_names=chunk,
+                                          camera_mode=pycolmap.CameraMode.SINGLE,
+                                          reader_options=reader, extraction_options=opts,
+                                          device=pycolmap.Device.cpu)
+                if camera_model is not None and reader.existing_camera_id < 0:  # later chunks share it
+                    reader.existing_camera_id = _camera_of(db_path, chunk[0])
+                bar.update(len(chunk))
     pycolmap.logging.minloglevel = level
 
 
@@ -94,21 +107,13 @@ def _has_keypoints(db: "pycolmap.Database", name: str) -> bool:
     return db.exists_keypoints(db.read_image_with_name(name).image_id)
 
 
-def _shared_camera_id(db_path: Path, names: list[str], image_dir: Path) -> int:
-    """The camera of the first extracted chunk, reused for later chunks if all images share a size."""
+def _camera_of(db_path: Path, name: str) -> int:
+    """The camera id the database gives the image ``name``."""
     import pycolmap
-    from PIL import Image
 
-    sizes = set()
-    for p in image_dir.iterdir():
-        if p.is_file() and p.suffix.lower() in (".png", ".jpg", ".jpeg"):
-            with Image.open(p) as im:
-                sizes.add(im.size)
-    if len(sizes) != 1:
-        return -1
     db = pycolmap.Database.open(str(db_path))
     try:
-        return int(db.read_image_with_name(names[0]).camera_id)
+        return int(db.read_image_with_name(name).camera_id)
     finally:
         db.close()
 

@@ -322,3 +322,32 @@ def test_two_images_leave_no_point_and_say_how_to_keep_some(icl_dir: Path, tmp_p
     with caplog.at_level(logging.WARNING, logger="geocues"):
         run(SfmConfig(min_track_length=2, ignore_two_view_tracks=False), scene, tmp_path / "out2")
     assert _report(tmp_path / "out2")["points"] > 0
+
+
+def test_map_gives_each_photo_size_a_camera(icl_dir: Path, tmp_path: Path):
+    """A photo of another pixel size: one camera shared by all (COLMAP's SINGLE mode) skipped it, and the
+    warning blamed the overlap; a phone's portrait photos were half of them. Each size has its camera."""
+    scene = make_tiny_icl(icl_dir, tmp_path / "s")
+    shutil.rmtree(scene / "sparse")
+    odd = sorted((scene / "images").iterdir())[4]
+    cv2.imwrite(str(odd), cv2.resize(cv2.imread(str(odd)), (400, 300), interpolation=cv2.INTER_CUBIC))
+    run(SfmConfig(check_gt=False), scene, tmp_path / "out")
+    rec = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0"))
+    assert sorted((c.width, c.height) for c in rec.cameras.values()) == [(320, 240), (400, 300)]
+    assert odd.name in {im.name for im in rec.images.values()}
+
+
+def test_a_changed_photo_is_extracted_again(triangulated, tmp_path: Path, caplog):
+    """The feature cache was keyed on the options and names only: `sfm --overwrite` after the photos
+    changed (another room, a repaired file) mapped the old photos' features. Now their sizes and
+    modification times are in its key."""
+    src, rep = triangulated
+    out = tmp_path / "copy"
+    shutil.copytree(src, out)  # the photos as files of its own
+    cfg = replace(SfmConfig(), check_gt=False)
+    photo = sorted((out / "images").iterdir())[3]
+    cv2.imwrite(str(photo), cv2.flip(cv2.imread(str(photo)), 1))
+    with caplog.at_level(logging.INFO, logger="geocues.sfm"):
+        again = _report(run(cfg, out))
+    assert "discarding cached database" in caplog.text
+    assert again["seconds"]["match"] > 0
