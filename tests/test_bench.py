@@ -247,3 +247,25 @@ def test_images_only_scale_table_prints_one_row_per_unit_and_seed(tmp_path, caps
 
     replace_block(doc, "images-only-scale", "new")
     assert doc.read_text() == "a\n<!-- images-only-scale -->\nnew\n<!-- /images-only-scale -->\nb\n"
+
+
+def test_readme_demo_figures_are_generated_from_the_committed_run():
+    """README.md's main-job table and time line are what bench/ablation_summary.py --demo makes of
+    the run kept in bench/results/demo/ (ablation.json, timings.json): no figure there is typed."""
+    mod = _bench_script("ablation_summary")
+    repo = Path(__file__).resolve().parents[1]
+    keep = repo / "bench" / "results" / "demo"
+    readme = (repo / "README.md").read_text()
+    assert mod.scene_table(json.loads((keep / "ablation.json").read_text())) in readme
+    assert mod.demo_time_line(json.loads((keep / "timings.json").read_text())) in readme
+
+
+def test_demo_time_line_names_each_step():
+    mod = _bench_script("ablation_summary")
+    t = {"date": "2026-01-02", "cpus": 2, "room_made": True, "total_s": 287.4,
+         "steps_s": {"room": 36.2, "cues": 25.0, "cue_scoring": 4.1, "ablation": 218.6, "final_scoring": 3.5}}
+    line = mod.demo_time_line(t)
+    assert line.startswith("Time: **4 min 47 s** wall on 2 cores (2026-01-02")
+    for part in ("the room 36 s to render", "cues 25 s", "scoring 4 s", "the reports 219 s", "final scoring 4 s"):
+        assert part in line, part
+    assert "the room already made (0 s)" in mod.demo_time_line(t | {"room_made": False, "steps_s": t["steps_s"] | {"room": 0.2}})
