@@ -101,7 +101,8 @@ def check_not_input(path: str | Path, inputs: dict[str, str | Path | None]) -> N
     """Refuse the output folder ``path`` when it is, or holds, one of the command's inputs
     (``inputs``: what it is called -> its path; None skipped): a command that replaces or fills its
     output folder would delete or mix into it (`splat train SCENE -o SCENE --overwrite` removed the
-    scene). An output inside an input (``-o SCENE/cues``) is fine. What an input folder links to (a
+    scene). An output inside an input (``-o SCENE/cues``) is fine, but not inside its photos
+    (``SCENE/images/...``). What an input folder links to (a
     derived scene's images/ and priors/ are links to its source's) counts as the input too."""
     out = Path(path).resolve()
     for name, given in inputs.items():
@@ -114,6 +115,10 @@ def check_not_input(path: str | Path, inputs: dict[str, str | Path | None]) -> N
             if src == out or out in src.parents:
                 raise ValueError(f"the output folder {path} {'is' if src == out else 'holds'} {what}: "
                                  f"writing there would replace it; choose another output folder")
+        photos = (given / "images").resolve()
+        if given.is_dir() and photos in out.parents:  # its files would be taken for photos or mixed with them
+            raise ValueError(f"the output folder {path} is inside the {name}'s photos folder {given / 'images'}; "
+                             "choose another output folder")
 
 
 JUNK = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})  # what file browsers leave in any folder

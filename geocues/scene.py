@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +46,8 @@ def no_images_folder(image_dir: Path) -> FileNotFoundError:
     image_dir = Path(image_dir)
     given = image_dir.parent
     own = [p for p in given.iterdir() if is_image(p)] if given.is_dir() else []
+    if not given.exists():
+        return FileNotFoundError(f"the scene folder {given} does not exist")
     if not own:
         return FileNotFoundError(f"no images folder at {image_dir}")
     fix = (f"pass the scene folder above it, {given.parent}" if given.name == "images"
@@ -65,7 +68,7 @@ def gt_mesh_file(root: Path) -> Path | None:
 
 def rescale_hint(root: Path) -> str:
     """How to make the scene at ``root`` metric (the end of every not-metric warning)."""
-    return (f"make it metric with `geocues rescale {root} -o OUT --scale S` (metres per unit), --from-priors "
+    return (f"make it metric with `geocues rescale {shlex.quote(str(root))} -o OUT --scale S` (metres per unit), --from-priors "
             "(metric depth priors) or, as a guess, --median-depth 2 (photos taken about 2 m from what they show)")
 
 

@@ -55,6 +55,8 @@ from splat.views import View
 
 log = logging.getLogger(__name__)
 
+FEW_VIEWS = 8  # training views under which an empty mesh is named as their lack
+
 COLOUR_STEP_WHEN_FROZEN = True
 """Once the geometry is frozen (TrainConfig.geometry_until), train with splat.frozen.colour_step (the
 colours' gradient alone); False: the full step with the geometry's learning rates at 0, its oracle."""
@@ -404,7 +406,10 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
              _db(final["psnr"]), len(s.state["cue_type"]), out_dir)
     if mesh is not None and mesh["triangles"] == 0:  # a finished run whose mesh says nothing: said last
+        few = len(s.train_views) < FEW_VIEWS
         log.warning("the mesh of %s is EMPTY (no rendered depth was fused: test PSNR %s%s); the model did not fit "
-                    "the scene: check the cameras (geocues info) and the learning rates (--lr.*)", out_dir,
-                    _db(final["psnr"]), f", {len(s.guard.events)} steps rolled back" if s.guard.events else "")
+                    "the scene: %s", out_dir, _db(final["psnr"]),
+                    f", {len(s.guard.events)} steps rolled back" if s.guard.events else "",
+                    f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)" if few else
+                    "check the cameras (geocues info) and the learning rates (--lr.*)")
     return out_dir

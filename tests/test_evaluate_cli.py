@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -273,3 +274,17 @@ def test_non_finite_options_are_refused(tmp_path, capsys, option):
     assert main([str(pred), "--gt", str(gt), *option]) == 1
     err = capsys.readouterr().err
     assert option[0][2:].replace("-", "_") in err and "Traceback" not in err
+
+
+def test_a_mesh_the_scene_barely_sees_is_named(tmp_path, caplog):
+    """A mesh scored with another scene's cameras kept 8 % of its surface and scored C-L1 36 cm without a
+    word: the share the cameras see is named below 30 % (the scene's camera sees 1 of the wall's 4 m^2)."""
+    scene = make_scene(tmp_path / "scene")
+    wall = write_mesh(tmp_path / "wall.ply", *rects((-1, 1, -1, 1, 2.0)))
+    seen = write_mesh(tmp_path / "seen.ply", *rects((-0.45, 0.45, -0.45, 0.45, 2.0)))
+    with caplog.at_level("WARNING", logger="evaluation.mesh_metrics"):
+        assert main([str(seen), str(scene), "-o", str(tmp_path / "a.json"), "--n-samples", "5000"]) == 0
+        assert "is seen by the" not in caplog.text
+        assert main([str(wall), str(scene), "-o", str(tmp_path / "b.json"), "--n-samples", "5000"]) == 0
+    assert re.search(r"only 2\d % of .*wall.ply is seen by the 1 cameras", caplog.text)
+    assert "is SCENE the scene" in json.loads((tmp_path / "b.json").read_text())["protocol"]["seen_warning"]

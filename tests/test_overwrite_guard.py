@@ -143,6 +143,10 @@ INPUT_CASES = [
     (["geocues", "undistort", "{R}", "-o", "{B}"], "the scene"),
     (["evaluate", "simulate-priors", "{R}", "-o", "{B}"], "the scene"),
     (["geocues", "extract", "{R}", "-o", "{R}"], "the scene"),
+    # inside the photos: the output's files would be taken for photos (sfm -o SCENE/images/map wrote a
+    # scene there, linking images/images to itself)
+    (["geocues", "sfm", "{R}", "-o", "{R}/images/map"], "the scene's photos folder"),
+    (["geocues", "extract", "{R}", "-o", "{R}/images/cues"], "the scene's photos folder"),
 ]
 
 

@@ -344,6 +344,14 @@ def test_an_empty_mesh_is_the_last_warning(scene, monkeypatch, caplog):
         out = run(TrainConfig(iters=5, sh_degree=0, checkpoints=()), root, cues, base / "empty_mesh")
     assert json.loads((out / "report.json").read_text())["mesh"] == {"vertices": 0, "triangles": 0}
     assert "is EMPTY" in caplog.records[-1].getMessage() and caplog.records[-1].levelname == "WARNING"
+    assert "check the cameras" in caplog.records[-1].getMessage()
+    import splat.train as train  # three photos ended with the same advice: the views' number is the cause
+
+    monkeypatch.setattr(train, "FEW_VIEWS", 10_000)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="splat"):
+        run(TrainConfig(iters=5, sh_degree=0, checkpoints=()), root, cues, base / "empty_mesh", overwrite=True)
+    assert re.search(r"EMPTY .*: \d+ training views are too few to fit a room", caplog.records[-1].getMessage())
 
 
 def test_quiet_run_prints_no_progress_bars(scene, capsys):
