@@ -31,7 +31,7 @@ class _StderrHandler(logging.StreamHandler):
 
 
 GLOBAL_HELP = ("global options (every command): -v/--verbose debug logging and tracebacks; "
-               "-q/--quiet warnings and errors only, no progress bars")
+               "-q/--quiet warnings and errors only, no progress bars (before or after the command)")
 
 
 @contextlib.contextmanager
@@ -164,6 +164,9 @@ def dispatch(prog: str, commands: dict[str, Callable], default: str | None = Non
 def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
               argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    lead = []  # `geocues -q undistort ...`: the global flags before the command too
+    while argv and argv[0] in ("--verbose", "-v", "--quiet", "-q"):
+        lead.append(argv.pop(0))
     if not argv or argv[0] in ("-h", "--help"):
         if default is not None and argv:
             # `evaluate --help` shows the default command's options after the command list.
@@ -178,6 +181,7 @@ def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
     else:
         print(f"{prog}: unknown command {argv[0]!r}\n\n" + _usage(prog, commands, default), file=sys.stderr)
         return 2
+    rest = lead + rest
     fn = commands[name]
     sub_prog = prog if (name == default and argv[0] != name) else f"{prog} {name}"
     verbose = "--verbose" in rest or "-v" in rest

@@ -26,10 +26,13 @@ MATCH_CHUNK = 64  # pairs per pycolmap.match_image_pairs call
 
 
 def quiet_pycolmap() -> None:
-    """Keep COLMAP's glog output to warnings unless the geocues logger is in debug mode."""
+    """Keep COLMAP's glog output to warnings (errors with `-q`), everything with `-v`: its level
+    follows the geocues logger's."""
     import pycolmap
 
-    pycolmap.logging.minloglevel = 0 if logging.getLogger("geocues").isEnabledFor(logging.DEBUG) else 1
+    logger = logging.getLogger("geocues")
+    pycolmap.logging.minloglevel = (0 if logger.isEnabledFor(logging.DEBUG) else 1 if logger.isEnabledFor(logging.INFO)
+                                    else 2)
 
 
 def database_from_model(db_path: Path, ref: "pycolmap.Reconstruction") -> None:

@@ -63,6 +63,9 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
         log.warning("undistort: priors in %s are not carried over (they would need the same warp)",
                     scene_dir / "priors")
 
+    from geocues.sfm_steps import quiet_pycolmap
+
+    quiet_pycolmap()  # COLMAP's per-image lines only with -v
     opts = pycolmap.UndistortCameraOptions()
     opts.blank_pixels = cfg.blank_pixels
     opts.max_image_size = cfg.max_image_size

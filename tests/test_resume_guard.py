@@ -362,6 +362,31 @@ def test_quiet_run_prints_no_progress_bars(scene, capsys):
                  "--sh-degree", "0", "--no-mesh", "-q"]) == 0
     err = capsys.readouterr().err
     assert "splat train:" not in err and "it/s" not in err
+    # before the command too (`splat -q train ...` was "unknown command '-q'")
+    assert main(["-q", "train", str(root), "-c", str(cues), "-o", str(base / "quiet2"), "--iters", "10",
+                 "--sh-degree", "0", "--no-mesh"]) == 0
+    err = capsys.readouterr().err
+    assert "splat train:" not in err and "it/s" not in err and "unknown command" not in err
+
+
+def test_colmap_log_level_follows_quiet_and_verbose(monkeypatch):
+    """`-q` left COLMAP's info lines on (about 23 from `geocues undistort`); `-v` shows them all."""
+    import logging
+
+    import pycolmap
+
+    from geocues.sfm_steps import quiet_pycolmap
+
+    monkeypatch.setattr(pycolmap.logging, "minloglevel", pycolmap.logging.minloglevel)
+    logger = logging.getLogger("geocues")
+    before = logger.level
+    try:
+        for level, want in ((logging.WARNING, 2), (logging.INFO, 1), (logging.DEBUG, 0)):
+            logger.setLevel(level)  # clears the logger's cache of isEnabledFor answers
+            quiet_pycolmap()
+            assert pycolmap.logging.minloglevel == want, (level, want)
+    finally:
+        logger.setLevel(before)
 
 
 def test_progress_bars_in_a_log_are_whole_lines(scene, capsys, monkeypatch):
