@@ -308,8 +308,13 @@ def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig"
     log.info("sfm: incremental mapping")
     models = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work), options=opts)
     if not models:
-        raise ValueError(f"incremental mapping found no model for the images in {image_dir} "
-                         f"(too few matches: try more features or a lower peak_threshold)")
+        pairs = num_verified_pairs(db_path, cfg.min_num_inliers)
+        why = ("no two photos share enough matches: more overlap between neighbouring photos, more features "
+               "(--max-num-features) or a lower --peak-threshold" if pairs == 0 else
+               f"{pairs} pairs of photos match, but none is a starting pair COLMAP accepts (its views of the "
+               f"matches {opts.mapper.init_min_tri_angle:g} degrees or more apart): photos taken from one spot, "
+               "or too few of them; walk around the room while taking them")
+        raise ValueError(f"incremental mapping found no model for the images in {image_dir}: {why}")
     rec = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
     log.info("sfm: kept the largest of %d models (%d images registered)", len(models), rec.num_reg_images())
     n = filter_points(rec, cfg.min_tri_angle, cfg.max_reproj_error)

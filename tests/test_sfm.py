@@ -351,3 +351,19 @@ def test_a_changed_photo_is_extracted_again(triangulated, tmp_path: Path, caplog
         again = _report(run(cfg, out))
     assert "discarding cached database" in caplog.text
     assert again["seconds"]["match"] > 0
+
+
+def test_mapping_that_finds_no_model_says_why(icl_dir: Path, tmp_path: Path):
+    """'too few matches: try more features' was said of two photos with 178 verified matches: photos
+    that match but from one spot are named so, and photos that do not match are told apart."""
+    close = make_tiny_icl(icl_dir, tmp_path / "close", frames=[0, 1, 2])
+    shutil.rmtree(close / "sparse")
+    with pytest.raises(ValueError, match=r"pairs of photos match, but none is a starting pair .*16 degrees"):
+        run(SfmConfig(check_gt=False), close, tmp_path / "out_close")
+    noise = tmp_path / "noise"
+    (noise / "images").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for k in range(3):  # nothing in common
+        cv2.imwrite(str(noise / "images" / f"{k}.png"), rng.integers(0, 255, (240, 320, 3), dtype=np.uint8))
+    with pytest.raises(ValueError, match="no two photos share enough matches"):
+        run(SfmConfig(check_gt=False), noise, tmp_path / "out_noise")
