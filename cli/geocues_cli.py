@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
@@ -90,7 +91,7 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
         print("points     0  (run `geocues sfm` to triangulate them)")
     if s.distorted_models:
         print(f"warning    distorted camera model {', '.join(s.distorted_models)} (the intrinsics above ignore the "
-              f"distortion): `geocues undistort {s.root} -o OUT` makes the PINHOLE scene the other commands read")
+              f"distortion): `geocues undistort {shlex.quote(str(s.root))} -o OUT` makes the PINHOLE scene the other commands read")
     print(f"priors     depth {n_depth}/{len(s)}" + (f" ({s.depth_kind})" if n_depth else "")
           + f"  normal {n_normal}/{len(s)}" + (f" ({s.normal_axes} axes)" if n_normal else ""))
     for kind in ("depth", "normal"):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +153,7 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     if scene_dir is None or not scene_dir.is_dir():
         where = "given" if scene is not None else f"recorded in {report_path}"
         raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; give the scene after "
-                                f"RUN: `evaluate report {run_dir} SCENE`")
+                                f"RUN: `evaluate report {shlex.quote(str(run_dir))} SCENE`")
     log_rows = _read_log(run_dir)
 
     losses = {t: [(r["step"], r[t]) for r in log_rows if r.get(t) is not None] for t in LOSS_TERMS}

@@ -9,6 +9,7 @@ diffable) and can convert it to binary with pycolmap.
 from __future__ import annotations
 
 import logging
+import shlex
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,12 +136,12 @@ def _no_model_hint(p: Path) -> str:
     if others:
         return f"; {others[0]} holds a model: move (or link) it to {p / 'sparse' / '0'}"
     if (p / "cache" / "sfm").is_dir() and not (p / "sfm_report.json").is_file():
-        return (f"; {p} holds an unfinished `geocues sfm -o {p}` (stopped before it wrote the model): run that "
+        return (f"; {p} holds an unfinished `geocues sfm -o {shlex.quote(str(p))}` (stopped before it wrote the model): run that "
                 "command again, it reuses what was done")
     if p.name == "images" and any(is_image(f) for f in p.iterdir()):
         return f"; {p} looks like a scene's images folder: pass the scene folder above it, {p.parent}"
     if (p / "images").is_dir() and list_images(p / "images"):
-        return (f"; {p / 'images'} holds photos without a model: `geocues sfm {p} -o MAP` makes one from the "
+        return (f"; {p / 'images'} holds photos without a model: `geocues sfm {shlex.quote(str(p))} -o MAP` makes one from the "
                 "images alone (README, \"Your own photos\")")
     return ""
 

@@ -229,7 +229,7 @@ class Scene(ScenePriors):
         distorted = next((im for im in raw_images if not im.pinhole), None)
         if distorted is not None and not allow_distorted:
             raise ValueError(f"image {distorted.name} in {model_dir} uses the distorted camera model "
-                             f"{distorted.model}; undistort the scene first: `geocues undistort {scene_root} -o OUT`")
+                             f"{distorted.model}; undistort the scene first: `geocues undistort {shlex.quote(str(scene_root))} -o OUT`")
         if err := missing_images_error(model_dir, paths):
             raise err
         if paths:

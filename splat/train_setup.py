@@ -6,6 +6,7 @@ the camera refiner and the numerics guard (splat/train.py runs the loop over the
 from __future__ import annotations
 
 import logging
+import shlex
 import shutil
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -94,7 +95,7 @@ def cue_report_priors(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> tuple[d
     if scene.has_depth_priors and kind != scene.depth_kind and chosen == "scene":  # scene.json changed since
         raise ValueError(f"the cues in {cues_ply.parent} were extracted with the depth priors read as {kind}, "
                          f"but {scene.root} now says {scene.depth_kind} (scene.json priors.depth_kind): run "
-                         f"`geocues extract {scene.root} -o {cues_ply.parent} --overwrite` again")
+                         f"`geocues extract {shlex.quote(str(scene.root))} -o {shlex.quote(str(cues_ply.parent))} --overwrite` again")
     alignments = {}
     if cfg.loss.lambda_anchor > 0 or kind == "disparity":  # L_a, or depth for L_d from disparity
         try:

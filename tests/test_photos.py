@@ -62,3 +62,14 @@ def test_photos_left_out_of_a_nested_layout_are_counted(tmp_path):
     assert photos_in_subfolders(tmp_path) == 0  # no photo of its own: the subfolders are the scene
     _photo(tmp_path / "top.jpg")
     assert photos_in_subfolders(tmp_path) == 3  # now only top.jpg is
+
+
+def test_hints_quote_a_path_with_a_space(tmp_path):
+    """`geocues info 'my photos'` suggested `geocues sfm .../my photos -o MAP`: pasted, two arguments."""
+    from geocues.colmap_io import find_model_dir
+
+    photos = tmp_path / "my photos"
+    _photo(photos / "images" / "a.jpg")
+    with pytest.raises(FileNotFoundError) as e:
+        find_model_dir(photos)
+    assert f"`geocues sfm '{photos}' -o MAP`" in str(e.value)
