@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -75,11 +76,19 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None):
             load_config: start from the options of an earlier run (its RUN/config.yaml) to repeat it exactly.
             cfg: training options.
         """
-        from splat.presets import cue_preset_mismatch
+        from splat.presets import cue_preset_mismatch, get_preset, unmet_needs
         from splat.train import run
 
+        log = logging.getLogger("splat")
         if mismatch := cue_preset_mismatch(preset, cues):
-            logging.getLogger("splat").warning("%s", mismatch)
+            log.warning("%s", mismatch)
+        if why := unmet_needs(preset, scene, cues):
+            log.warning("--preset %s trains as another row on this scene (%s): `splat ablate` reports it n/a",
+                        preset, why)
+        factor = get_preset(preset).iters_factor
+        if factor != 1.0 and cfg.iters != base.iters:  # --iters given: the preset's factor applies to it, as in ablate
+            cfg = dataclasses.replace(cfg, iters=max(1, round(cfg.iters * factor)))
+            log.info("--preset %s: %g x --iters = %d iterations", preset, factor, cfg.iters)
         run(cfg, scene, cues, out, overwrite=overwrite, resume=resume)
         print(f"wrote {out}/report.json")
         return 0

@@ -100,6 +100,17 @@ def available_backends() -> list[str]:
             + (["cuda"] if cuda_backend_available() else []))
 
 
+_warned: set[str] = set()
+
+
+def _warn_once(msg: str, *args) -> None:
+    """A backend fallback is said once per process, not at every render (109 lines in 60 steps)."""
+    text = msg % args
+    if text not in _warned:
+        _warned.add(text)
+        log.warning("%s", text)
+
+
 def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | None = None) -> str:
     """Map "auto" and unavailable choices to a concrete backend name ("torch", "cpu" or "cuda").
 
@@ -112,23 +123,23 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | Non
     if device.type == "cuda" and backend in ("cuda", "auto"):
         if dtype is not None and dtype != torch.float32:
             if backend == "cuda":
-                log.warning("backend 'cuda' takes float32 only, got %s; using torch", dtype)
+                _warn_once("backend 'cuda' takes float32 only, got %s; using torch", dtype)
             return "torch"
         if _load_backend("cuda") is None:
             if backend == "cuda":
-                log.warning("backend 'cuda' requested but unavailable (%s); using torch", _errors["cuda"])
+                _warn_once("backend 'cuda' requested but unavailable (%s); using torch", _errors["cuda"])
             return "torch"
         return "cuda"
     if backend == "cuda":
-        log.warning("backend 'cuda' needs CUDA tensors, got %s; using torch", device)
+        _warn_once("backend 'cuda' needs CUDA tensors, got %s; using torch", device)
         return "torch"
     if device.type != "cpu":
         if backend == "cpu":
-            log.warning("backend 'cpu' needs CPU tensors, got %s; using torch", device)
+            _warn_once("backend 'cpu' needs CPU tensors, got %s; using torch", device)
         return "torch"
     if _load_backend("cpu") is None:
         if backend == "cpu":
-            log.warning("backend 'cpu' requested but unavailable (%s); using torch", _errors["cpu"])
+            _warn_once("backend 'cpu' requested but unavailable (%s); using torch", _errors["cpu"])
         return "torch"
     return "cpu"
 

@@ -133,7 +133,10 @@ class NumericsGuard:
             raise TrainingDiverged(
                 f"training diverged at step {event['step']}: {event['reason']} "
                 f"({self.bad_in_row - 1} rollbacks in a row did not help; offending parameters "
-                f"{', '.join(event['params'])}). Lower their learning rates (--lr.*) or check the inputs")
+                f"{', '.join(event['params'])}). Lower their learning rates (--lr.*)"
+                + (" or the loss weights you raised (--loss.lambda-*: a large weight makes the loss jump between "
+                   "views by nature; --guard.spike-factor tolerates more)" if "running mean" in event["reason"] else "")
+                + " or check the inputs")
         for key in event["params"]:
             self.lr_mult[key] = self.lr_mult.get(key, 1.0) * self.cfg.lr_factor
         log.warning("step %d: %s (loss terms %s; Gaussians %s); rolled back to the last good state, "

@@ -49,13 +49,11 @@ from splat.mesh_post import ply_element_counts
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.train_setup import (TrainingSetup, cue_report_priors, make_optimizers,  # noqa: F401  (re-exported)
                                open_run, setup_training, type_counts)
-from splat.train_outputs import evaluate_views, fuse_mesh, render_view  # noqa: F401  (re-exported)
+from splat.train_outputs import evaluate_views, final_warnings, fuse_mesh, render_view  # noqa: F401  (re-exported)
 from splat.train_outputs import write_outputs as _write_outputs
 from splat.views import View
 
 log = logging.getLogger(__name__)
-
-FEW_VIEWS = 8  # training views under which an empty mesh is named as their lack
 
 COLOUR_STEP_WHEN_FROZEN = True
 """Once the geometry is frozen (TrainConfig.geometry_until), train with splat.frozen.colour_step (the
@@ -405,11 +403,6 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
     publish(work, out_dir)
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
              _db(final["psnr"]), len(s.state["cue_type"]), out_dir)
-    if mesh is not None and mesh["triangles"] == 0:  # a finished run whose mesh says nothing: said last
-        few = len(s.train_views) < FEW_VIEWS
-        log.warning("the mesh of %s is EMPTY (no rendered depth was fused: test PSNR %s%s); the model did not fit "
-                    "the scene: %s", out_dir, _db(final["psnr"]),
-                    f", {len(s.guard.events)} steps rolled back" if s.guard.events else "",
-                    f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)" if few else
-                    "check the cameras (geocues info) and the learning rates (--lr.*)")
+    for warning in final_warnings(cfg, s, mesh, _db(final["psnr"]), out_dir):  # what a run's result may not be: said last
+        log.warning("%s", warning)
     return out_dir

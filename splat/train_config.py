@@ -15,7 +15,7 @@ from splat.gaussians import InitConfig
 from splat.guard import GuardConfig
 from splat.losses import LossConfig, without_priors
 from splat.mesh import TSDFConfig
-from splat.strategy import IndoorStrategyConfig
+from splat.strategy import PAPER_ITERS, IndoorStrategyConfig
 
 
 @dataclass
@@ -140,6 +140,12 @@ class TrainConfig:
             raise ValueError(f"--iters must be positive, got {self.iters}")
         if len(self.background) != 3 or not all(math.isfinite(c) for c in self.background):
             raise ValueError(f"--background must be three finite numbers (RGB), got {self.background!r}")
+        if self.strategy.total_iters != PAPER_ITERS:  # the run's length sets it (it was ignored in silence)
+            raise ValueError(f"--strategy.total-iters is the run's length, set from --iters; leave it out "
+                             f"(got {self.strategy.total_iters})")
+        if not 0 <= self.loss.lambda_dssim <= 1:  # (1 - l) L1 + l D-SSIM: above 1 the L1 term pushes away
+            raise ValueError(f"--loss.lambda-dssim weighs D-SSIM against L1 and must be in [0, 1], "
+                             f"got {self.loss.lambda_dssim}")
         if self.strategy.max_gaussians < 0:
             raise ValueError(f"--strategy.max-gaussians must be >= 0 (0: no limit), got {self.strategy.max_gaussians}")
         finite_pos("downscale", self.downscale)

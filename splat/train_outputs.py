@@ -26,6 +26,10 @@ from splat.views import View, ViewSet
 
 _BACKGROUNDS: dict[tuple, Tensor] = {}
 
+FEW_VIEWS = 8  # training views under which an empty mesh is named as their lack
+TSDF_SAYS = ("voxel_size", "sdf_trunc", "depth_max", "weight_threshold", "consistent_views", "max_depth_spread")
+"""TSDF options that can leave a mesh empty when set far from their defaults."""
+
 
 def render_view(params, view: View, sh_degree: int, cfg: TrainConfig, maps: bool = True) -> dict[str, Tensor]:
     key = (tuple(cfg.background), view.rgb.device)  # made once: a copy to a GPU waits for it each time
@@ -104,3 +108,31 @@ def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, f
             write_mesh(fuse_mesh(s.params, s.train_views, cfg.sh_degree, cfg, s.refiner), work / "mesh.ply")
         timings["mesh_s"] = time.perf_counter() - t0
     return final
+
+
+def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: str, out_dir: Path) -> list[str]:
+    """The sentences a finished run ends with when its result may not be what it looks like: an empty
+    mesh and its likely cause, steps the divergence guard rolled back, a camera refinement gone far."""
+    from splat.tsdf_config import TSDFConfig
+
+    out = []
+    events = len(s.guard.events)
+    if mesh is not None and mesh["triangles"] == 0:
+        changed = [f"--tsdf.{k.replace('_', '-')} {getattr(cfg.tsdf, k)}" for k in TSDF_SAYS
+                   if getattr(cfg.tsdf, k) != getattr(TSDFConfig(), k)]
+        cause = (f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)"
+                 if len(s.train_views) < FEW_VIEWS else
+                 f"check the TSDF options given ({', '.join(changed)})" if changed else
+                 "check the cameras (geocues info) and the learning rates (--lr.*)")
+        out.append(f"the mesh of {out_dir} is EMPTY (no rendered depth was fused: test PSNR {psnr}"
+                   f"{f', {events} steps rolled back' if events else ''}); {cause}")
+    elif events:
+        out.append(f"the divergence guard rolled back {events} steps of this run (report.json guard_events): its "
+                   f"result may be poor; lower the learning rates (--lr.*) or the loss weights that spiked")
+    if s.refiner is not None:
+        r = s.refiner.summary()
+        if not 0.67 < r["focal_factor"] < 1.5 or r["rotation_deg"]["max"] > 10:
+            out.append(f"the camera refinement went far (focal x{r['focal_factor']:.3g}, up to "
+                       f"{r['rotation_deg']['max']:.3g} deg): it no longer refines the scene's cameras; lower "
+                       "--pose-lr / --focal-lr, or check the scene's poses")
+    return out

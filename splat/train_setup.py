@@ -47,6 +47,12 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     if not cues_ply.is_file():
         raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
     cfg.validate()
+    if cfg.mesh and cfg.tsdf.device.lower().startswith("cuda"):  # found after the training, it lost the run
+        import open3d as o3d
+
+        if not o3d.core.cuda.is_available():
+            raise ValueError(f"--tsdf.device {cfg.tsdf.device}: this Open3D build has no CUDA device; "
+                             "fuse on the CPU (--tsdf.device cpu, the default)")
     work = staging_dir(out_dir)
     # cfg_args: only a run writes it (an extract's folder has a report.json too)
     check_replaceable(out_dir, "cfg_args", "a `splat train` run", {"scene": scene_dir, "cues": cues})
@@ -56,10 +62,12 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
-        diff = checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
+        diff = [k for k in checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
+                if k not in RESUME_FREE]
         if diff:
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}); resume with the same options")
+        _check_resumed_inputs(work, {"scene": scene_dir, "cues": cues_ply})
     elif work.exists():
         if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked
             raise ValueError(f"{work} holds an unfinished run with a checkpoint: pass --resume to continue it "
@@ -67,6 +75,29 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
         log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
         shutil.rmtree(work)
     return work, cues_ply, ckpt
+
+
+RESUME_FREE = {"save_every", "log_every", "keep_ckpt"}
+"""Options a resumed run may change: when checkpoints are written and how often the log is, not the training."""
+
+
+def _check_resumed_inputs(work: Path, inputs: dict[str, Path | None]) -> None:
+    """--resume with another SCENE or CUES than the run started from (its config.yaml names them)
+    is refused: other cues went on silently from the checkpoint (the report naming the new ones, the
+    config the old), another scene failed with an IndexError."""
+    import yaml
+
+    try:
+        started = yaml.safe_load((work / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return
+    if not isinstance(started, dict):
+        return
+    for name, given in inputs.items():
+        was = started.get(name)
+        if given is not None and isinstance(was, str) and Path(was).resolve() != Path(given).resolve():
+            raise ValueError(f"--resume: the run in {work} started from the {name} {was}, not {given}; "
+                             f"resume with the same {name}")
 
 
 def make_optimizers(params: torch.nn.ParameterDict, lr: LearningRates, scale: float,

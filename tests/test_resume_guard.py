@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -345,13 +346,13 @@ def test_an_empty_mesh_is_the_last_warning(scene, monkeypatch, caplog):
     assert json.loads((out / "report.json").read_text())["mesh"] == {"vertices": 0, "triangles": 0}
     assert "is EMPTY" in caplog.records[-1].getMessage() and caplog.records[-1].levelname == "WARNING"
     assert "check the cameras" in caplog.records[-1].getMessage()
-    import splat.train as train  # three photos ended with the same advice: the views' number is the cause
+    import splat.train_outputs as train_outputs  # three photos ended with the same advice: the views are the cause
 
-    monkeypatch.setattr(train, "FEW_VIEWS", 10_000)
+    monkeypatch.setattr(train_outputs, "FEW_VIEWS", 10_000)
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="splat"):
         run(TrainConfig(iters=5, sh_degree=0, checkpoints=()), root, cues, base / "empty_mesh", overwrite=True)
-    assert re.search(r"EMPTY .*: \d+ training views are too few to fit a room", caplog.records[-1].getMessage())
+    assert re.search(r"EMPTY .*; \d+ training views are too few to fit a room", caplog.records[-1].getMessage())
 
 
 def test_quiet_run_prints_no_progress_bars(scene, capsys):
@@ -441,3 +442,34 @@ def test_an_option_added_after_the_checkpoint_and_left_at_its_default_is_no_diff
     assert checkpoint.config_diff(asdict(cfg), other, defaults) == ["iters"]
     gone = asdict(cfg) | {"removed_option": 1}  # an option this version no longer has
     assert checkpoint.config_diff(asdict(cfg), gone, defaults) == ["removed_option"]
+
+
+def test_resume_refuses_other_inputs_and_allows_bookkeeping_options(scene, monkeypatch):
+    """--resume with other cues went on from the checkpoint in silence (report.json naming the new
+    cues, config.yaml the old), with another scene it ended in an IndexError; changing only when
+    checkpoints are written (--save-every) was refused although it cannot change the training."""
+    import splat.train as train
+    from splat.checkpoint import TrainingInterrupted
+
+    base, root, cues = scene
+    real = train.train_step
+
+    def step_then_kill(*args, **kw):
+        out = real(*args, **kw)
+        if args[5] == 9:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(train, "train_step", step_then_kill)
+    with pytest.raises(TrainingInterrupted):
+        train.run(_cfg(iters=20), root, cues, base / "inputs")
+    monkeypatch.setattr(train, "train_step", real)
+    other_cues, other_scene = base / "other_cues", base / "other_room"
+    shutil.copytree(cues, other_cues)
+    shutil.copytree(root, other_scene, symlinks=True)
+    with pytest.raises(ValueError, match=r"--resume: the run in .* started from the cues .*cues.ply, not .*other_cues"):
+        train.run(_cfg(iters=20), root, other_cues, base / "inputs", resume=True)
+    with pytest.raises(ValueError, match=r"started from the scene .*room, not .*other_room"):
+        train.run(_cfg(iters=20), other_scene, cues, base / "inputs", resume=True)
+    out = train.run(_cfg(iters=20, save_every=5.0), root, cues, base / "inputs", resume=True)
+    assert json.loads((out / "report.json").read_text())["resumed_from_step"] == 10

@@ -1,0 +1,127 @@
+"""`splat train` options a user combines (found by a sweep of 170 short runs): each one either acts as
+documented, or is refused or named; nothing is ignored in silence."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+
+import pytest
+
+from cues_synth import make_room_scene
+from geocues.cue_io import write_cues_ply
+from splat.train_config import TrainConfig
+from test_train import surface_cues
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    base = tmp_path_factory.mktemp("options")
+    root = make_room_scene(base / "room", n_views=12, w=64, h=48, priors="all")
+    write_cues_ply(base / "cues" / "cues.ply", surface_cues(root, n_plane=1200))
+    return base, root, base / "cues"
+
+
+SHORT = ["--iters", "6", "--sh-degree", "0", "--no-mesh", "--checkpoints", "1.0"]
+
+
+@pytest.mark.parametrize("change, said", [
+    ({"loss.lambda_dssim": 3.0}, "--loss.lambda-dssim weighs D-SSIM against L1 and must be in [0, 1]"),
+    ({"strategy.total_iters": 120}, "--strategy.total-iters is the run's length, set from --iters"),
+])
+def test_options_that_acted_wrongly_or_not_at_all_are_refused(change, said):
+    """lambda-dssim 3 gave L1 a negative weight (a 1,587-triangle mesh instead of 39,500); a
+    total-iters was overwritten by --iters, the config recording the given value."""
+    from splat.presets import apply_overrides
+
+    with pytest.raises(ValueError, match=said.replace("[", r"\[").replace("]", r"\]")):
+        apply_overrides(TrainConfig(), change).validate()
+
+
+def test_tsdf_on_cuda_without_cuda_is_refused_before_training(scene, tmp_path):
+    """The training ran to its end, then Open3D raised a traceback and the run was lost."""
+    import open3d as o3d
+
+    from splat.train import run
+
+    if o3d.core.cuda.is_available():
+        pytest.skip("this Open3D has CUDA")
+    base, root, cues = scene
+    cfg = dataclasses.replace(TrainConfig(iters=2), tsdf=dataclasses.replace(TrainConfig().tsdf, device="cuda"))
+    with pytest.raises(ValueError, match="--tsdf.device cuda: this Open3D build has no CUDA"):
+        run(cfg, root, cues, tmp_path / "run")
+    assert not (tmp_path / "run.partial").exists()
+
+
+def test_a_preset_iteration_factor_applies_to_the_given_iters(scene, tmp_path, capsys):
+    """`--preset no-cues-long --iters 60` trained 60 iterations (the 3x applied to the default 30k,
+    then replaced); `splat ablate` gives the row 3x the run's iterations, and so does train now."""
+    from cli.splat_cli import main
+
+    base, root, cues = scene
+    assert main(["train", str(root), "-c", str(cues), "-o", str(tmp_path / "long"), "--preset", "no-cues-long",
+                 *SHORT]) == 0
+    assert json.loads((tmp_path / "long" / "report.json").read_text())["config"]["iters"] == 18
+
+
+def test_a_preset_that_trains_as_another_row_is_named(scene, tmp_path, caplog):
+    """A row that cannot be itself here (`paper`, the loss without L_a, on a scene without depth
+    priors is `full`; plane-normals where every view has a normal prior) trained without a word,
+    where `splat ablate` reports it n/a."""
+    from cli.splat_cli import main
+
+    base, _, cues = scene
+    bare = make_room_scene(tmp_path / "bare", n_views=12, w=64, h=48, priors="none")
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        assert main(["train", str(bare), "-c", str(cues), "-o", str(tmp_path / "paper"), "--preset", "paper",
+                     *SHORT]) == 0
+    assert "--preset paper trains as another row on this scene (no depth priors)" in caplog.text
+
+
+def test_init_ply_names_the_options_it_overrides(scene, tmp_path, caplog):
+    """--cue-types / --init-from / --init.fill-holes with --init-ply changed nothing, without a word;
+    a degree too low for its SH named `sh_degree=None`, an argument of the Python function."""
+    from splat.train import run
+
+    base, root, cues = scene
+    first = run(TrainConfig(iters=4, sh_degree=1, mesh=False, checkpoints=(1.0,)), root, cues, tmp_path / "a")
+    ply = str(first / "point_cloud.ply")
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        run(TrainConfig(iters=2, sh_degree=1, mesh=False, checkpoints=(1.0,), init_ply=ply, cue_types=("SFM",)),
+            root, cues, tmp_path / "b")
+    assert "--cue-types not applied" in caplog.text
+    with pytest.raises(ValueError, match=r"above degree 0; train with --sh-degree \d") as e:
+        run(TrainConfig(iters=2, sh_degree=0, mesh=False, checkpoints=(1.0,), init_ply=ply), root, cues, tmp_path / "c")
+    assert "sh_degree=None" not in str(e.value)
+
+
+def test_a_backend_fallback_is_said_once(caplog):
+    """`--backend cuda` on the CPU warned at every render: 109 lines in 60 steps."""
+    import torch
+
+    from splat.composite import resolve_backend
+
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        for _ in range(5):
+            assert resolve_backend("cuda", torch.device("cpu")) == "torch"
+    assert caplog.text.count("backend 'cuda' needs CUDA tensors") <= 1
+
+
+def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement():
+    """A run whose guard rolled back steps (--lr.means 1e3: a 38-triangle mesh) or whose focal went
+    to x114 (--focal-lr 1) ended 'done' without a word."""
+    from types import SimpleNamespace
+
+    from splat.train_outputs import final_warnings
+
+    refiner = SimpleNamespace(summary=lambda: {"focal_factor": 114.0, "rotation_deg": {"max": 122.0}})
+    s = SimpleNamespace(guard=SimpleNamespace(events=[{}] * 4), refiner=refiner, train_views=[0] * 28)
+    said = final_warnings(TrainConfig(), s, {"triangles": 38}, "4.0 dB", "RUN")
+    assert any("rolled back 4 steps" in w for w in said)
+    assert any("camera refinement went far (focal x114" in w and "--focal-lr" in w for w in said)
+    tsdf = dataclasses.replace(TrainConfig().tsdf, weight_threshold=1000.0)
+    empty = final_warnings(dataclasses.replace(TrainConfig(), tsdf=tsdf),
+                           SimpleNamespace(guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28),
+                           {"triangles": 0}, "20 dB", "RUN")
+    assert len(empty) == 1 and "EMPTY" in empty[0] and "--tsdf.weight-threshold 1000.0" in empty[0]
