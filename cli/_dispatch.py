@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import re
 import signal
 import sys
+import time
 from typing import Callable
 
 import tyro
@@ -57,6 +59,7 @@ def progress_bars_off():
 
 
 LOG_PROGRESS_INTERVAL_S = 30.0  # with stderr in a file or a pipe: a bar's line at most this often
+_clock = time.monotonic
 
 
 class _ProgressLines:
@@ -66,10 +69,23 @@ class _ProgressLines:
     encoding = "utf-8"
     _ansi = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 
+    def __init__(self) -> None:
+        self._first: dict[str, float] = {}  # per bar (its description): when it was first drawn
+        self._last: dict[str, float] = {}  # and when a line of it was last written
+
     def write(self, s: str) -> None:
+        # tqdm's mininterval and delay do not hold back an explicit refresh (set_postfix, a training's
+        # log step drew a line every 1-3 s): the same limits are applied here, per bar
         for line in self._ansi.sub("", s).replace("\r", "\n").split("\n"):
-            if line.strip():
-                sys.stderr.write(line.rstrip() + "\n")
+            if not line.strip():
+                continue
+            key, now, every = line.split(":", 1)[0], _clock(), LOG_PROGRESS_INTERVAL_S
+            if now - self._first.setdefault(key, now) < every:
+                continue  # work shorter than the interval: no line
+            if "100%|" not in line and now - self._last.get(key, -math.inf) < every:
+                continue
+            self._last[key] = now
+            sys.stderr.write(line.rstrip() + "\n")
 
     def flush(self) -> None:
         sys.stderr.flush()

@@ -70,8 +70,12 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
         downscale: divide image sizes and intrinsics by this factor.
         test_every: hold out every n-th image (index % n == 0) as a test view; 0 = none.
     """
+    from geocues.advice import photos_only_summary
     from geocues.scene import Scene
 
+    if (photos := photos_only_summary(scene)) is not None:  # README's first step: photos, no model yet
+        print("\n".join(photos))
+        return 0
     s = Scene.load(scene, downscale=downscale, test_every=test_every, allow_distorted=True)
     sizes = sorted({(c.width, c.height) for c in s.cameras})
     K = s.cameras[0].K

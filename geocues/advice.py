@@ -70,6 +70,33 @@ def _sibling(root: Path, suffix: str) -> str:
     return shlex.quote(str(parent / f"{root.name}_{suffix}"))
 
 
+def photos_only_summary(root: Path) -> list[str] | None:
+    """What `geocues info` prints for a folder of photos without a camera model (the first step of
+    README's "Your own photos"), or None when ``root`` is not one."""
+    from geocues.colmap_io import find_model_dir
+    from geocues.photos import list_images
+
+    root = Path(root)
+    images = root / "images"
+    if not images.is_dir() or (root / "transforms.json").is_file():
+        return None
+    try:
+        find_model_dir(root)
+        return None  # a model: the scene summary
+    except (FileNotFoundError, ValueError):
+        pass
+    names = list_images(images)
+    if not names or (root / "cache" / "sfm").is_dir():  # an unfinished sfm: its error says what to do
+        return None
+    out = _sibling(root, "map")
+    return [f"scene      {root}",
+            f"photos     {len(names)} in {images} (no camera model yet: `geocues sfm` estimates poses, "
+            "intrinsics and points from the photos alone)",
+            f"next       # poses, intrinsics and points (README, \"Your own photos\")\n{'':<11}"
+            f"geocues sfm {shlex.quote(str(root))} -o {out}",
+            f"{'':<11}# then follow its advice\n{'':<11}geocues info {out}"]
+
+
 def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
     """(command, why) pairs, in the order to run them. ``not_metric``: the scene does not look metric
     (:func:`geocues.rescale.metric_warning` said so)."""

@@ -104,3 +104,21 @@ def test_a_focal_length_in_another_unit_is_named(rooms):
         odd.cameras[0] = replace(odd.cameras[0], K=K)
         msg = fov_warning(odd)
         assert msg is not None and msg.startswith("1 camera(s) have a horizontal field of view outside 10-150") and fov in msg, msg
+
+
+def test_info_on_a_folder_of_photos_says_the_first_step(tmp_path, capsys):
+    """README: `geocues info SCENE` at any step says what to run next; on the first step, photos
+    without a model, it was an error."""
+    import numpy as np
+    from PIL import Image
+
+    from cli.geocues_cli import main
+
+    photos = tmp_path / "my photos"
+    (photos / "images").mkdir(parents=True)
+    for k in range(3):
+        Image.fromarray(np.full((24, 32, 3), 40 * k, np.uint8)).save(photos / "images" / f"{k}.jpg")
+    assert main(["info", str(photos)]) == 0
+    out = capsys.readouterr().out
+    assert f"photos     3 in {photos / 'images'} (no camera model yet" in out
+    assert f"geocues sfm '{photos}' -o '{tmp_path / 'my photos_map'}'" in out

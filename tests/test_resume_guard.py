@@ -473,3 +473,21 @@ def test_resume_refuses_other_inputs_and_allows_bookkeeping_options(scene, monke
         train.run(_cfg(iters=20), other_scene, cues, base / "inputs", resume=True)
     out = train.run(_cfg(iters=20, save_every=5.0), root, cues, base / "inputs", resume=True)
     assert json.loads((out / "report.json").read_text())["resumed_from_step"] == 10
+
+
+def test_progress_lines_hold_their_interval_through_explicit_refreshes(monkeypatch, capsys):
+    """README: with stderr in a file a bar writes a line at most every 30 s, none for shorter work. A
+    training's bar refreshes itself at each log step (set_postfix), which tqdm's mininterval and delay
+    do not hold back: 15 lines in 21 s. The limits are kept per bar; its 100 % line is kept."""
+    import cli._dispatch as dispatch
+
+    clock = [0.0]
+    monkeypatch.setattr(dispatch, "_clock", lambda: clock[0])
+    lines = dispatch._ProgressLines()
+    for t, text in [(0, "splat train:   1%|"), (10, "splat train:   5%|"), (31, "splat train:  40%|"),
+                    (40, "splat train:  50%|"), (62, "splat train:  80%|"), (63, "splat train: 100%|"),
+                    (63, "loading views: 100%|")]:  # a bar that lasted no time: no line
+        clock[0] = t
+        lines.write("\r" + text + " 1/2 [00:01<00:01]")
+    got = [line.split("|")[0] for line in capsys.readouterr().err.splitlines()]
+    assert got == ["splat train:  40%", "splat train:  80%", "splat train: 100%"], got
