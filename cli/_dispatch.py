@@ -68,6 +68,7 @@ class _ProgressLines:
 
     encoding = "utf-8"
     _ansi = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+    _desc = re.compile(r"\s*\d+%\||\s\d")
 
     def __init__(self) -> None:
         self._first: dict[str, float] = {}  # per bar (its description): when it was first drawn
@@ -79,7 +80,8 @@ class _ProgressLines:
         for line in self._ansi.sub("", s).replace("\r", "\n").split("\n"):
             if not line.strip():
                 continue
-            key, now, every = line.split(":", 1)[0], _clock(), LOG_PROGRESS_INTERVAL_S
+            key = self._desc.split(line, 1)[0]  # the bar's description: what comes before its count
+            now, every = _clock(), LOG_PROGRESS_INTERVAL_S
             if now - self._first.setdefault(key, now) < every:
                 continue  # work shorter than the interval: no line
             if "100%|" not in line and now - self._last.get(key, -math.inf) < every:
