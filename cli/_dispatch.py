@@ -68,26 +68,40 @@ class _ProgressLines:
 
     encoding = "utf-8"
     _ansi = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
-    _desc = re.compile(r"\s*\d+%\||\s\d")
+    _count = re.compile(r"(?:^|\s)\d")  # where a bar's description ends: its percentage or count
 
     def __init__(self) -> None:
-        self._first: dict[str, float] = {}  # per bar (its description): when it was first drawn
-        self._last: dict[str, float] = {}  # and when a line of it was last written
+        self._first: dict[str, float] = {}  # per bar (its description): when it was first drawn,
+        self._last: dict[str, float] = {}  # when a line of it was last written,
+        self._held: dict[str, str] = {}  # its latest line not written,
+        self._said: dict[str, str] = {}  # and its last line written
 
     def write(self, s: str) -> None:
-        # tqdm's mininterval and delay do not hold back an explicit refresh (set_postfix, a training's
-        # log step drew a line every 1-3 s): the same limits are applied here, per bar
-        for line in self._ansi.sub("", s).replace("\r", "\n").split("\n"):
+        # tqdm's mininterval and delay do not hold back an explicit refresh (set_postfix: a training's
+        # log step drew a line every 1-3 s), so the same limits are kept here, per bar. A bar that
+        # closes writes its last state and then a lone newline: the last line held back is written then.
+        text = self._ansi.sub("", s).replace("\r", "\n")
+        if not text.strip() and "\n" in text and self._held:
+            for key, line in list(self._held.items()):
+                repeat = line.split(" [")[0] == self._said.get(key, "").split(" [")[0]  # same count as written
+                if _clock() - self._first.get(key, 0.0) >= LOG_PROGRESS_INTERVAL_S and not repeat:
+                    self._emit(key, line)
+            self._held.clear()
+            return
+        for line in text.split("\n"):
             if not line.strip():
                 continue
-            key = self._desc.split(line, 1)[0]  # the bar's description: what comes before its count
+            key = self._count.split(line, 1)[0].strip()
             now, every = _clock(), LOG_PROGRESS_INTERVAL_S
-            if now - self._first.setdefault(key, now) < every:
-                continue  # work shorter than the interval: no line
-            if "100%|" not in line and now - self._last.get(key, -math.inf) < every:
+            if now - self._first.setdefault(key, now) < every or now - self._last.get(key, -math.inf) < every:
+                self._held[key] = line  # work shorter than the interval, or a line too soon after the last
                 continue
-            self._last[key] = now
-            sys.stderr.write(line.rstrip() + "\n")
+            self._emit(key, line)
+
+    def _emit(self, key: str, line: str) -> None:
+        self._held.pop(key, None)
+        self._last[key], self._said[key] = _clock(), line
+        sys.stderr.write(line.rstrip() + "\n")
 
     def flush(self) -> None:
         sys.stderr.flush()

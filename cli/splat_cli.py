@@ -45,9 +45,9 @@ def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
 
-def _train_command(preset_name: str = "full", config_file: Path | None = None):
+def _train_command(preset_name: str = "full", config_file: Path | None = None, iters_given: bool = False):
     """`splat train` with the defaults of preset ``preset_name`` or of a run's config.yaml
-    (options on the command line win)."""
+    (options on the command line win; ``iters_given``: --iters is among them)."""
     base = load_config_file(config_file) if config_file is not None else preset_config(preset_name)
 
     def train(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")],
@@ -86,7 +86,7 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None):
             log.warning("--preset %s trains as another row on this scene (%s): `splat ablate` reports it n/a",
                         preset, why)
         factor = get_preset(preset).iters_factor
-        if factor != 1.0 and cfg.iters != base.iters:  # --iters given: the preset's factor applies to it, as in ablate
+        if factor != 1.0 and iters_given:  # the preset's factor applies to the given --iters, as in ablate
             cfg = dataclasses.replace(cfg, iters=max(1, round(cfg.iters * factor)))
             log.info("--preset %s: %g x --iters = %d iterations", preset, factor, cfg.iters)
         run(cfg, scene, cues, out, overwrite=overwrite, resume=resume)
@@ -103,7 +103,7 @@ def train_command(argv: list[str]):
     config = option_from_argv(argv, "--load-config")
     if config is not None and option_from_argv(argv, "--preset") is not None:
         raise ValueError("give --preset or --load-config, not both")
-    return _train_command(name, Path(config) if config else None)
+    return _train_command(name, Path(config) if config else None, option_from_argv(argv, "--iters") is not None)
 
 
 train = _train_command()

@@ -195,8 +195,9 @@ def evaluate_images(imgs: Sequence[torch.Tensor | str | Path], refs: Sequence[to
         a = load_image(img) if isinstance(img, (str, Path)) else img
         b = load_image(ref) if isinstance(ref, (str, Path)) else ref
         if a.shape != b.shape:
-            raise ValueError(f"{name} is {_size(a)} and its reference {ref if isinstance(ref, (str, Path)) else ''} "
-                             f"{_size(b)}: an image and its reference must have one size")
+            named = f"{ref} " if isinstance(ref, (str, Path)) else ""
+            raise ValueError(f"{name} is {_size(a)} and its reference {named}{_size(b)}: an image and its "
+                             "reference must have one size")
         row = {"name": name, "psnr": min(psnr(a, b), PSNR_MAX), "ssim": ssim(a, b, padding=padding)}
         row["lpips"] = lpips(a, b, model) if model is not None else None
         rows.append(row)
@@ -260,11 +261,13 @@ def _warn_other_scene(renders_dir: Path, scene_dir: str | Path) -> None:
     (a room's renders scored against ICL: 8.6 dB, without a word)."""
     import json
 
-    report = renders_dir.parent / "report.json"
+    from splat.run_paths import recorded_path
+
     try:
-        trained = json.loads(report.read_text()).get("scene")
-    except (OSError, ValueError, AttributeError):
+        report = json.loads((renders_dir.parent / "report.json").read_text())
+        trained = recorded_path(renders_dir.parent, report, "scene")  # the run may have moved with its scene
+    except (OSError, ValueError, AttributeError, TypeError):
         return
-    if isinstance(trained, str) and Path(trained).resolve() != Path(scene_dir).resolve():
+    if trained is not None and trained.resolve() != Path(scene_dir).resolve():
         log.warning("the renders in %s come from a run trained on %s, not %s: is SCENE the run's scene?",
                     renders_dir, trained, scene_dir)

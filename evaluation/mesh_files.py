@@ -41,20 +41,27 @@ def fan_triangulate(polygons: list[np.ndarray] | np.ndarray) -> tuple[np.ndarray
     return (np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)), dropped
 
 
+INDEX_LISTS = ("vertex_indices", "vertex_index")
+
+
 def _ply_face_list(path: Path) -> str | None:
-    """The name of the face element's list property in a PLY header (vertex_indices, vertex_index)."""
-    in_face = False
+    """The name of the face element's list of vertex indices in a PLY header: vertex_indices or
+    vertex_index, else its only integer list (a face may list texcoords first: taking the first list
+    read them as indices)."""
+    lists, in_face = [], False
     with open(path, "rb") as f:
         for _ in range(10_000):
             line = f.readline()
             if not line or line.strip() == b"end_header":
-                return None
+                break
             parts = line.decode(errors="replace").split()
             if parts[:1] == ["element"]:
                 in_face = len(parts) > 1 and parts[1] == "face"
             elif in_face and parts[:2] == ["property", "list"] and len(parts) == 5:
-                return parts[4]
-    return None
+                lists.append((parts[4], parts[3]))  # (name, item type)
+    named = [n for n, _ in lists if n in INDEX_LISTS]
+    ints = [n for n, t in lists if "int" in t or t in ("char", "uchar", "short", "ushort")]
+    return named[0] if named else ints[0] if len(ints) == 1 else None
 
 
 def _read_plydata(path: Path, name: str | None):
@@ -72,6 +79,7 @@ def _read_plydata(path: Path, name: str | None):
 
 
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, triangles) of a PLY file (module docstring)."""
 
     try:
         name = _ply_face_list(path)
@@ -88,6 +96,9 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     faces = ply["face"][name]
     if faces.dtype != object and faces.ndim == 2:
         return vertices, faces.astype(np.int64)
+    lengths = np.fromiter((len(f) for f in faces), np.int64, len(faces))
+    if (lengths == 3).all():  # triangles read on the slow path (another list property beside them)
+        return vertices, np.stack(faces).astype(np.int64)
     tris, dropped = fan_triangulate(faces)
     if dropped:
         log.warning("%s: %d of %d faces have fewer than 3 corners and are left out", path, dropped, len(faces))

@@ -274,8 +274,9 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
     prec, rec, fs = precision_recall_fscore(d_pg, d_gp, cfg.threshold)
     seen_warning = None
     if cams is not None and p_frac < SEEN_MIN and frame_warning is None:
-        seen_warning = (f"only {100 * p_frac:.0f} % of {pred.name} is seen by the {len(cams)} cameras (and inside the "
-                        f"GT's box): the figures score that part alone; is SCENE the scene the mesh was made from?")
+        seen_warning = (f"only {100 * p_frac:.0f} % of {pred.name} is seen by the {len(cams)} cameras (culling "
+                        f"{_culling_name(cams, cfg)}, inside the GT's box): the figures score that part alone; is "
+                        "SCENE the scene the mesh was made from?")
         log.warning("%s", seen_warning)
     protocol = {
         "name": "MonoSDF/GO-Surf",

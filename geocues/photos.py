@@ -51,6 +51,24 @@ def _listed(paths: list[str], more: int = 3) -> str:
     return ", ".join(paths[:more]) + (f" and {len(paths) - more} more" if len(paths) > more else "")
 
 
+def _check_one(path: Path, name: str, bad: list[str], sizes: dict) -> None:
+    """Decode one photo (a JPEG at 1/8 scale): its size into ``sizes``, or why not into ``bad``."""
+    from PIL import Image
+
+    try:
+        if path.stat().st_size == 0:
+            raise OSError("empty file")
+        with Image.open(path) as im:
+            size = im.size
+            if im.format == "JPEG":
+                im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))
+            im.load()
+    except (OSError, ValueError, SyntaxError) as e:  # PIL raises each of them for a damaged file
+        bad.append(f"{path} ({e})")
+        return
+    sizes.setdefault(size, []).append(name)
+
+
 def check_photos(image_dir: Path, names: list[str]) -> dict[tuple[int, int], list[str]]:
     """Check the photos ``names`` of ``image_dir`` before feature extraction and group them by pixel
     size ((width, height) -> names, the stored pixels: EXIF orientation is not applied, as COLMAP).
@@ -63,20 +81,12 @@ def check_photos(image_dir: Path, names: list[str]) -> dict[tuple[int, int], lis
     from PIL import Image
 
     bad, sizes = [], {}
-    for name in names:
-        path = Path(image_dir) / name
-        try:
-            if path.stat().st_size == 0:
-                raise OSError("empty file")
-            with Image.open(path) as im:
-                size = im.size
-                if im.format == "JPEG":
-                    im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))
-                im.load()
-        except (OSError, ValueError, SyntaxError) as e:  # PIL raises each of them for a damaged file
-            bad.append(f"{path} ({e})")
-            continue
-        sizes.setdefault(size, []).append(name)
+    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # a 200 MP phone photo is a photo, not a bomb
+    try:
+        for name in names:
+            _check_one(Path(image_dir) / name, name, bad, sizes)
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
     if bad:
         raise ValueError(f"cannot read {len(bad)} of {len(names)} photos: {_listed(bad)}; "
                          "replace or remove them")

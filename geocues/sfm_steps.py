@@ -65,17 +65,12 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
     db = pycolmap.Database.open(str(db_path))
     try:
         todo = [n for n in names if not _has_keypoints(db, n)]
-        groups = [(None, todo)]
-        known: dict = {}  # size -> the camera of a photo of that size already in the database
-        if camera_model is not None and sizes:
-            left = set(todo)
-            groups = [(size, [n for n in group if n in left]) for size, group in sizes.items()]
-            for size, group in sizes.items():
-                done = [n for n in group if n not in left and db.exists_image(n)]
-                if done:
-                    known[size] = int(db.read_image_with_name(done[0]).camera_id)
     finally:
         db.close()
+    groups = [(None, todo)]
+    if camera_model is not None and sizes:  # (a database is kept only when its extraction finished)
+        left = set(todo)
+        groups = [(size, [n for n in group if n in left]) for size, group in sizes.items()]
     if not todo:
         log.info("sfm: features of %d images reused from %s", len(names), db_path)
         return
@@ -91,7 +86,7 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
     pycolmap.logging.minloglevel = max(level, 2)  # skip the per-call "maximum number of threads" warning
     with tqdm(total=len(todo), desc="sfm: SIFT", unit="img") as bar:
         for size, group in groups:
-            reader.existing_camera_id = known.get(size, -1)
+            reader.existing_camera_id = -1  # the size's first chunk makes its camera
             for k in range(0, len(group), EXTRACT_CHUNK):
                 chunk = group[k:k + EXTRACT_CHUNK]
                 pycolmap.extract_features(str(db_path), str(image_dir), image_names=chunk,

@@ -107,12 +107,13 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path, views=None
         if cfg.init.fill_holes and views is not None:
             params, cue_type = _with_hole_seeds(cfg, cloud, params, cue_type, views)
         return params, cue_type, cloud.xyz
-    ignored = [flag for flag, on in (("--cue-types", tuple(cfg.cue_types) != ("SFM", "LINE", "PLANE")),
-                                     ("--init-from", cfg.init_from != "cues"),
-                                     ("--init.fill-holes", cfg.init.fill_holes)) if on]
-    if ignored:  # they choose cues to start from: the Gaussians of --init-ply are taken whole
-        log.warning("--init-ply %s: %s not applied (they choose the cues a run starts from; these Gaussians "
-                    "are taken whole)", cfg.init_ply, ", ".join(ignored))
+    ignored = [setting for setting, on in ((f"--cue-types {' '.join(cfg.cue_types)}",
+                                            tuple(cfg.cue_types) != ("SFM", "LINE", "PLANE")),
+                                           (f"--init-from {cfg.init_from}", cfg.init_from != "cues"),
+                                           ("--init.fill-holes", cfg.init.fill_holes)) if on]
+    if ignored:  # from the command line or a preset; they choose the cues a run starts from
+        log.warning("--init-ply %s: the settings %s are not applied (they choose the cues a run starts from; "
+                    "these Gaussians are taken whole)", cfg.init_ply, ", ".join(ignored))
     try:
         params, cue_type = load_ply(cfg.init_ply, sh_degree=cfg.sh_degree)
     except ValueError as e:  # "load it with sh_degree=None or 3": the flag here

@@ -364,8 +364,9 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
     if ckpt is None:
         from splat.presets import write_config_file
 
-        write_config_file(work / "config.yaml", cfg, {"scene": str(Path(scene_dir).resolve()),
-                                                      "cues": str(cues_ply.resolve())})
+        write_config_file(work / "config.yaml", cfg, {f"{name}{k}": v for name, path in (("scene", scene_dir),
+                                                                                         ("cues", cues_ply))
+                                                      for k, v in run_paths.record(path, work).items()})
     loop = _Loop(cfg, s, work, rng, gen, t_start)
     if ckpt is not None:
         loop.resume(ckpt)

@@ -142,7 +142,8 @@ class TrainConfig:
             raise ValueError(f"--background must be three finite numbers (RGB), got {self.background!r}")
         if self.strategy.total_iters != PAPER_ITERS:  # the run's length sets it (it was ignored in silence)
             raise ValueError(f"--strategy.total-iters is the run's length, set from --iters; leave it out "
-                             f"(got {self.strategy.total_iters})")
+                             f"(got {self.strategy.total_iters}; a config file that sets it: pass "
+                             f"--strategy.total-iters {PAPER_ITERS})")
         if not 0 <= self.loss.lambda_dssim <= 1:  # (1 - l) L1 + l D-SSIM: above 1 the L1 term pushes away
             raise ValueError(f"--loss.lambda-dssim weighs D-SSIM against L1 and must be in [0, 1], "
                              f"got {self.loss.lambda_dssim}")

@@ -113,16 +113,14 @@ def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, f
 def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: str, out_dir: Path) -> list[str]:
     """The sentences a finished run ends with when its result may not be what it looks like: an empty
     mesh and its likely cause, steps the divergence guard rolled back, a camera refinement gone far."""
-    from splat.tsdf_config import TSDFConfig
-
     out = []
     events = len(s.guard.events)
     if mesh is not None and mesh["triangles"] == 0:
         changed = [f"--tsdf.{k.replace('_', '-')} {getattr(cfg.tsdf, k)}" for k in TSDF_SAYS
-                   if getattr(cfg.tsdf, k) != getattr(TSDFConfig(), k)]
+                   if getattr(cfg.tsdf, k) != getattr(type(cfg.tsdf)(), k)]  # from the command line or a preset
         cause = (f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)"
                  if len(s.train_views) < FEW_VIEWS else
-                 f"check the TSDF options given ({', '.join(changed)})" if changed else
+                 f"check the TSDF settings in use ({', '.join(changed)})" if changed else
                  "check the cameras (geocues info) and the learning rates (--lr.*)")
         out.append(f"the mesh of {out_dir} is EMPTY (no rendered depth was fused: test PSNR {psnr}"
                    f"{f', {events} steps rolled back' if events else ''}); {cause}")

@@ -84,7 +84,8 @@ RESUME_FREE = {"save_every", "log_every", "keep_ckpt"}
 def _check_resumed_inputs(work: Path, inputs: dict[str, Path | None]) -> None:
     """--resume with another SCENE or CUES than the run started from (its config.yaml names them)
     is refused: other cues went on silently from the checkpoint (the report naming the new ones, the
-    config the old), another scene failed with an IndexError."""
+    config the old), another scene failed with an IndexError. A run moved together with its inputs
+    resumes: the recorded path is gone, or the one recorded relative to the run is the one given."""
     import yaml
 
     try:
@@ -94,8 +95,12 @@ def _check_resumed_inputs(work: Path, inputs: dict[str, Path | None]) -> None:
     if not isinstance(started, dict):
         return
     for name, given in inputs.items():
-        was = started.get(name)
-        if given is not None and isinstance(was, str) and Path(was).resolve() != Path(given).resolve():
+        was, rel = started.get(name), started.get(f"{name}_from_run")
+        if given is None or not isinstance(was, str):
+            continue
+        given = Path(given).resolve()
+        same = Path(was).resolve() == given or (isinstance(rel, str) and (work / rel).resolve() == given)
+        if not same and Path(was).exists():
             raise ValueError(f"--resume: the run in {work} started from the {name} {was}, not {given}; "
                              f"resume with the same {name}")
 

@@ -101,3 +101,23 @@ def test_truncated_off_is_an_error(tmp_path):
     cut.write_text(text[: len(text) * 9 // 10])  # most faces, the last ones cut
     with pytest.raises(ValueError, match=rf"cut.off is truncated or damaged: read .* of {len(src.triangles)} faces"):
         load_mesh(cut)
+
+
+@pytest.mark.parametrize("layout", ["texcoord_first", "vertex_index", "big_endian_uint"])
+def test_ply_face_layouts(tmp_path, layout):
+    """The face's index list is found by its name, not its place: a face listing texcoords first was read
+    as 8 triangles [0, 0, 0] (the texcoords as indices) without an error."""
+    v = np.array([tuple(p) for p in CUBE_V], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    name = "vertex_index" if layout == "vertex_index" else "vertex_indices"
+    fields = ([("texcoord", "O")] if layout == "texcoord_first" else []) + [(name, "O")]
+    f = np.empty(2, dtype=fields)
+    f[name] = [np.array([0, 1, 2], "u4" if layout == "big_endian_uint" else "i4"), np.array([0, 2, 3], "i4")]
+    if layout == "texcoord_first":
+        f["texcoord"] = [np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], "f4")] * 2
+    el = plyfile.PlyElement.describe(f, "face", len_types={name: "u1", "texcoord": "u1"},
+                                     val_types={name: "u4" if layout == "big_endian_uint" else "i4", "texcoord": "f4"})
+    path = tmp_path / "two.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex"), el],
+                    byte_order=">" if layout == "big_endian_uint" else "<").write(str(path))
+    vertices, faces = read_mesh_file(path)
+    assert faces.tolist() == [[0, 1, 2], [0, 2, 3]] and len(vertices) == 8

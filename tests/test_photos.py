@@ -73,3 +73,13 @@ def test_hints_quote_a_path_with_a_space(tmp_path):
     with pytest.raises(FileNotFoundError) as e:
         find_model_dir(photos)
     assert f"`geocues sfm '{photos}' -o MAP`" in str(e.value)
+
+
+def test_a_photo_above_pils_pixel_limit_is_a_photo(tmp_path, monkeypatch):
+    """PIL refuses images over ~179 MP as decompression bombs (a 200 MP phone photo): a traceback."""
+    from PIL import Image
+
+    _photo(tmp_path / "big.jpg", size=(64, 48))
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # 64 x 48 is "too large" now
+    assert check_photos(tmp_path, ["big.jpg"]) == {(64, 48): ["big.jpg"]}
+    assert Image.MAX_IMAGE_PIXELS == 1000  # put back

@@ -444,14 +444,19 @@ def test_an_option_added_after_the_checkpoint_and_left_at_its_default_is_no_diff
     assert checkpoint.config_diff(asdict(cfg), gone, defaults) == ["removed_option"]
 
 
-def test_resume_refuses_other_inputs_and_allows_bookkeeping_options(scene, monkeypatch):
+def test_resume_refuses_other_inputs_and_allows_bookkeeping_options(scene, monkeypatch, tmp_path):
     """--resume with other cues went on from the checkpoint in silence (report.json naming the new
     cues, config.yaml the old), with another scene it ended in an IndexError; changing only when
-    checkpoints are written (--save-every) was refused although it cannot change the training."""
+    checkpoints are written (--save-every) was refused although it cannot change the training. A run
+    moved together with its scene and cues resumes."""
     import splat.train as train
     from splat.checkpoint import TrainingInterrupted
 
-    base, root, cues = scene
+    base, root0, cues0 = scene
+    proj = tmp_path / "project"
+    root, cues = proj / "room", proj / "cues"
+    shutil.copytree(root0, root, symlinks=True)
+    shutil.copytree(cues0, cues)
     real = train.train_step
 
     def step_then_kill(*args, **kw):
@@ -462,32 +467,35 @@ def test_resume_refuses_other_inputs_and_allows_bookkeeping_options(scene, monke
 
     monkeypatch.setattr(train, "train_step", step_then_kill)
     with pytest.raises(TrainingInterrupted):
-        train.run(_cfg(iters=20), root, cues, base / "inputs")
+        train.run(_cfg(iters=20), root, cues, proj / "run")
     monkeypatch.setattr(train, "train_step", real)
-    other_cues, other_scene = base / "other_cues", base / "other_room"
-    shutil.copytree(cues, other_cues)
-    shutil.copytree(root, other_scene, symlinks=True)
-    with pytest.raises(ValueError, match=r"--resume: the run in .* started from the cues .*cues.ply, not .*other_cues"):
-        train.run(_cfg(iters=20), root, other_cues, base / "inputs", resume=True)
-    with pytest.raises(ValueError, match=r"started from the scene .*room, not .*other_room"):
-        train.run(_cfg(iters=20), other_scene, cues, base / "inputs", resume=True)
-    out = train.run(_cfg(iters=20, save_every=5.0), root, cues, base / "inputs", resume=True)
+    with pytest.raises(ValueError, match=r"--resume: the run in .* started from the cues .*cues.ply, not .*resume0/cues"):
+        train.run(_cfg(iters=20), root, cues0, proj / "run", resume=True)
+    with pytest.raises(ValueError, match=r"started from the scene .*project/room, not .*resume0/room"):
+        train.run(_cfg(iters=20), root0, cues, proj / "run", resume=True)
+    moved = tmp_path / "moved"
+    proj.rename(moved)  # the run with its inputs
+    out = train.run(_cfg(iters=20, save_every=5.0), moved / "room", moved / "cues", moved / "run", resume=True)
     assert json.loads((out / "report.json").read_text())["resumed_from_step"] == 10
 
 
 def test_progress_lines_hold_their_interval_through_explicit_refreshes(monkeypatch, capsys):
     """README: with stderr in a file a bar writes a line at most every 30 s, none for shorter work. A
     training's bar refreshes itself at each log step (set_postfix), which tqdm's mininterval and delay
-    do not hold back: 15 lines in 21 s. The limits are kept per bar; its 100 % line is kept."""
+    do not hold back: 15 lines in 21 s. The limits are kept per bar, and a bar's last state is written
+    when it closes (tqdm then writes a lone newline), whatever its percentage."""
     import cli._dispatch as dispatch
 
     clock = [0.0]
     monkeypatch.setattr(dispatch, "_clock", lambda: clock[0])
     lines = dispatch._ProgressLines()
     for t, text in [(0, "splat train:   1%|"), (10, "splat train:   5%|"), (31, "splat train:  40%|"),
-                    (40, "splat train:  50%|"), (62, "splat train:  80%|"), (63, "splat train: 100%|"),
-                    (63, "loading views: 100%|")]:  # a bar that lasted no time: no line
+                    (40, "splat train:  50%|"), (62, "splat train:  80%|"), (70, "splat train:  90%|"),
+                    (71, "\n"),  # closed at 90 % (Ctrl-C): its last state is kept
+                    (72, "loading views: 100%|"), (72, "\n"),  # a bar that lasted no time: no line
+                    (80, "95it [00:03, 25.1it/s]"), (120, "190it [00:43, 4.1it/s]"),  # no description
+                    (121, "190it [00:44, 4.0it/s]"), (121, "\n")]:  # closed where it was last written: once
         clock[0] = t
-        lines.write("\r" + text + " 1/2 [00:01<00:01]")
-    got = [line.split("|")[0] for line in capsys.readouterr().err.splitlines()]
-    assert got == ["splat train:  40%", "splat train:  80%", "splat train: 100%"], got
+        lines.write(text if text == "\n" else "\r" + text + " 1/2 [00:01<00:01]")
+    got = [line.split("|")[0].split(" [")[0] for line in capsys.readouterr().err.splitlines()]
+    assert got == ["splat train:  40%", "splat train:  80%", "splat train:  90%", "190it"], got

@@ -90,22 +90,24 @@ def test_init_ply_names_the_options_it_overrides(scene, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="splat"):
         run(TrainConfig(iters=2, sh_degree=1, mesh=False, checkpoints=(1.0,), init_ply=ply, cue_types=("SFM",)),
             root, cues, tmp_path / "b")
-    assert "--cue-types not applied" in caplog.text
+    assert "the settings --cue-types SFM are not applied" in caplog.text
     with pytest.raises(ValueError, match=r"above degree 0; train with --sh-degree \d") as e:
         run(TrainConfig(iters=2, sh_degree=0, mesh=False, checkpoints=(1.0,), init_ply=ply), root, cues, tmp_path / "c")
     assert "sh_degree=None" not in str(e.value)
 
 
-def test_a_backend_fallback_is_said_once(caplog):
+def test_a_backend_fallback_is_said_once(caplog, monkeypatch):
     """`--backend cuda` on the CPU warned at every render: 109 lines in 60 steps."""
     import torch
 
+    import splat.composite as composite
     from splat.composite import resolve_backend
 
+    monkeypatch.setattr(composite, "_warned", set())
     with caplog.at_level(logging.WARNING, logger="splat"):
         for _ in range(5):
             assert resolve_backend("cuda", torch.device("cpu")) == "torch"
-    assert caplog.text.count("backend 'cuda' needs CUDA tensors") <= 1
+    assert caplog.text.count("backend 'cuda' needs CUDA tensors") == 1
 
 
 def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement():
@@ -124,4 +126,18 @@ def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement():
     empty = final_warnings(dataclasses.replace(TrainConfig(), tsdf=tsdf),
                            SimpleNamespace(guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28),
                            {"triangles": 0}, "20 dB", "RUN")
-    assert len(empty) == 1 and "EMPTY" in empty[0] and "--tsdf.weight-threshold 1000.0" in empty[0]
+    assert len(empty) == 1 and "EMPTY" in empty[0] and "settings in use (--tsdf.weight-threshold 1000.0)" in empty[0]
+
+
+def test_the_iteration_factor_follows_the_flag_not_its_value(scene, tmp_path, monkeypatch):
+    """--iters equal to the preset's own default (90000 for no-cues-long) was taken for no --iters."""
+    import splat.train as train
+    from cli.splat_cli import main
+
+    base, root, cues = scene
+    seen = []
+    monkeypatch.setattr(train, "run", lambda cfg, *a, **k: seen.append(cfg.iters))
+    for extra in (["--iters", "90000"], []):
+        assert main(["train", str(root), "-c", str(cues), "-o", str(tmp_path / "x"), "--preset", "no-cues-long",
+                     *extra]) == 0
+    assert seen == [270_000, 90_000]
