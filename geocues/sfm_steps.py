@@ -67,10 +67,10 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
         todo = [n for n in names if not _has_keypoints(db, n)]
     finally:
         db.close()
-    groups = [(None, todo)]
-    if camera_model is not None and sizes:  # (a database is kept only when its extraction finished)
+    groups = [todo]
+    if camera_model is not None and sizes:  # one camera per size (a database is kept only when whole)
         left = set(todo)
-        groups = [(size, [n for n in group if n in left]) for size, group in sizes.items()]
+        groups = [[n for n in group if n in left] for group in sizes.values()]
     if not todo:
         log.info("sfm: features of %d images reused from %s", len(names), db_path)
         return
@@ -85,8 +85,8 @@ def extract(db_path: Path, image_dir: Path, names: list[str], cfg: "SfmConfig",
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = max(level, 2)  # skip the per-call "maximum number of threads" warning
     with tqdm(total=len(todo), desc="sfm: SIFT", unit="img") as bar:
-        for size, group in groups:
-            reader.existing_camera_id = -1  # the size's first chunk makes its camera
+        for group in groups:
+            reader.existing_camera_id = -1  # the group's first chunk makes its camera
             for k in range(0, len(group), EXTRACT_CHUNK):
                 chunk = group[k:k + EXTRACT_CHUNK]
                 pycolmap.extract_features(str(db_path), str(image_dir), image_names=chunk,
