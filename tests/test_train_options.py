@@ -10,17 +10,8 @@ import logging
 import pytest
 
 from cues_synth import make_room_scene
-from geocues.cue_io import write_cues_ply
 from splat.train_config import TrainConfig
-from test_train import surface_cues
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    base = tmp_path_factory.mktemp("options")
-    root = make_room_scene(base / "room", n_views=12, w=64, h=48, priors="all")
-    write_cues_ply(base / "cues" / "cues.ply", surface_cues(root, n_plane=1200))
-    return base, root, base / "cues"
+from test_resume_guard import scene  # noqa: F401  (the fixture: a 12-view room with priors, its cues)
 
 
 SHORT = ["--iters", "6", "--sh-degree", "0", "--no-mesh", "--checkpoints", "1.0"]
