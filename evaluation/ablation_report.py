@@ -91,7 +91,8 @@ def _delta(row: dict, full: dict | None, key: str, scale: float = 1.0, digits: i
     a, b = row["mean"].get(key), full["mean"].get(key)
     if a is None or b is None:
         return ""
-    return f"{(a - b) * scale:+.{digits}f}"
+    other = row.get("n_seeds") != full.get("n_seeds")  # means over other seeds: marked, not hidden
+    return f"{(a - b) * scale:+.{digits}f}" + ("\\*" if other else "")
 
 
 def ablation_markdown(summary: dict) -> str:
@@ -109,7 +110,9 @@ def ablation_markdown(summary: dict) -> str:
              f"train options `{' '.join(summary['train_args']) or '(defaults)'}`. Mesh metrics: the "
              "`evaluate` protocol (MonoSDF sampling, culled to the scene's cameras, F-score at 5 cm). "
              "Paper: IndoorGS Tab. 3 (ScanNet++, 30k iterations)."
-             + (" Δ: against `full` (Chamfer in cm)." if full is not None else ""), "",
+             + (" Δ: against `full` (Chamfer in cm)." if full is not None else "")
+             + (" \\* a mean over another number of seeds than `full`'s: compare with care." if full is not None
+                and any(r.get("n_seeds") != full.get("n_seeds") for r in rows if r["status"] == "done") else ""), "",
              "| row | paper C-L1 (cm) / F / NC | C-L1 (cm) | F@5cm | NC | ΔC-L1 | ΔF | ΔNC | test PSNR | train s |",
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     floor = summary.get("floor")

@@ -88,6 +88,9 @@ def train_config(row: str, train_args: list[str], iters: int, seed_offset: int, 
 
     if any(a == "--iters" or a.startswith("--iters=") for a in train_args):
         raise ValueError("give the iterations as `splat ablate --iters N` (rows scale it), not as a train option")
+    if any(a == "--seed" or a.startswith("--seed=") for a in train_args):  # its runs were labelled and kept as seeds 0..K-1
+        raise ValueError("give the seeds as `splat ablate --seeds K` (seeds 0..K-1, in rows/<row>_s<seed>), not as "
+                         "a train option --seed: its runs would be stored as seeds 0..K-1, over those runs")
     base = preset_config(row, TrainConfig())
     cfg = tyro.cli(TrainConfig, args=list(train_args), default=base, prog="splat ablate (train options)")
     preset = get_preset(row)
@@ -131,9 +134,7 @@ def _run_row(spec: dict) -> dict:
 
     out = Path(spec["out"])
     if (out / "score.json").is_file():  # a finished row of another configuration: kept aside, not lost
-        aside = out.with_name(out.name + ".outdated")
-        shutil.rmtree(aside, ignore_errors=True)
-        out.rename(aside)
+        aside = _set_aside(out)
         log.warning("%s holds a finished row of another configuration: moved to %s, running it again",
                     out, aside)
     cfg = config_from_dict(TrainConfig, spec["train_config"])
@@ -196,6 +197,30 @@ def _resumable(train_dir: Path, cfg) -> bool:
     if not same:
         log.warning("%s was written with other options: the row starts again", path)
     return same
+
+
+def _set_aside(out: Path) -> Path:
+    """Move the row folder ``out`` to the first free ``<row>_s<seed>.outdated[-N]`` beside it (a
+    second change of options deleted the first one kept aside: a finished run lost)."""
+    aside, n = out.with_name(out.name + ".outdated"), 1
+    while aside.exists():
+        n += 1
+        aside = out.with_name(f"{out.name}.outdated-{n}")
+    out.rename(aside)
+    return aside
+
+
+def _restore_set_aside(out: Path, keys: list[str]) -> dict | None:
+    """A run set aside earlier whose options are these again (back to the old options) is put back in
+    place of ``out`` (which is set aside in turn), instead of training it again; its score or None."""
+    for aside in sorted(out.parent.glob(out.name + ".outdated*")):
+        if aside.is_dir() and _done(aside, keys) is not None:
+            if out.exists():
+                log.warning("%s holds a row run of other options: moved to %s", out, _set_aside(out))
+            aside.rename(out)
+            log.info("%s: the run of these options set aside earlier (%s) is back", out, aside.name)
+            return _done(out, keys)
+    return None
 
 
 def _done(out: Path, keys: list[str]) -> dict | None:
@@ -317,7 +342,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     results: dict[tuple[str, int], dict] = {}
     todo = []
     for spec in specs:
-        done = _done(Path(spec["out"]), spec["keys"])
+        done = _done(Path(spec["out"]), spec["keys"]) or _restore_set_aside(Path(spec["out"]), spec["keys"])
         if done is not None:
             log.info("row %s seed %d: finished earlier, skipped", spec["row"], spec["seed"])
             results[(spec["row"], spec["seed"])] = done

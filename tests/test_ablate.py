@@ -152,6 +152,19 @@ def test_a_killed_ablation_resumes_and_skips_finished_rows(tiny, ablation, monke
         tiny[1], tiny[2], out, train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.2", "--save-every", "7",
                                                         "--guard.max-rollbacks", "2"])
     assert ran == []
+    # a second change keeps both earlier runs (the first one set aside was deleted), and going back to
+    # earlier options puts their run back instead of training it again
+    first_key = outdated["key"]
+    run(AblateConfig(rows=("full",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000)),
+        tiny[1], tiny[2], out, train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.3"])
+    assert ran == ["full"]
+    aside = {json.loads((p / "score.json").read_text())["key"] for p in (out / "rows").glob("full_s0.outdated*")}
+    assert first_key in aside and len(aside) == 2
+    ran.clear()
+    _run(tiny, "resume", ["full"])  # the first options again
+    assert ran == [] and json.loads((out / "rows" / "full_s0" / "score.json").read_text())["key"] == first_key
+    with pytest.raises(ValueError, match="give the seeds as `splat ablate --seeds K`"):
+        run(AblateConfig(rows=("full",), iters=30), tiny[1], tiny[2], out, train_args=TRAIN_ARGS + ["--seed", "2"])
 
 
 def test_a_run_of_other_rows_keeps_the_finished_ones_in_the_report(tiny, ablation, monkeypatch):
@@ -274,6 +287,16 @@ def test_seeds_give_mean_and_spread(seeded):
     f = [r["final"]["f_score"] for r in row["runs"]]
     assert row["mean"]["f_score"] == pytest.approx(np.mean(f))
     assert row["std"]["f_score"] == pytest.approx(np.std(f))
+
+
+def test_a_delta_over_other_seeds_than_fulls_is_marked():
+    """`full` over 2 seeds, a row over 1: its Δ (+2.40 cm) compared other seed sets without a mark
+    (against the same seed it was -0.01)."""
+    from evaluation.ablation_report import _delta
+
+    full = {"row": "full", "status": "done", "mean": {"f_score": 0.6}, "n_seeds": 2}
+    assert _delta({"row": "x", "mean": {"f_score": 0.5}, "n_seeds": 1}, full, "f_score") == "-0.100\\*"
+    assert _delta({"row": "x", "mean": {"f_score": 0.5}, "n_seeds": 2}, full, "f_score") == "-0.100"
 
 
 def test_a_run_with_fewer_seeds_keeps_the_finished_seeds(tiny, seeded, monkeypatch):
