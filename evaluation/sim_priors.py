@@ -106,6 +106,7 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
             per_image[cam.stem] = {"depth": dpar, "normal": npar}
         meta = json.loads((scene_dir / "scene.json").read_text()) if (scene_dir / "scene.json").is_file() else {}
         meta["priors"] = {"simulated": True, "from_scene": str(scene_dir), "gt_depth": str(Path(depth_dir).resolve()),
+                          "gt_depth_png_scale": cfg.gt_depth_png_scale,  # the floor of `splat ablate` reads it
                           "gt_mesh": str(mesh_path.resolve()), "seed": cfg.seed,
                           "method": "exact depth + simulated monocular errors: depth = s * warp(blur(gt)) * "
                                     "(1 + noise) + b; normals = GT mesh normals + blur + smooth tilt + noise",

@@ -234,34 +234,37 @@ def _done(out: Path, keys: list[str]) -> dict | None:
     return data if data.get("key") in keys else None
 
 
-def floor_key(cfg: AblateConfig, example, folder: Path) -> str:
+def floor_key(cfg: AblateConfig, example, folder: Path, png: float | None = None) -> str:
     """The floor's key: the views, TSDF settings, exact depth and scoring it was fused and scored with
     (``tsdf.smooth_iters`` left out while unset, so floors fused before the option keep their key)."""
     tsdf = {k: v for k, v in asdict(example.tsdf).items() if k != "smooth_iters" or v}
     return config_key({"views": [example.downscale, example.test_every, example.mesh_every],
-                       "tsdf": tsdf, "depth": str(folder), "png": cfg.gt_depth_png_scale,
+                       "tsdf": tsdf, "depth": str(folder), "png": cfg.gt_depth_png_scale if png is None else png,
                        "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
 
 
 def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example, name: str = "floor") -> dict | None:
-    from splat.floor import fuse_floor, find_gt_depth_dir
+    from splat.floor import find_gt_depth_dir, fuse_floor, recorded_gt_depth
 
     if not cfg.floor:
         return None
-    folder = find_gt_depth_dir(scene_dir, cfg.gt_depth)
+    folder, png = find_gt_depth_dir(scene_dir, cfg.gt_depth), cfg.gt_depth_png_scale
+    if folder is None and (recorded := recorded_gt_depth(scene_dir)) is not None:  # simulate-priors' source
+        folder, png = recorded
+        log.info("floor: the exact depth %s that %s records", folder, scene_dir)
     if folder is None:
-        log.info("floor: %s has no gt/depth and no --gt-depth was given: no floor row", scene_dir)
+        log.warning("floor: %s has no gt/depth and no --gt-depth was given: the table has no floor row", scene_dir)
         return {"status": "n/a", "reason": "no GT depth"}
-    key = floor_key(cfg, example, folder)
+    key = floor_key(cfg, example, folder, png)
     out = out_dir / name
     done = _done(out, [key])
     if done is not None:
         return done
     t0 = time.perf_counter()
-    mesh = fuse_floor(scene_dir, out / "mesh.ply", gt_depth=folder, png_scale=cfg.gt_depth_png_scale,
+    mesh = fuse_floor(scene_dir, out / "mesh.ply", gt_depth=folder, png_scale=png,
                       downscale=example.downscale, test_every=example.test_every,
                       mesh_every=example.mesh_every, tsdf=example.tsdf)
-    result = {"row": name, "status": "done", "key": key, "depth_dir": str(folder),
+    result = {"row": name, "status": "done", "key": key, "depth_dir": str(folder), "png_scale": png,
               "final": score_mesh(mesh, cfg.gt, scene_dir, cfg.metrics), "wall_s": time.perf_counter() - t0}
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
@@ -317,7 +320,7 @@ def run_floors(cfg: AblateConfig, scene_dir: Path, out_dir: Path, train_args: li
     floors = {}
     for row in rows:
         row_cfg = train_config(row, train_args, cfg.iters, 0, cfg.checkpoints)
-        key = floor_key(cfg, row_cfg, folder)
+        key = floor_key(cfg, row_cfg, folder, floor.get("png_scale"))
         if key not in by_key:
             by_key[key] = _run_floor(cfg, scene_dir, out_dir, row_cfg, name=f"floor_{row}")
         if key != floor["key"]:

@@ -31,6 +31,21 @@ def find_gt_depth_dir(scene_dir: str | Path, gt_depth: str | Path | None = None)
     return path if path.is_dir() else None
 
 
+def recorded_gt_depth(scene_dir: str | Path) -> tuple[Path, float] | None:
+    """The exact depth a derived scene records in its scene.json (``evaluate simulate-priors`` writes
+    ``priors.gt_depth`` and its PNG scale) when it is still there, with that scale; else None."""
+    import json
+
+    try:
+        priors = json.loads((Path(scene_dir) / "scene.json").read_text()).get("priors") or {}
+    except (OSError, ValueError, AttributeError):
+        return None
+    path = priors.get("gt_depth") if isinstance(priors, dict) else None
+    if not isinstance(path, str) or not Path(path).is_dir():
+        return None
+    return Path(path), float(priors.get("gt_depth_png_scale", 1000.0))
+
+
 def load_gt_depth(folder: Path, stem: str, shape: tuple[int, int], png_scale: float) -> np.ndarray:
     """Exact depth [H, W] float32 metres of image ``stem``, resized (nearest) to ``shape``."""
     import cv2

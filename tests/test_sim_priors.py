@@ -87,3 +87,23 @@ def test_a_root_reference_mesh_goes_along(scene, tmp_path):
     gt = Scene.load(out).gt_mesh_path
     assert gt is not None and gt.resolve() == (icl_like / "reference_mesh.ply").resolve()
     assert Path(json.loads((out / "scene.json").read_text())["priors"]["gt_depth"]).is_absolute()
+
+
+def test_the_floor_finds_the_exact_depth_a_simulated_scene_records(scene, tmp_path):
+    """ICL keeps its exact depth in depth/, not gt/depth: a simulate-priors scene of it records the
+    folder (and its PNG scale), but `splat ablate` looked for gt/depth only and its table had no floor."""
+    import shutil
+
+    from evaluation.sim_priors import SimPriorsConfig, simulate_scene_priors
+    from splat.floor import find_gt_depth_dir, recorded_gt_depth
+
+    icl_like = tmp_path / "icl_like"
+    shutil.copytree(scene, icl_like, symlinks=True)
+    (icl_like / "gt" / "depth").rename(icl_like / "depth")
+    out = simulate_scene_priors(icl_like, tmp_path / "sim", SimPriorsConfig(seed=3, gt_depth=icl_like / "depth",
+                                                                           gt_depth_png_scale=5000.0))
+    assert find_gt_depth_dir(out) is None  # not in the scene's own gt/
+    folder, png = recorded_gt_depth(out)
+    assert folder.resolve() == (icl_like / "depth").resolve() and png == 5000.0
+    shutil.rmtree(icl_like / "depth")
+    assert recorded_gt_depth(out) is None  # gone: no floor, and a warning says so
