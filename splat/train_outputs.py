@@ -127,6 +127,10 @@ def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: 
     elif events:
         out.append(f"the divergence guard rolled back {events} steps of this run (report.json guard_events): its "
                    f"result may be poor; lower the learning rates (--lr.*) or the loss weights that spiked")
+    if idle := idle_terms(Path(out_dir) / "train_log.jsonl"):
+        out.append(f"the loss term{'s' * (len(idle) > 1)} {', '.join(idle)} {'were' if len(idle) > 1 else 'was'} 0 at "
+                   f"every logged step: never acted (patches of --loss.patch-size {cfg.loss.patch_size} px with too few "
+                   "valid pixels in small images, or priors that cover nothing rendered); the run is the row without it")
     if s.refiner is not None:
         r = s.refiner.summary()
         if not 0.67 < r["focal_factor"] < 1.5 or r["rotation_deg"]["max"] > 10:
@@ -134,3 +138,18 @@ def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: 
                        f"{r['rotation_deg']['max']:.3g} deg): it no longer refines the scene's cameras; lower "
                        "--pose-lr / --focal-lr, or check the scene's poses")
     return out
+
+
+PRIOR_TERMS = ("depth", "anchor", "normal", "nc", "mv")  # loss terms that can be 0 for want of valid pixels
+
+
+def idle_terms(log_path: Path) -> list[str]:
+    """The prior loss terms a run's train_log.jsonl logs at every line and that are exactly 0 at
+    every one (a tiny run's L_d found no patch with enough valid pixels: `no-ld` scored as `full`)."""
+    import json
+
+    try:
+        rows = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError):
+        return []
+    return [t for t in PRIOR_TERMS if rows and all(t in r for r in rows) and all(r[t] == 0 for r in rows)]

@@ -132,3 +132,15 @@ def test_the_iteration_factor_follows_the_flag_not_its_value(scene, tmp_path, mo
         assert main(["train", str(root), "-c", str(cues), "-o", str(tmp_path / "x"), "--preset", "no-cues-long",
                      *extra]) == 0
     assert seen == [270_000, 90_000]
+
+
+def test_a_prior_term_that_never_acted_is_named(tmp_path):
+    """At 40x30 px L_d found no patch with enough valid pixels: its term was 0.0 at every step, and an
+    ablation's `no-ld` row scored exactly as `full`, without a word."""
+    from splat.train_outputs import idle_terms
+
+    log = tmp_path / "train_log.jsonl"
+    log.write_text("".join(json.dumps({"step": k, "rgb": 0.3, "depth": 0.0, "normal": 0.2 if k else 0.0}) + "\n"
+                           for k in range(5)))
+    assert idle_terms(log) == ["depth"]
+    assert idle_terms(tmp_path / "absent.jsonl") == []
