@@ -70,6 +70,7 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
     from splat.floor import find_gt_depth_dir, load_gt_depth
 
     scene_dir, out = Path(scene_dir).resolve(), Path(out)
+    cfg.priors.validate()
     check_replaceable(out, "scene.json", "a scene `evaluate simulate-priors` wrote",
                       {"scene": scene_dir, "GT depth folder": cfg.gt_depth}, key="priors.simulated")
     if out.exists() and not overwrite:

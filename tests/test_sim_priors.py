@@ -107,3 +107,15 @@ def test_the_floor_finds_the_exact_depth_a_simulated_scene_records(scene, tmp_pa
     assert folder.resolve() == (icl_like / "depth").resolve() and png == 5000.0
     shutil.rmtree(icl_like / "depth")
     assert recorded_gt_depth(out) is None  # gone: no floor, and a warning says so
+
+
+def test_impossible_prior_settings_are_named(scene, tmp_path, capsys):
+    """A scale min above its max ended with numpy's 'high - low < 0'."""
+    from cli.evaluate_cli import main
+
+    assert main(["simulate-priors", str(scene), "-o", str(tmp_path / "sim"), "--priors.depth-scale-min", "2",
+                 "--priors.depth-scale-max", "1"]) == 1
+    assert "--priors.depth-scale-min must be > 0 and <= --priors.depth-scale-max, got 2.0 and 1.0" in capsys.readouterr().err
+    assert main(["make-room", str(tmp_path / "room"), "--priors.depth-noise", "-1"]) == 1
+    assert "--priors.depth-noise must be >= 0 and finite" in capsys.readouterr().err
+    assert not (tmp_path / "sim").exists() and not (tmp_path / "room").exists()

@@ -51,6 +51,17 @@ class PriorConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def validate(self) -> None:
+        """ValueError naming an impossible setting (a min above its max was numpy's 'high - low < 0')."""
+        if not 0 < self.depth_scale_min <= self.depth_scale_max < np.inf:
+            raise ValueError(f"--priors.depth-scale-min must be > 0 and <= --priors.depth-scale-max, got "
+                             f"{self.depth_scale_min} and {self.depth_scale_max}")
+        for name, value in asdict(self).items():
+            if name not in ("depth_scale_min", "depth_scale_max") and not 0 <= value < np.inf:
+                raise ValueError(f"--priors.{name.replace('_', '-')} must be >= 0 and finite, got {value}")
+        if self.depth_warp_cells < 1:
+            raise ValueError(f"--priors.depth-warp-cells must be >= 1, got {self.depth_warp_cells}")
+
 
 def _blur(img: np.ndarray, sigma: float, mask: np.ndarray | None = None) -> np.ndarray:
     """Gaussian blur (reflecting borders); with ``mask`` a mask-normalised blur of valid pixels."""

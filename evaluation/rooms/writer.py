@@ -88,6 +88,7 @@ def _check(cfg: RoomConfig) -> None:
         raise ValueError(f"image size must be at least 8 x 8, got {cfg.width} x {cfg.height}")
     if cfg.n_views < 2:
         raise ValueError(f"n_views must be >= 2, got {cfg.n_views}")
+    cfg.priors.validate()
     if cfg.supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {cfg.supersample}")
     if cfg.seed < 0:
