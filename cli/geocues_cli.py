@@ -112,7 +112,8 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
         print(f"warning    {away}")
     from geocues.rescale import metric_warning, scene_extent
 
-    print(f"extent     {scene_extent(s):.3g} units (5-95 % box of the {'points' if len(pts) >= 10 else 'cameras'})")
+    unit = "m" if "rescaled" in s.metadata else "units"  # `geocues rescale` made it metres; else the model's own
+    print(f"extent     {scene_extent(s):.3g} {unit} (5-95 % box of the {'points' if len(pts) >= 10 else 'cameras'})")
     warn = metric_warning(s)
     if warn:
         print(f"warning    {warn}")

@@ -4,6 +4,7 @@ rescale` makes it metric by a given factor or from metric depth priors (round tr
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -38,6 +39,9 @@ def test_extent_and_the_warning(rooms, capsys):
     assert main(["info", str(small)]) == 0
     out = capsys.readouterr().out
     assert "extent" in out and "not the 0.5-200 m" in out
+    assert re.search(r"extent     [\d.]+ m \(", out)  # rescaled: metres (it said "units" after rescaling)
+    assert main(["info", str(root)]) == 0
+    assert re.search(r"extent     [\d.]+ units \(", capsys.readouterr().out)  # a model's own unit
 
 
 def test_a_plausible_extent_with_implausible_depths_is_warned(rooms):
