@@ -32,6 +32,7 @@ from evaluation.ablation_report import METRICS, row_stats
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
 from geocues.plane_anchors import plane_anchors_path
+from splat import ablate_rows
 from splat.ablate_exec import execute
 from splat.ablate_keys import config_key, row_keys
 from splat.checkpoint import TrainingInterrupted
@@ -134,16 +135,16 @@ def _run_row(spec: dict) -> dict:
 
     out = Path(spec["out"])
     if (out / "score.json").is_file():  # a finished row of another configuration: kept aside, not lost
-        aside = _set_aside(out)
+        aside = ablate_rows.set_aside(out)
         log.warning("%s holds a finished row of another configuration: moved to %s, running it again",
                     out, aside)
     cfg = config_from_dict(TrainConfig, spec["train_config"])
     t0 = time.perf_counter()
-    if _trained(out / "train", spec):  # killed while scoring: the finished training is kept
+    if ablate_rows.trained(out / "train", spec):  # killed while scoring: the finished training is kept
         log.info("%s: its training finished before the kill; scoring it", spec["row"])
         train_wall = None
     else:
-        resume = out.exists() and _resumable(out / "train", cfg)
+        resume = out.exists() and ablate_rows.resumable(out / "train", cfg)
         if out.exists() and not resume:  # an unfinished run without a usable checkpoint: start again
             shutil.rmtree(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -165,73 +166,6 @@ def _run_row(spec: dict) -> dict:
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))
     return result
-
-
-def _trained(train_dir: Path, spec: dict) -> bool:
-    """Whether ``train_dir`` holds a finished `splat train` run of this row (same key)."""
-    try:
-        config = json.loads((train_dir / "report.json").read_text())["config"]
-    except (OSError, ValueError, KeyError):
-        return False
-    try:
-        return bool(set(row_keys({**spec, "train_config": config})) & set(spec.get("keys", [spec["key"]])))
-    except (KeyError, TypeError):  # a report of another layout
-        return False
-
-
-def _resumable(train_dir: Path, cfg) -> bool:
-    """Whether ``train_dir``'s unfinished run left a checkpoint of exactly this configuration
-    (a row killed half-way continues from it instead of starting over)."""
-    from splat import checkpoint
-    from splat.checkpoint import staging_dir
-
-    path = staging_dir(train_dir) / checkpoint.CKPT_NAME
-    if not path.is_file():
-        return False
-    try:
-        saved = checkpoint.load(path)["config"]
-    except Exception as exc:  # a checkpoint cut short by the kill: the row starts again
-        log.warning("%s cannot be read (%s): the row starts again", path, exc)
-        return False
-    same = not checkpoint.config_diff(asdict(cfg), saved, asdict(type(cfg)()))
-    if not same:
-        log.warning("%s was written with other options: the row starts again", path)
-    return same
-
-
-def _set_aside(out: Path) -> Path:
-    """Move the row folder ``out`` to the first free ``<row>_s<seed>.outdated[-N]`` beside it (a
-    second change of options deleted the first one kept aside: a finished run lost)."""
-    aside, n = out.with_name(out.name + ".outdated"), 1
-    while aside.exists():
-        n += 1
-        aside = out.with_name(f"{out.name}.outdated-{n}")
-    out.rename(aside)
-    return aside
-
-
-def _restore_set_aside(out: Path, keys: list[str]) -> dict | None:
-    """A run set aside earlier whose options are these again (back to the old options) is put back in
-    place of ``out`` (which is set aside in turn), instead of training it again; its score or None."""
-    for aside in sorted(out.parent.glob(out.name + ".outdated*")):
-        if aside.is_dir() and _done(aside, keys) is not None:
-            if out.exists():
-                log.warning("%s holds a row run of other options: moved to %s", out, _set_aside(out))
-            aside.rename(out)
-            log.info("%s: the run of these options set aside earlier (%s) is back", out, aside.name)
-            return _done(out, keys)
-    return None
-
-
-def _done(out: Path, keys: list[str]) -> dict | None:
-    path = out / "score.json"
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except ValueError:
-        return None
-    return data if data.get("key") in keys else None
 
 
 def floor_key(cfg: AblateConfig, example, folder: Path, png: float | None = None) -> str:
@@ -257,7 +191,7 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example, name:
         return {"status": "n/a", "reason": "no GT depth"}
     key = floor_key(cfg, example, folder, png)
     out = out_dir / name
-    done = _done(out, [key])
+    done = ablate_rows.done(out, [key])
     if done is not None:
         return done
     t0 = time.perf_counter()
@@ -345,7 +279,8 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     results: dict[tuple[str, int], dict] = {}
     todo = []
     for spec in specs:
-        done = _done(Path(spec["out"]), spec["keys"]) or _restore_set_aside(Path(spec["out"]), spec["keys"])
+        out = Path(spec["out"])
+        done = ablate_rows.done(out, spec["keys"]) or ablate_rows.restore_set_aside(out, spec["keys"])
         if done is not None:
             log.info("row %s seed %d: finished earlier, skipped", spec["row"], spec["seed"])
             results[(spec["row"], spec["seed"])] = done
@@ -415,7 +350,7 @@ def _add_finished_on_disk(cfg: AblateConfig, scene_dir: Path, cues: Path, out_di
     for spec in plan(earlier, scene_dir, cues, out_dir, train_args)[0]:
         if (spec["row"], spec["seed"]) in planned or spec["seed"] >= on_disk[spec["row"]]:
             continue
-        done = _done(Path(spec["out"]), spec["keys"])
+        done = ablate_rows.done(Path(spec["out"]), spec["keys"])
         if done is not None:
             results[(spec["row"], spec["seed"])] = done
 

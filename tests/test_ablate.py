@@ -259,6 +259,7 @@ def test_a_row_killed_while_scoring_keeps_its_finished_training(tiny, ablation, 
     """Killed after `splat train` finished but before score.json: the re-run scores the trained
     model and does not train it again (regression: the finished run was deleted and trained anew)."""
     import splat.ablate as ablate
+    from splat import ablate_rows
     import splat.train as train
 
     out = tiny[0] / "scoring"
@@ -272,7 +273,7 @@ def test_a_row_killed_while_scoring_keeps_its_finished_training(tiny, ablation, 
     score = json.loads((row / "score.json").read_text())
     assert score["final"]["step"] == 30 and score["train_wall_s"] is None
     # a finished training of other options is not this row: it trains again
-    assert not ablate._trained(row / "train", {"key": "other", "keys": ["other"], "scene": "", "cues": "",
+    assert not ablate_rows.trained(row / "train", {"key": "other", "keys": ["other"], "scene": "", "cues": "",
                                                 "gt": None, "metrics": {}})
 
 
@@ -538,7 +539,8 @@ def test_evaluate_report_names_a_folder_that_is_not_a_run(tmp_path, capsys):
 def test_rows_keyed_under_earlier_key_rules_are_still_finished(tiny, tmp_path):
     """Rows fused with the median depth were keyed without `tsdf.depth` before it existed and with it
     in the days between: both keys name the same row (else a re-run trains them again)."""
-    from splat.ablate import AblateConfig, _done, plan
+    from splat.ablate import AblateConfig, plan
+    from splat.ablate_rows import done
 
     base, root, cues = tiny
     specs, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, TRAIN_ARGS + ["--tsdf.depth", "median"])
@@ -546,7 +548,7 @@ def test_rows_keyed_under_earlier_key_rules_are_still_finished(tiny, tmp_path):
     assert len(keys) == 2 and keys[0] == specs[0]["key"]
     (tmp_path / "row").mkdir()
     (tmp_path / "row" / "score.json").write_text(json.dumps({"key": keys[1]}))
-    assert _done(tmp_path / "row", keys) is not None and _done(tmp_path / "row", keys[:1]) is None
+    assert done(tmp_path / "row", keys) is not None and done(tmp_path / "row", keys[:1]) is None
     expected, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, TRAIN_ARGS)
     assert expected[0]["keys"] == [expected[0]["key"]]  # the default depth has one key
 
