@@ -48,17 +48,10 @@ def _ply_face_list(path: Path) -> str | None:
     """The name of the face element's list of vertex indices in a PLY header: vertex_indices or
     vertex_index, else its only integer list (a face may list texcoords first: taking the first list
     read them as indices)."""
-    lists, in_face = [], False
-    with open(path, "rb") as f:
-        for _ in range(10_000):
-            line = f.readline()
-            if not line or line.strip() == b"end_header":
-                break
-            parts = line.decode(errors="replace").split()
-            if parts[:1] == ["element"]:
-                in_face = len(parts) > 1 and parts[1] == "face"
-            elif in_face and parts[:2] == ["property", "list"] and len(parts) == 5:
-                lists.append((parts[4], parts[3]))  # (name, item type)
+    from splat.mesh_post import ply_header
+
+    lists = [(p[4], p[3]) for name, _, props in ply_header(path) if name == "face"  # (name, item type)
+             for p in props if len(p) == 5 and p[1] == "list"]
     named = [n for n, _ in lists if n in INDEX_LISTS]
     ints = [n for n, t in lists if "int" in t or t in ("char", "uchar", "short", "ushort")]
     return named[0] if named else ints[0] if len(ints) == 1 else None

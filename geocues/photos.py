@@ -32,9 +32,8 @@ def missing_images_error(model_dir: Path, paths: list[Path]) -> FileNotFoundErro
         return None
     if len(gone) == 1:
         return FileNotFoundError(f"image listed in {model_dir} is missing on disk: {gone[0]}")
-    more = f" and {len(gone) - 3} more" if len(gone) > 3 else ""
     return FileNotFoundError(f"{len(gone)} of {len(paths)} images listed in {model_dir} are missing on disk: "
-                             + ", ".join(str(p) for p in gone[:3]) + more)
+                             + _listed([str(p) for p in gone]))
 
 
 def photos_in_subfolders(image_dir: Path) -> int:

@@ -269,7 +269,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     cache.mkdir(parents=True, exist_ok=True)
     db_path, state_path = cache / "database.db", cache / "state.json"
     cams = ({int(c): str(ref.cameras[c]) for c in ref.cameras} if ref is not None else cfg.camera_model)
-    stats = [(n, (image_dir / n).stat().st_size, (image_dir / n).stat().st_mtime_ns) for n in names]
+    stats = [(n, st.st_size, st.st_mtime_ns) for n in names for st in [(image_dir / n).stat()]]
     extract_key = _key({"names": stats, "cams": cams, "size": cfg.max_image_size,
                         "n": cfg.max_num_features, "peak": cfg.peak_threshold})
     state = json.loads(state_path.read_text()) if state_path.is_file() else {}

@@ -31,13 +31,13 @@ from typing import Any
 from evaluation.ablation_report import METRICS, row_stats
 from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
-from geocues.plane_anchors import plane_anchors_path
 from splat import ablate_rows
 from splat.ablate_exec import execute
 from splat.ablate_keys import config_key, row_keys
 from splat.checkpoint import TrainingInterrupted
 from splat.guard import TrainingDiverged
-from splat.presets import DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, preset_config
+from splat.presets import (DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, needs_facts,
+                           preset_config)
 
 log = logging.getLogger(__name__)
 
@@ -218,11 +218,10 @@ def plan(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, train_ar
     if cfg.seeds < 1 or cfg.jobs < 1 or cfg.iters < 1:
         raise ValueError(f"--seeds, --jobs and --iters must be >= 1 (got {cfg.seeds}, {cfg.jobs}, {cfg.iters})")
     scene = Scene.load(scene_dir, check_priors=False)
-    has_anchors = plane_anchors_path(cues).is_file()
-    all_normals = all(scene.normal_prior_path(i) is not None for i in range(len(scene.cameras)))
+    facts = needs_facts(scene, cues)
     specs, na = [], {}
     for row in dict.fromkeys(cfg.rows):
-        why = missing_needs(get_preset(row), scene.has_depth_priors, scene.has_normal_priors, has_anchors, all_normals)
+        why = missing_needs(get_preset(row), *facts)
         if why is not None:
             na[row] = why
             continue

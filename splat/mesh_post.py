@@ -125,18 +125,27 @@ def write_mesh(mesh: o3d.geometry.TriangleMesh, path: str | Path) -> Path:
     return path
 
 
-def ply_element_counts(path: str | Path) -> dict[str, int]:
-    """Element counts declared in a PLY header ({"vertex": n, "face": m, ...}), without reading the data."""
-    counts = {}
+def ply_header(path: str | Path) -> list[tuple[str, int, list[list[str]]]]:
+    """The elements a PLY header declares, in order: (name, count, the tokens of each of its
+    ``property`` lines, e.g. ["property", "list", "uchar", "int", "vertex_indices"]), without reading
+    the data."""
+    elements: list[tuple[str, int, list[list[str]]]] = []
     with open(path, "rb") as f:
         for _ in range(10_000):
             line = f.readline()
             if not line or line.strip() == b"end_header":
                 break
-            parts = line.split()
-            if len(parts) == 3 and parts[0] == b"element":
-                counts[parts[1].decode(errors="replace")] = int(parts[2])
-    return counts
+            parts = line.decode(errors="replace").split()
+            if len(parts) == 3 and parts[0] == "element":
+                elements.append((parts[1], int(parts[2]), []))
+            elif parts[:1] == ["property"] and elements:
+                elements[-1][2].append(parts)
+    return elements
 
 
-__all__ = ["canonical_order", "clean_mesh", "ply_element_counts", "write_mesh"]
+def ply_element_counts(path: str | Path) -> dict[str, int]:
+    """Element counts declared in a PLY header ({"vertex": n, "face": m, ...}), without reading the data."""
+    return {name: count for name, count, _ in ply_header(path)}
+
+
+__all__ = ["canonical_order", "clean_mesh", "ply_element_counts", "ply_header", "write_mesh"]

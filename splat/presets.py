@@ -224,23 +224,30 @@ def missing_needs(preset: Preset, has_depth_priors: bool, has_normal_priors: boo
     return f"no {' / '.join(x.removesuffix(' priors') for x in lacking)} priors" if lacking else None
 
 
-def unmet_needs(name: str, scene_dir: str | Path, cues: str | Path) -> str | None:
-    """:func:`missing_needs` of preset ``name`` on the scene at ``scene_dir`` and the cue folder
-    ``cues``: why it would train as another row there, or None (also when the scene cannot be read:
-    the training names that)."""
+def unmet_needs(name: str, scene: Any, cues: str | Path) -> str | None:
+    """:func:`missing_needs` of preset ``name`` on ``scene`` (a loaded ``geocues.scene.Scene`` or its
+    folder) and the cue folder ``cues``: why it would train as another row there, or None (also when
+    the scene cannot be read: the training names that)."""
     preset = get_preset(name)
     if not preset.needs:
         return None
-    from geocues.plane_anchors import plane_anchors_path
     from geocues.scene import Scene
 
-    try:
-        scene = Scene.load(scene_dir, check_priors=False)
-    except (OSError, ValueError):
-        return None
-    all_normals = all(scene.normal_prior_path(i) is not None for i in range(len(scene.cameras)))
-    return missing_needs(preset, scene.has_depth_priors, scene.has_normal_priors,
-                         plane_anchors_path(cues).is_file(), all_normals)
+    if not isinstance(scene, Scene):
+        try:
+            scene = Scene.load(scene, check_priors=False)
+        except (OSError, ValueError):
+            return None
+    return missing_needs(preset, *needs_facts(scene, cues))
+
+
+def needs_facts(scene: Any, cues: str | Path) -> tuple[bool, bool, bool, bool]:
+    """What :func:`missing_needs` asks of a scene (a ``geocues.scene.Scene``) and a cue folder: depth
+    priors, normal priors, plane anchors, a normal prior for every view."""
+    from geocues.plane_anchors import plane_anchors_path
+
+    normals = [scene.normal_prior_path(i) is not None for i in range(len(scene.cameras))]
+    return scene.has_depth_priors, any(normals), plane_anchors_path(cues).is_file(), all(normals)
 
 
 # Training presets measured on the cues of an extract preset (docs/training.md): trained on other cues,
