@@ -36,7 +36,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
     about: score such a mesh with --align-to.
 
     Args:
-        pred_mesh: the predicted mesh (PLY/OBJ/OFF).
+        pred_mesh: the predicted mesh (PLY, OBJ, OFF, STL, GLB/GLTF or FBX; polygons are triangulated).
         scene: a scene folder; its cameras (train and test) cull both meshes to what they saw.
         gt: the ground-truth mesh (default: SCENE/gt/mesh.ply when SCENE is given).
         json: write the metrics and the protocol used to this JSON file.

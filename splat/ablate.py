@@ -55,7 +55,7 @@ class AblateConfig:
     iters: int = 3000
     """Training iterations of a row (no-cues-long: 3x)."""
     seeds: int = 1
-    """Repeat every row with seeds 0..K-1 (added to --seed); the report gives mean and spread."""
+    """Repeat every row with seeds 0..K-1 (rows/<row>_s<seed>); the report gives mean and spread (population std)."""
     jobs: int = 1
     """Rows run in this many processes at once (the cores are shared between them)."""
     num_threads: int = 0

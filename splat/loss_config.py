@@ -12,7 +12,7 @@ class LossConfig:
     """Weights and switches of the IndoorGS loss (§4.3)."""
 
     lambda_dssim: float = 0.2
-    """Weight of the D-SSIM part of L_rgb (3DGS)."""
+    """Weight of the D-SSIM part of L_rgb (3DGS): (1 - w) L1 + w D-SSIM, w in [0, 1]."""
     kernels: str = "fused"
     """L_rgb (with SSIM), L_n and L_nc: "fused" (C++ kernels with analytic gradients on the CPU,
     splat/losses_cpu.py; CUDA kernels on a GPU, splat/losses_cuda.py, or where those did not build

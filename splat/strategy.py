@@ -57,7 +57,8 @@ class IndoorStrategyConfig:
     """Thresholds and schedule of the per-type density control (iterations for a 30k run)."""
 
     total_iters: int = PAPER_ITERS
-    """Length of the run; every iteration count below is scaled by total_iters / 30000."""
+    """Length of the run; every iteration count below is scaled by total_iters / 30000. `splat train`
+    sets it from --iters (giving it there is an error)."""
     refine_start: int = 500
     """Densify / prune only after this iteration (3DGS)."""
     refine_stop: int = 12_000
