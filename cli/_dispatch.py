@@ -254,19 +254,20 @@ def _run(fn: Callable, rest: list[str], sub_prog: str, verbose: bool) -> int:
         name = type(exc).__name__
         if name == "TrainingInterrupted":
             print(f"{sub_prog}: {exc}", file=sys.stderr)
-            return 130
+            return exc.exit_code
         if name == "TrainingDiverged":
             print(f"{sub_prog}: error: {exc}", file=sys.stderr)
             return 1
         raise
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         # Ctrl-C in a command without a checkpoint of its own: every output is written atomically,
-        # so what exists is complete; the same command again redoes the rest.
+        # so what exists is complete; the same command again redoes the rest. Exit 128 + the
+        # signal's number (130 Ctrl-C, 143 SIGTERM), as a shell reports a process the signal ended.
         if verbose:
             raise
         print(f"{sub_prog}: interrupted; finished outputs are kept, run the same command again to "
               "redo the rest", file=sys.stderr)
-        return 130
+        return 143 if exc.args and exc.args[0] == "SIGTERM" else 130
     return int(result) if isinstance(result, int) else 0
 
 

@@ -317,7 +317,7 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     except TrainingInterrupted as exc:  # the same command resumes the row from its checkpoint
         n = len(results)
         raise TrainingInterrupted(f"ablation {str(exc).split(';')[0]}; {n} finished row run{'s' * (n != 1)} in "
-                                  f"{out_dir}: run the same command again to continue") from None
+                                  f"{out_dir}: run the same command again to continue", exc.signal_name) from None
     write_reports(summary(), out_dir)
     if diverged:
         names = ", ".join(f"{row} (seed {seed})" for row, seed in sorted(diverged))

@@ -66,8 +66,9 @@ def execute(todo: list[dict], on_done: Callable[[dict, dict], None], run_row: Ca
             stop.set()
             _stop_workers(pool, pending)
             if isinstance(exc, KeyboardInterrupt):
-                raise TrainingInterrupted(f"stopped by {exc.args[0] if exc.args else 'SIGINT'}; the "
-                                          "running rows wrote their checkpoints") from None
+                name = exc.args[0] if exc.args else "SIGINT"
+                raise TrainingInterrupted(f"stopped by {name}; the running rows wrote their checkpoints",
+                                          name) from None
             raise
         finally:
             for bar in bars.values():

@@ -117,7 +117,20 @@ def set_numpy_rng_state(rng: np.random.Generator, state: dict) -> None:
 
 
 class TrainingInterrupted(RuntimeError):
-    """SIGINT / SIGTERM stopped the run after its checkpoint was written (the message says where)."""
+    """SIGINT / SIGTERM stopped the run after its checkpoint was written (the message says where).
+    ``signal_name`` is the signal that stopped it: the command's exit code is 128 + its number (130
+    for Ctrl-C, 143 for SIGTERM), as a shell reports a process the signal ended."""
+
+    def __init__(self, message: str, signal_name: str = "SIGINT") -> None:
+        super().__init__(message)
+        self.signal_name = signal_name if signal_name in ("SIGINT", "SIGTERM") else "SIGINT"
+
+    def __reduce__(self):  # across the process pool of `splat ablate --jobs` with its signal
+        return type(self), (str(self), self.signal_name)
+
+    @property
+    def exit_code(self) -> int:
+        return 143 if self.signal_name == "SIGTERM" else 130
 
 
 class SignalCatcher:
@@ -133,7 +146,7 @@ class SignalCatcher:
         import signal
 
         if self.caught is not None:
-            raise KeyboardInterrupt
+            raise KeyboardInterrupt(signal.Signals(signum).name)
         self.caught = signal.Signals(signum).name
         log.warning("%s received: stopping after this step and writing a checkpoint", self.caught)
 

@@ -326,7 +326,7 @@ class _Loop:
                     if signals.caught:
                         raise TrainingInterrupted(
                             f"stopped by {signals.caught} at step {step} of {cfg.iters}; checkpoint "
-                            f"{self.ckpt_path}; continue with the same command and --resume")
+                            f"{self.ckpt_path}; continue with the same command and --resume", signals.caught)
             log_file.flush()
             self.log_bytes = log_file.tell()  # every row: the state after the loop is whole (see run())
 
@@ -376,12 +376,12 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
 
     try:
         final = _write_outputs(cfg, s, loop, timings)
-    except KeyboardInterrupt:  # Ctrl-C / SIGTERM while meshing: keep the trained model, resumable
+    except KeyboardInterrupt as exc:  # Ctrl-C / SIGTERM while meshing: keep the trained model, resumable
         checkpoint.save(loop.ckpt_path, loop.snapshot(), asdict(cfg))
         raise TrainingInterrupted(
             f"stopped after training (step {loop.step} of {cfg.iters}) while writing its outputs; checkpoint "
             f"{loop.ckpt_path}; continue with the same command and --resume (the outputs are written, "
-            "nothing trained again)") from None
+            "nothing trained again)", exc.args[0] if exc.args else "SIGINT") from None
     timings["total_s"] = loop.wall_s()  # earlier sessions of a resumed run included
     mesh = None
     if cfg.mesh and (work / "mesh.ply").is_file():

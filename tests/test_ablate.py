@@ -428,7 +428,7 @@ def test_jobs_2_gives_the_rows_of_jobs_1_with_a_bar_per_row(tiny, ablation, caps
 
 def test_sigterm_stops_every_parallel_row_with_its_checkpoint(tiny):
     """`kill PID` of `splat ablate --jobs 2` (the workers never see it): each running row writes its
-    checkpoint, a queued row does not start, the command ends with one line and exit 130, and no
+    checkpoint, a queued row does not start, the command ends with one line and exit 143, and no
     worker is left running (regression: the parent waited while the workers trained on)."""
     import os
     import signal
@@ -456,7 +456,7 @@ def test_sigterm_stops_every_parallel_row_with_its_checkpoint(tiny):
                and "spawn_main" in Path(f"/proc/{p}/cmdline").read_text()]
     os.kill(proc.pid, signal.SIGTERM)
     err = proc.communicate(timeout=240)[1]
-    assert proc.returncode == 130, err
+    assert proc.returncode == 143, err
     assert err.strip().splitlines()[-1].startswith("splat ablate: ablation stopped by SIGTERM; 0 finished"), err
     for row in ("full", "no-cues"):
         assert (out / "rows" / f"{row}_s0" / "train.partial" / "ckpt" / "last.pt").is_file(), row

@@ -228,9 +228,33 @@ def test_ctrl_c_in_any_command_is_one_line(capsys):
         dispatch("tool", {"slow": slow}, argv=["slow", "-v"])
 
 
+def test_exit_code_is_128_plus_the_stopping_signal(capsys):
+    """A shell reports a process a signal ended as 128 + its number: 130 for Ctrl-C, 143 for SIGTERM
+    (a job scheduler's `kill`). A training stopped by either keeps the code across `splat ablate`'s
+    worker processes (the exception is pickled with its signal)."""
+    import pickle
+
+    from cli._dispatch import dispatch
+    from splat.checkpoint import TrainingInterrupted
+
+    def term() -> int:
+        """Stopped by SIGTERM."""
+        raise KeyboardInterrupt("SIGTERM")
+
+    def trained(signal_name: str = "SIGINT") -> int:
+        """A training stopped after its checkpoint."""
+        raise pickle.loads(pickle.dumps(TrainingInterrupted("stopped; checkpoint ckpt/last.pt", signal_name)))
+
+    assert dispatch("tool", {"term": term}, argv=["term"]) == 143
+    assert dispatch("tool", {"trained": trained}, argv=["trained", "--signal-name", "SIGTERM"]) == 143
+    assert dispatch("tool", {"trained": trained}, argv=["trained"]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "tool trained: stopped; checkpoint ckpt/last.pt"
+
+
 def test_sigterm_in_any_command_is_one_line_not_a_native_stack_trace():
     """`kill PID` of a command that imported pycolmap (whose glog dumps a native stack trace on
-    SIGTERM and exits 0) ends like Ctrl-C: exit code 130 and one line."""
+    SIGTERM and exits 0) ends like Ctrl-C with one line, exit code 143 (128 + SIGTERM, as a shell
+    reports a process the signal ended; Ctrl-C's is 130)."""
     import subprocess
     import sys
     from pathlib import Path
@@ -246,7 +270,7 @@ def test_sigterm_in_any_command_is_one_line_not_a_native_stack_trace():
             "raise SystemExit(dispatch('tool', {'work': work}, argv=['work']))\n")
     repo = Path(__file__).resolve().parents[1]
     proc = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 130, proc.stderr
+    assert proc.returncode == 143, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         "tool work: interrupted; finished outputs are kept, run the same command again to redo the rest"]
 
