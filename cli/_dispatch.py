@@ -8,6 +8,7 @@ default command, run when the first argument is not a subcommand name (``evaluat
 from __future__ import annotations
 
 import contextlib
+import difflib
 import logging
 import math
 import os
@@ -172,6 +173,12 @@ def summary(doc: str | None, width: int = 100) -> str:
     return sentence if len(sentence) <= width else sentence[:width].rsplit(" ", 1)[0].rstrip(",;:(") + " ..."
 
 
+def _looks_like_a_command(word: str) -> bool:
+    """A word with no path separator, no suffix and no file of its name: a command, not a path."""
+    return (not word.startswith("-") and "/" not in word and os.sep not in word and "." not in word
+            and not os.path.exists(word))
+
+
 def _usage(prog: str, commands: dict[str, Callable], default: str | None) -> str:
     lines = [f"usage: {prog} COMMAND [ARGS...]   ({prog} COMMAND --help for its options)", "", "commands:"]
     col = max(14, *(len(name) + 1 for name in commands))
@@ -208,10 +215,19 @@ def _dispatch(prog: str, commands: dict[str, Callable], default: str | None,
         return 0 if argv else 2
     if argv[0] in commands:
         name, rest = argv[0], argv[1:]
+    elif default is not None and _looks_like_a_command(argv[0]):
+        # `evaluate views --help`: a bare word that is no file is a mistyped command, not a path for
+        # the default command (whose usage would be shown, the word taken for its first argument)
+        near = difflib.get_close_matches(argv[0], list(commands), n=1)
+        print(f"{prog}: unknown command {argv[0]!r}{f' (did you mean {near[0]!r}?)' if near else ''}; "
+              f"`{prog} PATH ...` runs `{default}` on a file\n\n" + _usage(prog, commands, default), file=sys.stderr)
+        return 2
     elif default is not None:
         name, rest = default, argv
     else:
-        print(f"{prog}: unknown command {argv[0]!r}\n\n" + _usage(prog, commands, default), file=sys.stderr)
+        near = difflib.get_close_matches(argv[0], list(commands), n=1)
+        print(f"{prog}: unknown command {argv[0]!r}{f' (did you mean {near[0]!r}?)' if near else ''}\n\n"
+              + _usage(prog, commands, default), file=sys.stderr)
         return 2
     rest = lead + rest
     fn = commands[name]

@@ -44,7 +44,11 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
                     "`geocues extract %s -o CUES` for this one", 100 * share, cues_ply, scene.root, scene.root)
     cloud = cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
     budget = cfg.strategy.max_gaussians
-    if not cfg.init.plane_share and budget > 0 and len(cloud) > FULL_INIT * budget:
+    if not cfg.init.plane_share and budget > 0 and len(cloud) >= budget:
+        log.warning("the cue cloud (%d points) is already at or over --strategy.max-gaussians %d: training "
+                    "starts from all %d and densification adds none; raise the budget, or --init.plane-share "
+                    "%.1f thins the PLANE seeds to leave room", len(cloud), budget, len(cloud), FULL_INIT)
+    elif not cfg.init.plane_share and budget > 0 and len(cloud) > FULL_INIT * budget:
         log.warning("the cue cloud (%d points) fills %.0f%% of --strategy.max-gaussians %d before training, "
                     "leaving densification little or no room (on benchmark rooms such runs ended 6-7 dB lower in held-out PSNR); "
                     "--init.plane-share %.1f thins the PLANE seeds to leave some", len(cloud),

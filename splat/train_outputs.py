@@ -27,6 +27,7 @@ from splat.views import View, ViewSet
 _BACKGROUNDS: dict[tuple, Tensor] = {}
 
 FEW_VIEWS = 8  # training views under which an empty mesh is named as their lack
+FEW_TRIANGLES = 1000  # a mesh under this is named as (nearly) empty: a room at 2 cm voxels has tens of thousands
 TSDF_SAYS = ("voxel_size", "sdf_trunc", "depth_max", "weight_threshold", "consistent_views", "max_depth_spread")
 """TSDF options that can leave a mesh empty when set far from their defaults."""
 
@@ -112,17 +113,19 @@ def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, f
 
 def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: str, out_dir: Path) -> list[str]:
     """The sentences a finished run ends with when its result may not be what it looks like: an empty
-    mesh and its likely cause, steps the divergence guard rolled back, a camera refinement gone far."""
+    (or nearly empty) mesh and its likely cause, steps the divergence guard rolled back, a camera refinement gone far."""
     out = []
     events = len(s.guard.events)
-    if mesh is not None and mesh["triangles"] == 0:
+    if mesh is not None and mesh["triangles"] < FEW_TRIANGLES:
         changed = [f"--tsdf.{k.replace('_', '-')} {getattr(cfg.tsdf, k)}" for k in TSDF_SAYS
                    if getattr(cfg.tsdf, k) != getattr(type(cfg.tsdf)(), k)]  # from the command line or a preset
         cause = (f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)"
                  if len(s.train_views) < FEW_VIEWS else
                  f"check the TSDF settings in use ({', '.join(changed)})" if changed else
                  "check the cameras (geocues info) and the learning rates (--lr.*)")
-        out.append(f"the mesh of {out_dir} is EMPTY (no rendered depth was fused: test PSNR {psnr}"
+        what = ("is EMPTY (no rendered depth was fused" if mesh["triangles"] == 0 else
+                f"has only {mesh['triangles']} triangle{'s' * (mesh['triangles'] != 1)} (a room meshes to tens of thousands")
+        out.append(f"the mesh of {out_dir} {what}: test PSNR {psnr}"
                    f"{f', {events} steps rolled back' if events else ''}); {cause}")
     elif events:
         out.append(f"the divergence guard rolled back {events} steps of this run (report.json guard_events): its "

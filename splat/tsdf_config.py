@@ -60,33 +60,33 @@ class TSDFConfig:
         return 4.0 * self.voxel_size if self.sdf_trunc is None else float(self.sdf_trunc)
 
     def validate(self) -> None:
-        """Raise ValueError on an impossible setting."""
+        """Raise ValueError on an impossible setting, naming the option as `splat train` / `splat mesh` spell it."""
         if not self.voxel_size > 0:
-            raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
+            raise ValueError(f"--tsdf.voxel-size must be positive, got {self.voxel_size}")
         if not self.trunc >= 2.0 * self.voxel_size:
-            raise ValueError(f"sdf_trunc ({self.trunc} m) must be at least 2 voxels "
+            raise ValueError(f"--tsdf.sdf-trunc ({self.trunc} m) must be at least 2 voxels "
                              f"(2 x {self.voxel_size} m) for marching cubes to find the zero crossing")
         if not self.depth_max > 0:
-            raise ValueError(f"depth_max must be positive, got {self.depth_max}")
+            raise ValueError(f"--tsdf.depth-max must be positive, got {self.depth_max}")
         if self.weight_threshold < 0:
-            raise ValueError(f"weight_threshold must be >= 0, got {self.weight_threshold}")
+            raise ValueError(f"--tsdf.weight-threshold must be >= 0, got {self.weight_threshold}")
         if self.block_count < 1:
-            raise ValueError(f"block_count must be >= 1, got {self.block_count}")
+            raise ValueError(f"--tsdf.block-count must be >= 1, got {self.block_count}")
         open3d_device(self.device)
         if self.depth not in ("median", "expected"):
-            raise ValueError(f"depth must be 'median' or 'expected', got {self.depth!r}")
+            raise ValueError(f"--tsdf.depth must be 'median' or 'expected', got {self.depth!r}")
         if self.consistent_views is not None and not 1 <= self.consistent_views <= self.consistency_neighbours:
-            raise ValueError(f"consistent_views must be in 1..consistency_neighbours "
-                             f"({self.consistency_neighbours}) or unset, got {self.consistent_views}")
+            raise ValueError(f"--tsdf.consistent-views must be in 1..{self.consistency_neighbours} "
+                             f"(--tsdf.consistency-neighbours) or unset, got {self.consistent_views}")
         if self.max_depth_spread is not None and not self.max_depth_spread > 0:
-            raise ValueError(f"max_depth_spread must be positive or unset, got {self.max_depth_spread}")
+            raise ValueError(f"--tsdf.max-depth-spread must be positive or unset, got {self.max_depth_spread}")
         if not (self.consistency_px > 0 and self.consistency_rel_depth > 0):
-            raise ValueError(f"consistency_px and consistency_rel_depth must be positive, got "
+            raise ValueError(f"--tsdf.consistency-px and --tsdf.consistency-rel-depth must be positive, got "
                              f"{self.consistency_px}, {self.consistency_rel_depth}")
         if not 0.0 <= self.min_component_diag < 1.0:
-            raise ValueError(f"min_component_diag must be in [0, 1), got {self.min_component_diag}")
+            raise ValueError(f"--tsdf.min-component-diag must be in [0, 1), got {self.min_component_diag}")
         if self.smooth_iters < 0:
-            raise ValueError(f"smooth_iters must be >= 0, got {self.smooth_iters}")
+            raise ValueError(f"--tsdf.smooth-iters must be >= 0, got {self.smooth_iters}")
 
 
 def open3d_device(name: str) -> str:

@@ -4,9 +4,11 @@ good output destroyed. One test per row of the table in docs/robustness.md."""
 from __future__ import annotations
 
 import shutil
+from typing import Annotated
 
 import numpy as np
 import pytest
+import tyro
 
 from cues_synth import make_room_scene
 from geocues.cue_io import CueCloud, write_cues_ply
@@ -310,3 +312,35 @@ def test_help_into_a_closed_pipe_is_quiet():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) in (0, 1), err
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def _mesh_command(path: Annotated[str, tyro.conf.Positional]) -> int:
+    """Score a mesh."""
+    print(f"scored {path}")
+    return 0
+
+
+def _report_command(run: Annotated[str, tyro.conf.Positional]) -> int:
+    """Plots of a run."""
+    return 0
+
+
+def test_a_mistyped_command_is_named_not_taken_for_a_path(tmp_path, capsys, monkeypatch):
+    """`evaluate views --help` showed `mesh`'s usage ('views' taken for PRED_MESH), `evaluate reprt RUN`
+    said "no mesh at reprt": a bare word that is no file is an unknown command, with the nearest one;
+    a file of that name (or any path) still goes to the default command."""
+    from cli._dispatch import dispatch
+
+    commands = {"mesh": _mesh_command, "report": _report_command}
+    assert dispatch("tool", commands, default="mesh", argv=["reprt", "x"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tool: unknown command 'reprt' (did you mean 'report'?); `tool PATH ...` runs `mesh`")
+    assert dispatch("tool", commands, default="mesh", argv=["views", "--help"]) == 2
+    assert "unknown command 'views';" in capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "views").write_text("a mesh without a suffix")
+    for word in ("views", "a.ply", "sub/b"):
+        assert dispatch("tool", commands, default="mesh", argv=[word]) == 0
+        assert capsys.readouterr().out == f"scored {word}\n"
+    assert dispatch("tool", {"mesh": _mesh_command}, argv=["mseh"]) == 2  # no default: the nearest command too
+    assert "unknown command 'mseh' (did you mean 'mesh'?)" in capsys.readouterr().err

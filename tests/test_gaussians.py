@@ -240,6 +240,12 @@ def test_init_cloud_over_the_budget_warns_unless_thinned(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="splat"):
         assert load_init_cloud(cfg, None, tmp_path / "cues.ply").counts()["PLANE"] == 400
     assert "plane-share" not in caplog.text
+    cfg.init.plane_share, cfg.strategy.max_gaussians = 0.0, 1  # over the budget: no percentage of it
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        assert len(load_init_cloud(cfg, None, tmp_path / "cues.ply")) == 1300
+    assert "over --strategy.max-gaussians 1: training starts from all 1300 and densification adds none" in caplog.text
+    assert "%" not in caplog.text
+    caplog.clear()
     cfg.init.plane_share, cfg.strategy.max_gaussians = 0.0, 2000  # within 90 %: silent
     with caplog.at_level(logging.WARNING, logger="splat"):
         load_init_cloud(cfg, None, tmp_path / "cues.ply")

@@ -345,10 +345,10 @@ class TestInputs:
     def test_config_validation(self):
         with pytest.raises(ValueError, match="at least 2 voxels"):
             TSDFFuser(TSDFConfig(voxel_size=0.02, sdf_trunc=0.01))
-        with pytest.raises(ValueError, match="voxel_size"):
+        with pytest.raises(ValueError, match="--tsdf.voxel-size"):
             TSDFConfig(voxel_size=0.0).validate()
         assert TSDFConfig(voxel_size=0.03).trunc == pytest.approx(0.12)
-        with pytest.raises(ValueError, match="smooth_iters must be >= 0"):
+        with pytest.raises(ValueError, match="--tsdf.smooth-iters must be >= 0"):
             TSDFConfig(smooth_iters=-1).validate()
 
     def test_one_device_spelling(self):

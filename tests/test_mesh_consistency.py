@@ -66,9 +66,9 @@ def test_views_without_depth_or_neighbours_give_no_error_and_no_depth(room):
 
 def test_the_option_is_checked():
     TSDFConfig().validate()  # unset: every pixel is fused
-    with pytest.raises(ValueError, match="consistent_views"):
+    with pytest.raises(ValueError, match="--tsdf.consistent-views"):
         TSDFConfig(consistent_views=5, consistency_neighbours=4).validate()
-    with pytest.raises(ValueError, match="consistent_views"):
+    with pytest.raises(ValueError, match="--tsdf.consistent-views"):
         TSDFConfig(consistent_views=0).validate()
     with pytest.raises(ValueError, match="positive"):
         TSDFConfig(consistent_views=1, consistency_rel_depth=0).validate()
@@ -110,5 +110,5 @@ def test_max_depth_spread_leaves_out_mixed_pixels_and_keeps_the_rest():
     assert blend(z_kept) == 0
     assert (np.abs(z_kept - 3.0) < 0.05).sum() > 0.3 * (np.abs(z_all - 3.0) < 0.05).sum()  # the wall stays
     assert np.isfinite(z_kept).all()
-    with pytest.raises(ValueError, match="max_depth_spread"):
+    with pytest.raises(ValueError, match="--tsdf.max-depth-spread"):
         TSDFConfig(max_depth_spread=0.0).validate()

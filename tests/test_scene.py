@@ -334,6 +334,9 @@ def test_training_warns_about_images_over_1600_px(tmp_path: Path, caplog):
         assert ("--downscale 2.6 trains at 1551x1163" in caplog.text) == (name == "big"), caplog.text
     warn_large_images(Scene.load(tmp_path / "big", downscale=2.0), 2.0)
     assert "--downscale 2.6 trains at 1551x1163" in caplog.text  # the factor is from the full size
+    caplog.clear()
+    warn_large_images(Scene.load(tmp_path / "small", downscale=0.5), 0.5)  # upsampling is named
+    assert "--downscale 0.5 is below 1: the photos are UPSAMPLED 2x" in caplog.text, caplog.text
 
 
 def test_a_reference_mesh_at_the_root_is_the_gt(tmp_path):

@@ -111,13 +111,20 @@ def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement():
     refiner = SimpleNamespace(summary=lambda: {"focal_factor": 114.0, "rotation_deg": {"max": 122.0}})
     s = SimpleNamespace(guard=SimpleNamespace(events=[{}] * 4), refiner=refiner, train_views=[0] * 28)
     said = final_warnings(TrainConfig(), s, {"triangles": 38}, "4.0 dB", "RUN")
-    assert any("rolled back 4 steps" in w for w in said)
+    assert any("has only 38 triangles" in w and "4 steps rolled back" in w and "--lr.*" in w for w in said)
+    said = final_warnings(TrainConfig(), s, {"triangles": 38_000}, "4.0 dB", "RUN")
+    assert any("rolled back 4 steps" in w for w in said) and not any("triangles" in w for w in said)
     assert any("camera refinement went far (focal x114" in w and "--focal-lr" in w for w in said)
     tsdf = dataclasses.replace(TrainConfig().tsdf, weight_threshold=1000.0)
     empty = final_warnings(dataclasses.replace(TrainConfig(), tsdf=tsdf),
                            SimpleNamespace(guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28),
                            {"triangles": 0}, "20 dB", "RUN")
     assert len(empty) == 1 and "EMPTY" in empty[0] and "settings in use (--tsdf.weight-threshold 1000.0)" in empty[0]
+    coarse = final_warnings(dataclasses.replace(TrainConfig(), tsdf=dataclasses.replace(tsdf, weight_threshold=3.0,
+                                                                                         voxel_size=0.5)),
+                            SimpleNamespace(guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28),
+                            {"triangles": 1}, "20 dB", "RUN")  # --tsdf.voxel-size 0.5 on a room: one triangle
+    assert len(coarse) == 1 and "has only 1 triangle (a room" in coarse[0] and "(--tsdf.voxel-size 0.5)" in coarse[0]
 
 
 def test_the_iteration_factor_follows_the_flag_not_its_value(scene, tmp_path, monkeypatch):
