@@ -12,7 +12,7 @@ mkdir -p "$OUT"
 say() { printf '\n=== %s\n' "$*"; }
 # wall seconds of each step -> OUT/timings.json (README's time line is generated from it)
 STAMPS=()
-mark() { STAMPS+=("$1 $(date +%s.%N)"); }
+mark() { STAMPS+=("$1 $($BIN/python -c "import time; print(time.time())")"); }  # (date +%s.%N is GNU only)
 ROOM_MADE=false
 
 say "1/5 default scene: benchmark room (images, known poses, pycolmap SfM points, GT mesh and depth, simulated priors)"
