@@ -144,9 +144,10 @@ def _run_row(spec: dict) -> dict:
         log.info("%s: its training finished before the kill; scoring it", spec["row"])
         train_wall = None
     else:
-        resume = out.exists() and ablate_rows.resumable(out / "train", cfg)
-        if out.exists() and not resume:  # an unfinished run without a usable checkpoint: start again
-            shutil.rmtree(out)
+        resume = (out.exists() and ablate_rows.resumable(out / "train", cfg)
+                  or ablate_rows.restore_resumable(out, cfg))  # a killed run of these options set aside
+        if not resume:  # a run of other options is set aside, one killed before its first checkpoint removed
+            ablate_rows.clear(out)
         out.mkdir(parents=True, exist_ok=True)
         if resume:
             log.info("%s: resuming the unfinished run from its checkpoint", spec["row"])

@@ -253,6 +253,13 @@ def test_a_row_killed_mid_training_continues_from_its_checkpoint(tiny, monkeypat
         tiny[1], tiny[2], tiny[0] / "midrow2", train_args=TRAIN_ARGS + ["--loss.lambda-nc", "0.2"])
     report = tiny[0] / "midrow2" / "rows" / "no-lnc_s0" / "train" / "report.json"
     assert json.loads(report.read_text())["resumed_from_step"] is None
+    # ... but it is kept aside with its checkpoint, and going back to its options resumes it (it was
+    # deleted: the kill's work lost)
+    aside = tiny[0] / "midrow2" / "rows" / "no-lnc_s0.outdated"
+    assert (aside / "train.partial" / "ckpt" / "last.pt").is_file()
+    _run(tiny, "midrow2", ["no-lnc"], floor=False)
+    assert json.loads(report.read_text())["resumed_from_step"] == 13
+    assert (tiny[0] / "midrow2" / "rows" / "no-lnc_s0.outdated-2" / "score.json").is_file()  # the 0.2 run
 
 
 def test_a_row_killed_while_scoring_keeps_its_finished_training(tiny, ablation, monkeypatch):
