@@ -112,6 +112,8 @@ def simulate_scene_priors(scene_dir: str | Path, out: str | Path, cfg: SimPriors
                           "method": "exact depth + simulated monocular errors: depth = s * warp(blur(gt)) * "
                                     "(1 + noise) + b; normals = GT mesh normals + blur + smooth tilt + noise",
                           "config": cfg.priors.to_dict(), "per_image": per_image}
+        if isinstance(meta.get("config"), dict) and "priors" in meta["config"]:  # a benchmark room's own
+            meta["config"]["priors"] = cfg.priors.to_dict()  # settings: the priors here are these ones
         (tmp / "scene.json").write_text(json.dumps(meta, indent=1))
     log.info("simulate-priors %s: %d views from %s and %s (config %s)", out, len(scene.cameras), depth_dir,
              mesh_path, asdict(cfg.priors))

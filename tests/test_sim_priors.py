@@ -4,6 +4,7 @@ within the simulated error of the truth once the per-image scale and shift are u
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,13 @@ def test_priors_follow_the_truth_up_to_the_simulated_errors(scene, tmp_path):
     out = simulate_scene_priors(scene, tmp_path / "sim", SimPriorsConfig(seed=3))
     meta = json.loads((out / "scene.json").read_text())["priors"]
     assert meta["simulated"] is True and meta["seed"] == 3 and len(meta["per_image"]) == 4
+    # a source room's own prior settings (make-room's config.priors) are replaced by the ones used
+    src = tmp_path / "room_src"
+    shutil.copytree(scene, src)
+    (src / "scene.json").write_text(json.dumps({"seed": 7, "config": {"seed": 7, "priors": {"depth_warp": 9.0}}}))
+    other = json.loads((simulate_scene_priors(src, tmp_path / "sim2", SimPriorsConfig(seed=3)) / "scene.json").read_text())
+    assert other["config"]["priors"] == other["priors"]["config"] == SimPriorsConfig().priors.to_dict()
+    assert other["seed"] == other["config"]["seed"] == 7  # the room's own seed stays (its layout's)
     loaded = Scene.load(out)
     assert loaded.has_depth_priors and loaded.has_normal_priors
     warp = meta["config"]["depth_warp"]
