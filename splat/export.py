@@ -5,10 +5,16 @@ so that SIBR's viewer and the reference ``render.py`` / ``metrics.py`` open it a
     RUN/point_cloud/iteration_<N>/cue_type.npy      this project's Gaussian types (readers ignore it)
     RUN/cfg_args                                    repr of the argparse Namespace of ModelParams
     RUN/cameras.json                                the reference ``camera_to_JSON`` of every camera
-                                                    (refined where the run refined them)
+                                                    (refined where the run refined them), with the
+                                                    principal point as extra keys ``cx``, ``cy``
+    RUN/input.ply                                   the scene's SfM points (the reference copies its
+                                                    points3D.ply there; SIBR's proxy mesh)
 
 ``cfg_args`` always says ``sh_degree=3``: the PLY is padded to degree 3 and the reference loader
-asserts that its ``f_rest`` count matches that degree. Every file is written atomically.
+asserts that its ``f_rest`` count matches that degree. What the reference's format cannot say is
+warned about when written: an off-centre principal point (its readers project through the image
+centre), held-out views other than every 8th (its ``llffhold``), a background neither white nor
+black. Every file is written atomically.
 """
 
 from __future__ import annotations
@@ -75,7 +81,49 @@ def camera_to_json(index: int, cam, refined: tuple[np.ndarray, np.ndarray, np.nd
         "rotation": [row.tolist() for row in R.T],
         "fy": float(K[1, 1]),
         "fx": float(K[0, 0]),
+        "cx": float(K[0, 2]),  # not in the reference's format (its readers ignore it): `splat render --views`
+        "cy": float(K[1, 2]),  # reads it, so that an off-centre principal point is kept
     }
+
+
+def reference_limits(cams: list[dict], cfg_dict: dict) -> list[str]:
+    """What the reference tools will read differently from this run (sentences for a warning): an
+    off-centre principal point, another held-out split than every 8th image, another background."""
+    out = []
+    off = max((max(abs(c["cx"] - c["width"] / 2), abs(c["cy"] - c["height"] / 2)) for c in cams), default=0.0)
+    if off > 0.5:
+        out.append(f"the principal point is up to {off:.1f} px off the image centre, where SIBR and the reference "
+                   "render.py put it (cameras.json has no cx/cy in their format): their renders of this run are "
+                   "shifted by as much; `splat render` reads the cx/cy this project adds")
+    test_every = int(cfg_dict.get("test_every", 8))
+    if test_every not in (0, 8):
+        out.append(f"this run held out every {test_every}th view (--test-every {test_every}); the reference "
+                   "render.py / metrics.py hold out every 8th (llffhold): their test scores would include "
+                   "views this run trained on")
+    background = tuple(float(c) for c in cfg_dict.get("background", (0.0, 0.0, 0.0)))
+    if background not in ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)):
+        out.append(f"the background {background} is neither black nor white, the only ones the reference "
+                   "knows (cfg_args white_background=False): its renders show black behind thin areas")
+    return out
+
+
+def write_input_ply(path: Path, scene: Scene) -> Path | None:
+    """The scene's SfM points as the reference's ``storePly`` writes them (x y z nx ny nz red green
+    blue, normals 0): SIBR loads ``RUN/input.ply`` as its proxy mesh. None when the scene has none."""
+    from plyfile import PlyData, PlyElement
+
+    pts = scene.points
+    if pts is None or len(pts.xyz) == 0:
+        return None
+    dtype = [(n, "f4") for n in ("x", "y", "z", "nx", "ny", "nz")] + [(n, "u1") for n in ("red", "green", "blue")]
+    rows = np.zeros(len(pts.xyz), dtype)
+    for k, n in enumerate("xyz"):
+        rows[n] = pts.xyz[:, k]
+    for k, n in enumerate(("red", "green", "blue")):
+        rows[n] = pts.rgb[:, k]
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(rows, "vertex")]).write(str(tmp))
+    return path
 
 
 def write_3dgs_run(run_dir: str | Path, params: dict[str, Tensor], cue_type: Tensor | None, scene: Scene,
@@ -107,5 +155,8 @@ def write_3dgs_run(run_dir: str | Path, params: dict[str, Tensor], cue_type: Ten
     cams = [camera_to_json(i, cam, r) for i, (cam, r) in enumerate(zip(scene.cameras, refined))]
     with atomic_path(run_dir / "cameras.json") as tmp:
         tmp.write_text(json.dumps(cams, allow_nan=False))
+    write_input_ply(run_dir / "input.ply", scene)
+    for sentence in reference_limits(cams, cfg_dict):
+        log.warning("3DGS tools reading %s: %s", model_path_of(run_dir), sentence)
     log.info("wrote the 3DGS reference layout of %s (iteration %d, %d cameras)", run_dir, iteration, len(cams))
     return ply

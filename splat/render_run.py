@@ -71,7 +71,8 @@ class ViewCam:
 
 def cameras_from_json(path: Path, scale: float = 1.0) -> list[ViewCam]:
     """Views of a reference ``cameras.json`` (camera-to-world ``position`` / ``rotation``, fx, fy,
-    width, height), sizes multiplied by ``scale``. Errors name the file and the entry."""
+    width, height; the principal point ``cx``, ``cy`` where given, else the image centre as in the
+    reference), sizes multiplied by ``scale``. Errors name the file and the entry."""
     try:
         entries = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as exc:
@@ -84,12 +85,16 @@ def cameras_from_json(path: Path, scale: float = 1.0) -> list[ViewCam]:
             Rc2w, C = np.asarray(e["rotation"], np.float64), np.asarray(e["position"], np.float64)
             w, h = round(e["width"] * scale), round(e["height"] * scale)
             fx, fy = float(e["fx"]) * scale, float(e["fy"]) * scale
+            # the principal point this project adds (cx, cy; the reference's format has none: the centre)
+            cx, cy = (float(e["cx"]) * scale, float(e["cy"]) * scale) if "cx" in e and "cy" in e else (w / 2, h / 2)
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{path}: camera {k} lacks or has a bad field ({exc!r}); needs position, "
                              f"rotation, fx, fy, width, height") from exc
         if Rc2w.shape != (3, 3) or C.shape != (3,) or not (np.isfinite(Rc2w).all() and np.isfinite(C).all()):
             raise ValueError(f"{path}: camera {k} has a bad rotation (3x3) or position (3)")
-        K = np.array([[fx, 0, w / 2], [0, fy, h / 2], [0, 0, 1]])
+        if not np.isfinite([fx, fy, cx, cy]).all():
+            raise ValueError(f"{path}: camera {k} has a non-finite fx, fy, cx or cy")
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
         R = Rc2w.T
         cams.append(ViewCam(str(e.get("img_name", f"cam{k:04d}")), K, R, -R @ C, int(w), int(h)))
     return cams
@@ -154,7 +159,7 @@ def load_run(run_dir: Path, scene_override: str | Path | None = None):
     `splat train` folder; the scene from RUN/report.json (splat/run_paths.py) unless ``scene_override``."""
     from geocues.scene import Scene
     from splat.gaussians import load_ply
-    from splat.run_paths import recorded_path
+    from splat.run_paths import gaussians_ply, recorded_path
 
     report_path = run_dir / "report.json"
     if not report_path.is_file():
@@ -167,7 +172,7 @@ def load_run(run_dir: Path, scene_override: str | Path | None = None):
         raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; pass --scene SCENE")
     scene = Scene.load(scene_dir, downscale=cfg.get("downscale", 1.0), test_every=cfg.get("test_every", 8),
                        check_priors=False)
-    params, _ = load_ply(run_dir / "point_cloud.ply", sh_degree=cfg.get("sh_degree"))
+    params, _ = load_ply(gaussians_ply(run_dir), sh_degree=cfg.get("sh_degree"))
     return scene, params, cfg
 
 

@@ -40,3 +40,23 @@ def recorded_path(run_dir: str | Path, report: dict, key: str) -> Path | None:
             log.info("the run's %s %s is not there; using %s", key, given, path)
             return path
     return given
+
+
+def gaussians_ply(run_dir: str | Path) -> Path:
+    """The run's Gaussians: RUN/point_cloud.ply, else the highest RUN/point_cloud/iteration_N/point_cloud.ply
+    (the reference layout alone, as SIBR and the reference render.py find it: a run copied without
+    the top-level link). FileNotFoundError naming both when neither is there."""
+    run_dir = Path(run_dir)
+    top = run_dir / "point_cloud.ply"
+    if top.is_file():
+        return top
+    found = []
+    for sub in (run_dir / "point_cloud").glob("iteration_*"):
+        it = sub.name[len("iteration_"):]
+        if it.isdigit() and (sub / "point_cloud.ply").is_file():
+            found.append((int(it), sub / "point_cloud.ply"))
+    if found:
+        return max(found)[1]
+    raise FileNotFoundError(f"{run_dir} holds no point_cloud.ply nor point_cloud/iteration_N/point_cloud.ply "
+                            "(not a finished `splat train` folder)")
+

@@ -32,7 +32,7 @@ from typing import Literal
 
 import numpy as np
 
-from splat.run_paths import recorded_path
+from splat.run_paths import gaussians_ply, recorded_path
 
 log = logging.getLogger(__name__)
 
@@ -190,9 +190,7 @@ def _resolve(run_dir: Path, cfg: ViewConfig) -> dict[str, Path | None]:
     """The files of each layer (None where absent, with one warning). Raises on a bad RUN."""
     if not run_dir.is_dir():
         raise FileNotFoundError(f"no run folder at {run_dir}")
-    ply = run_dir / "point_cloud.ply"
-    if not ply.is_file():
-        raise FileNotFoundError(f"{run_dir} holds no point_cloud.ply (not a finished `splat train` folder)")
+    ply = gaussians_ply(run_dir)
     report_path = run_dir / "report.json"
     report = {}
     if report_path.is_file():

@@ -199,6 +199,48 @@ def test_write_3dgs_run(tmp_path):
         np.testing.assert_allclose(np.linalg.inv(c2w), cam.world_to_camera, atol=1e-12)
         assert (entry["width"], entry["height"]) == (32, 24)
         assert (entry["fx"], entry["fy"]) == (cam.K[0, 0], cam.K[1, 1])
+        assert (entry["cx"], entry["cy"]) == (cam.K[0, 2], cam.K[1, 2])  # extra keys the reference ignores
+    assert not (run / "input.ply").exists()  # a scene without SfM points has no proxy to write
+
+
+def test_the_reference_format_s_limits_are_named_and_input_ply_written(tmp_path, caplog):
+    """What SIBR / the reference render.py read differently from the run is warned about when written:
+    an off-centre principal point (they project through the centre: a cropped scene rendered from
+    cameras.json shifted by 8 px), --test-every other than their llffhold 8 (their test views would
+    be training views), a grey background (white_background=False: black); input.ply holds the
+    scene's SfM points in storePly's layout (SIBR's proxy mesh)."""
+    import logging
+
+    from geocues.scene import Points3D
+    from splat.render_run import cameras_from_json
+
+    scene = tiny_scene(tmp_path / "scene")
+    rng = np.random.default_rng(0)
+    xyz, rgb = rng.normal(size=(5, 3)), rng.integers(0, 256, (5, 3), dtype=np.uint8)
+    scene.points = Points3D(np.arange(5), xyz, rgb, np.zeros(5), np.full(5, 3))
+    params = random_params(4, 1)
+    centred = {"downscale": 2.0, "test_every": 8, "background": (0.0, 0.0, 0.0)}
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        write_3dgs_run(tmp_path / "a", params, None, scene, centred, 10)
+    assert caplog.text == ""  # K's centre is (16, 12) of 32x24: nothing to say
+    v = PlyData.read(str(tmp_path / "a" / "input.ply"))["vertex"]
+    assert [p.name for p in v.properties] == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), xyz, atol=1e-6)
+    np.testing.assert_array_equal(np.stack([v["red"], v["green"], v["blue"]], 1), rgb)
+    scene.cameras[1].K[0, 2] += 8.0  # a cropped photo
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        write_3dgs_run(tmp_path / "b", params, None, scene, {**centred, "test_every": 5,
+                                                             "background": (0.5, 0.5, 0.5)}, 10)
+    assert "principal point is up to 8.0 px off the image centre" in caplog.text
+    assert "held out every 5th view (--test-every 5)" in caplog.text and "every 8th (llffhold)" in caplog.text
+    assert "background (0.5, 0.5, 0.5) is neither black nor white" in caplog.text
+    back = cameras_from_json(tmp_path / "b" / "cameras.json")  # `splat render --views` keeps the offset
+    np.testing.assert_allclose(back[1].K, scene.cameras[1].K)
+    entries = json.loads((tmp_path / "b" / "cameras.json").read_text())
+    for e in entries:
+        del e["cx"], e["cy"]
+    (tmp_path / "ref.json").write_text(json.dumps(entries))  # a reference-written file: the centre
+    assert cameras_from_json(tmp_path / "ref.json")[1].K[0, 2] == 16.0
 
 
 def test_lines3d_ply_opens_in_open3d(tmp_path):

@@ -160,3 +160,28 @@ def test_a_run_is_found_from_any_folder_and_after_moving_with_its_scene(tmp_path
     (moved / "outputs" / "run" / "report.json").write_text(json.dumps(legacy))
     with pytest.raises(FileNotFoundError, match=r"scene folder nowhere \(recorded in .*report.json\).*--scene"):
         load_run(moved / "outputs" / "run")
+
+
+def test_a_run_with_the_reference_layout_only_is_rendered(fake_run, tmp_path):
+    """A run copied without RUN/point_cloud.ply (the top-level link) but with the reference layout's
+    point_cloud/iteration_N/point_cloud.ply renders from the highest N, as SIBR finds it; with neither
+    the error names both."""
+    import shutil
+
+    from splat.run_paths import gaussians_ply
+
+    run_dir, _ = fake_run
+    copy = tmp_path / "copied"
+    shutil.copytree(run_dir, copy, ignore=shutil.ignore_patterns("renders"))
+    for it in (7, 30):
+        (copy / "point_cloud" / f"iteration_{it}").mkdir(parents=True)
+        shutil.move(str(copy / "point_cloud.ply"), copy / "point_cloud" / f"iteration_{it}" / "point_cloud.ply")
+        shutil.copy(copy / "point_cloud" / f"iteration_{it}" / "point_cloud.ply", copy / "point_cloud.ply")
+    (copy / "point_cloud.ply").unlink()
+    (copy / "point_cloud" / "iteration_x").mkdir()  # not a number: not a candidate
+    assert gaussians_ply(copy) == copy / "point_cloud" / "iteration_30" / "point_cloud.ply"
+    out = run(RenderConfig(), copy, tmp_path / "out")
+    assert len(list((out / "rgb").glob("*.png"))) == 2
+    shutil.rmtree(copy / "point_cloud")
+    with pytest.raises(FileNotFoundError, match="no point_cloud.ply nor point_cloud/iteration_N"):
+        gaussians_ply(copy)
