@@ -239,6 +239,7 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
                          f"scene's {cam0.width}x{cam0.height}")
     scene = Scene.load(scene_dir, downscale=downscale, test_every=test_every, check_priors=False)
     tests = {scene.cameras[i].stem: i for i in scene.test_indices}
+    files = _reference_names(files, list(tests), renders_dir)
     missing = sorted(set(tests) - set(files))
     extra = sorted(set(files) - set(tests))
     if extra:
@@ -253,6 +254,17 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
     result["renders"], result["scene"], result["downscale"] = str(renders_dir), str(scene_dir), downscale
     result["n_test_views"], result["missing_views"] = len(tests), missing
     return result
+
+
+def _reference_names(files: dict[str, Path], test_stems: list[str], renders_dir: Path) -> dict[str, Path]:
+    """Renders named as the 3DGS reference ``render.py`` names them (``00000.png`` ... : the index in its
+    test list, which is the test views in name order) keyed by the test views' stems instead; ``files``
+    unchanged when they are named like the views (or are not exactly indices 0..T-1 of T test views)."""
+    if set(files) <= set(test_stems) or set(files) != {f"{k:05d}" for k in range(len(test_stems))}:
+        return files
+    log.info("the renders in %s are named 00000..%05d as the reference render.py names them: matched to the "
+             "%d test views in name order", renders_dir, len(test_stems) - 1, len(test_stems))
+    return {stem: files[f"{k:05d}"] for k, stem in enumerate(sorted(test_stems))}
 
 
 def _warn_other_scene(renders_dir: Path, scene_dir: str | Path) -> None:

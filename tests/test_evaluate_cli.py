@@ -288,3 +288,26 @@ def test_a_mesh_the_scene_barely_sees_is_named(tmp_path, caplog):
         assert main([str(wall), str(scene), "-o", str(tmp_path / "b.json"), "--n-samples", "5000"]) == 0
     assert re.search(r"only 2\d % of .*wall.ply is seen by the 1 cameras", caplog.text)
     assert "is SCENE the scene" in json.loads((tmp_path / "b.json").read_text())["protocol"]["seen_warning"]
+
+
+def test_renders_named_as_the_reference_render_py_names_them_are_matched():
+    """The 3DGS reference render.py writes test/ours_N/renders/00000.png ... (the index in its test list,
+    the test views in name order): they were refused ('renders [...] are not test views'); they map to
+    the test views in name order, and only when they are exactly 00000..T-1 for T test views."""
+    from pathlib import Path
+
+    from evaluation.image_metrics import _reference_names
+
+    tests = ["frame_016", "frame_000", "frame_008"]
+    index_named = {f"{k:05d}": Path(f"r/{k:05d}.png") for k in range(3)}
+    assert _reference_names(index_named, tests, Path("r")) == {
+        "frame_000": Path("r/00000.png"), "frame_008": Path("r/00001.png"), "frame_016": Path("r/00002.png")}
+    own = {"frame_000": Path("r/frame_000.png")}  # named like the views (some missing): unchanged
+    assert _reference_names(own, tests, Path("r")) is own
+    two = {k: v for k, v in index_named.items() if k != "00002"}  # not all T: unchanged (then refused)
+    assert _reference_names(two, tests, Path("r")) is two
+    rooms = ["00000", "00008", "00016"]  # a benchmark room's own names overlap the indices
+    assert _reference_names(index_named, rooms, Path("r")) == {
+        "00000": Path("r/00000.png"), "00008": Path("r/00001.png"), "00016": Path("r/00002.png")}
+    assert _reference_names({"00000": Path("r/00000.png"), "00008": Path("r/00008.png")}, rooms, Path("r")) == {
+        "00000": Path("r/00000.png"), "00008": Path("r/00008.png")}  # the room's own names win
