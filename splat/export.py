@@ -12,7 +12,7 @@ so that SIBR's viewer and the reference ``render.py`` / ``metrics.py`` open it a
 
 ``cfg_args`` always says ``sh_degree=3``: the PLY is padded to degree 3 and the reference loader
 asserts that its ``f_rest`` count matches that degree. What the reference's format cannot say is
-warned about when written: an off-centre principal point (its readers project through the image
+warned about when written: a scene they cannot load, an off-centre principal point (its readers project through the image
 centre), held-out views other than every 8th (its ``llffhold``), a background neither white nor
 black. Every file is written atomically.
 """
@@ -86,10 +86,18 @@ def camera_to_json(index: int, cam, refined: tuple[np.ndarray, np.ndarray, np.nd
     }
 
 
-def reference_limits(cams: list[dict], cfg_dict: dict) -> list[str]:
-    """What the reference tools will read differently from this run (sentences for a warning): an
-    off-centre principal point, another held-out split than every 8th image, another background."""
+def reference_limits(cams: list[dict], cfg_dict: dict, scene: Scene | None = None) -> list[str]:
+    """What the reference tools will read differently from this run (sentences for a warning): a
+    scene they cannot load from ``source_path``, an off-centre principal point, another held-out
+    split than every 8th image, another background."""
     out = []
+    model = Path(scene.model_dir) if scene is not None and scene.model_dir is not None else None
+    if model is not None and model.suffix == ".json":
+        out.append(f"the scene is a nerfstudio {model.name}: the reference render.py loads a COLMAP model from "
+                   "cfg_args' source_path/sparse/0 (or a Blender transforms_train.json) and cannot load it")
+    elif model is not None and model.resolve() != (Path(scene.root) / "sparse" / "0").resolve():
+        out.append(f"the scene's COLMAP model is in {model}, where the reference render.py does not look "
+                   "(source_path/sparse/0 of cfg_args)")
     off = max((max(abs(c["cx"] - c["width"] / 2), abs(c["cy"] - c["height"] / 2)) for c in cams), default=0.0)
     if off > 0.5:
         out.append(f"the principal point is up to {off:.1f} px off the image centre, where SIBR and the reference "
@@ -156,7 +164,7 @@ def write_3dgs_run(run_dir: str | Path, params: dict[str, Tensor], cue_type: Ten
     with atomic_path(run_dir / "cameras.json") as tmp:
         tmp.write_text(json.dumps(cams, allow_nan=False))
     write_input_ply(run_dir / "input.ply", scene)
-    for sentence in reference_limits(cams, cfg_dict):
+    for sentence in reference_limits(cams, cfg_dict, scene):
         log.warning("3DGS tools reading %s: %s", model_path_of(run_dir), sentence)
     log.info("wrote the 3DGS reference layout of %s (iteration %d, %d cameras)", run_dir, iteration, len(cams))
     return ply

@@ -234,6 +234,16 @@ def test_the_reference_format_s_limits_are_named_and_input_ply_written(tmp_path,
     assert "principal point is up to 8.0 px off the image centre" in caplog.text
     assert "held out every 5th view (--test-every 5)" in caplog.text and "every 8th (llffhold)" in caplog.text
     assert "background (0.5, 0.5, 0.5) is neither black nor white" in caplog.text
+    assert "where the reference render.py does not look" not in caplog.text  # SCENE/sparse/0
+    caplog.clear()
+    scene.model_dir = tmp_path / "scene" / "transforms.json"
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        write_3dgs_run(tmp_path / "c", params, None, scene, centred, 10)
+    assert "the scene is a nerfstudio transforms.json: the reference render.py" in caplog.text
+    scene.model_dir = tmp_path / "scene" / "colmap" / "sparse"
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        write_3dgs_run(tmp_path / "d", params, None, scene, centred, 10)
+    assert "colmap/sparse, where the reference render.py does not look (source_path/sparse/0" in caplog.text
     back = cameras_from_json(tmp_path / "b" / "cameras.json")  # `splat render --views` keeps the offset
     np.testing.assert_allclose(back[1].K, scene.cameras[1].K)
     entries = json.loads((tmp_path / "b" / "cameras.json").read_text())
