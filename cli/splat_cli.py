@@ -45,6 +45,22 @@ def bench(json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
 
+def exit_status(run_dir: Path) -> int:
+    """1 with an error line when the finished run's model is empty (report.json ``empty_result``: no
+    Gaussian left, or none the held-out views see); the run's files are kept to look at. Else 0."""
+    import json
+
+    try:
+        empty = json.loads((Path(run_dir) / "report.json").read_text()).get("empty_result")
+    except (OSError, ValueError):
+        return 0
+    if empty:
+        print(f"splat train: error: the trained model is empty (the warning above says why); its files are kept "
+              f"in {run_dir}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _train_command(preset_name: str = "full", config_file: Path | None = None, iters_given: bool = False):
     """`splat train` with the defaults of preset ``preset_name`` or of a run's config.yaml
     (options on the command line win; ``iters_given``: --iters is among them)."""
@@ -91,7 +107,7 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None, i
             log.info("--preset %s: %g x --iters = %d iterations", preset, factor, cfg.iters)
         run(cfg, scene, cues, out, overwrite=overwrite, resume=resume)
         print(f"wrote {out}/report.json")
-        return 0
+        return exit_status(out)
 
     return train
 

@@ -49,7 +49,8 @@ from splat.mesh_post import ply_element_counts
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.train_setup import (TrainingSetup, cue_report_priors, make_optimizers,  # noqa: F401  (re-exported)
                                open_run, setup_training, type_counts)
-from splat.train_outputs import evaluate_views, final_warnings, fuse_mesh, render_view  # noqa: F401  (re-exported)
+from splat.train_outputs import (empty_result, evaluate_views, final_warnings, fuse_mesh,  # noqa: F401  (re-exported)
+                                 render_view)
 from splat.train_outputs import write_outputs as _write_outputs
 from splat.views import View
 
@@ -396,7 +397,8 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
               "test_per_view": final.get("per_view", []), "accuracy_vs_time": loop.curve, "timings": timings,
               "resumed_from_step": step0 if ckpt is not None else None, "guard_events": s.guard.events,
-              "camera_refinement": s.refiner.summary() if s.refiner is not None else None, "mesh": mesh}
+              "camera_refinement": s.refiner.summary() if s.refiner is not None else None, "mesh": mesh,
+              "empty_result": empty_result(cfg, s, final)}
     with atomic_path(work / "report.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2, allow_nan=False))
     if not cfg.keep_ckpt:
@@ -404,6 +406,7 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
     publish(work, out_dir)
     log.info("done in %.1f s: test PSNR %s, %d Gaussians; outputs in %s", timings["total_s"],
              _db(final["psnr"]), len(s.state["cue_type"]), out_dir)
-    for warning in final_warnings(cfg, s, mesh, _db(final["psnr"]), out_dir):  # what a run's result may not be: said last
+    for warning in final_warnings(cfg, s, mesh, _db(final["psnr"]), out_dir,
+                                  report["empty_result"]):  # what a run's result may not be: said last
         log.warning("%s", warning)
     return out_dir

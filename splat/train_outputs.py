@@ -54,13 +54,15 @@ def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out
                    refiner: CameraRefiner | None = None) -> dict:
     """Mean PSNR / SSIM of the renders of held-out ``views`` (with the refined shared focal when a
     ``refiner`` is given); PNGs to ``out_dir`` when given."""
-    from evaluation.image_metrics import psnr, ssim
+    from evaluation.image_metrics import PSNR_MAX, psnr, ssim
 
     rows = []
     for k in range(len(views)):
         view = refiner.test_view(views[k]) if refiner is not None else views[k]
-        rgb = render_view(params, view, sh_degree, cfg, maps=False)["rgb"].clamp(0, 1)  # colour alone: the same image
-        rows.append({"name": view.name, "psnr": psnr(rgb.cpu(), view.rgb.cpu()), "ssim": ssim(rgb.cpu(), view.rgb.cpu())})
+        out = render_view(params, view, sh_degree, cfg, maps=False)
+        rgb = out["rgb"].clamp(0, 1)  # colour alone: the same image
+        rows.append({"name": view.name, "psnr": min(psnr(rgb.cpu(), view.rgb.cpu()), PSNR_MAX),  # as `evaluate`
+                     "ssim": ssim(rgb.cpu(), view.rgb.cpu()), "alpha": float(out["alpha"].mean())})
         if out_dir is not None:
             import cv2
             out_dir.mkdir(parents=True, exist_ok=True)
@@ -69,7 +71,37 @@ def evaluate_views(params, views: ViewSet, sh_degree: int, cfg: TrainConfig, out
     if not rows:
         return {"psnr": None, "ssim": None, "n_views": 0}
     return {"psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": float(np.mean([r["ssim"] for r in rows])),
-            "n_views": len(rows), "per_view": rows}
+            "alpha": float(np.mean([r["alpha"] for r in rows])), "n_views": len(rows), "per_view": rows}
+
+
+NOTHING_RENDERED = 0.01  # mean alpha of the held-out views under which a model is said to render nothing
+PRUNING_SAYS = ("strategy.prune_opa", "strategy.prune_scale3d", "strategy.grow_scale3d", "init.min_scale",
+                "init.opacity", "lr.opacities", "lr.scales")
+"""Options that can prune every Gaussian (or leave none visible) when set far from their defaults."""
+
+
+def empty_result(cfg: TrainConfig, s: TrainingSetup, final: dict) -> str | None:
+    """Why the trained model is no model (a sentence), or None: no Gaussian left, or none that the
+    held-out views see (mean alpha under 1 %: a scene in millimetres lies within the 0.01 m near plane)."""
+    n = len(s.state["cue_type"])
+    default = type(cfg)()
+    changed = []
+    for dotted in PRUNING_SAYS:
+        group, name = dotted.split(".")
+        if hasattr(getattr(cfg, group), name) and getattr(getattr(cfg, group), name) != getattr(getattr(default, group), name):
+            changed.append(f"--{group}.{name.replace('_', '-')} {getattr(getattr(cfg, group), name)}")
+    settings = f"the settings in use ({', '.join(changed)})" if changed else "the --strategy.* and --init.* settings"
+    if n == 0:
+        return f"the run ended with 0 Gaussians: every one was pruned; check {settings}"
+    alpha = final.get("alpha")
+    if alpha is not None and alpha < NOTHING_RENDERED:
+        from geocues.rescale import metric_warning
+
+        why = metric_warning(s.scene)
+        return (f"the held-out views render nothing (mean alpha {alpha:.2g}, {n} Gaussians): "
+                + (why if why else f"the Gaussians are out of the cameras' view; check {settings} and the cameras "
+                   "(geocues info)"))
+    return None
 
 
 @torch.no_grad()
@@ -111,12 +143,16 @@ def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, f
     return final
 
 
-def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: str, out_dir: Path) -> list[str]:
+def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: str, out_dir: Path,
+                   empty: str | None = None) -> list[str]:
     """The sentences a finished run ends with when its result may not be what it looks like: an empty
-    (or nearly empty) mesh and its likely cause, steps the divergence guard rolled back, a camera refinement gone far."""
+    (or nearly empty) mesh and its likely cause, steps the divergence guard rolled back, a camera refinement
+    gone far; ``empty`` (:func:`empty_result`) is said last, in place of the mesh's cause."""
     out = []
     events = len(s.guard.events)
-    if mesh is not None and mesh["triangles"] < FEW_TRIANGLES:
+    if empty is not None:
+        pass  # the model itself is empty: the mesh's emptiness has no other cause to name
+    elif mesh is not None and mesh["triangles"] < FEW_TRIANGLES:
         changed = [f"--tsdf.{k.replace('_', '-')} {getattr(cfg.tsdf, k)}" for k in TSDF_SAYS
                    if getattr(cfg.tsdf, k) != getattr(type(cfg.tsdf)(), k)]  # from the command line or a preset
         cause = (f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)"
@@ -130,7 +166,7 @@ def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: 
     elif events:
         out.append(f"the divergence guard rolled back {events} steps of this run (report.json guard_events): its "
                    f"result may be poor; lower the learning rates (--lr.*) or the loss weights that spiked")
-    if idle := idle_terms(Path(out_dir) / "train_log.jsonl"):
+    if empty is None and (idle := idle_terms(Path(out_dir) / "train_log.jsonl")):  # (an empty model: no term acts)
         out.append(f"the loss term{'s' * (len(idle) > 1)} {', '.join(idle)} {'were' if len(idle) > 1 else 'was'} 0 at "
                    f"every logged step: never acted (patches of --loss.patch-size {cfg.loss.patch_size} px with too few "
                    "valid pixels in small images, or priors that cover nothing rendered); the run is the row without it")
@@ -140,6 +176,8 @@ def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: 
             out.append(f"the camera refinement went far (focal x{r['focal_factor']:.3g}, up to "
                        f"{r['rotation_deg']['max']:.3g} deg): it no longer refines the scene's cameras; lower "
                        "--pose-lr / --focal-lr, or check the scene's poses")
+    if empty is not None:
+        out.append(f"the model of {out_dir} is EMPTY: {empty}")
     return out
 
 

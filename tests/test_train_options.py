@@ -151,3 +151,36 @@ def test_a_prior_term_that_never_acted_is_named(tmp_path):
                            for k in range(5)))
     assert idle_terms(log) == ["depth"]
     assert idle_terms(tmp_path / "absent.jsonl") == []
+
+
+def test_an_empty_model_is_an_error_with_its_cause(scene, tmp_path, capsys, caplog):
+    """A run that ended with 0 Gaussians (--strategy.prune-opa 1.0) or with Gaussians no view sees (a scene
+    in millimetres: all within the 0.01 m near plane) printed "done ... 4.49 dB" and exited 0; with the
+    mesh on, the only warning blamed the TSDF settings. Now: exit 1, the files kept, the cause named."""
+    from types import SimpleNamespace
+
+    from cli.geocues_cli import main as geocues
+    from cli.splat_cli import main
+    from splat.train_outputs import empty_result, final_warnings
+
+    base, root, cues = scene
+    assert geocues(["rescale", str(root), "-o", str(tmp_path / "mm"), "--scale", "0.001"]) == 0
+    capsys.readouterr()
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        assert main(["train", str(tmp_path / "mm"), "-c", str(cues), "-o", str(tmp_path / "run"), "--init-from", "sfm",
+                     *SHORT]) == 1
+    assert "splat train: error: the trained model is empty" in capsys.readouterr().err
+    said = caplog.records[-1].getMessage()
+    assert "is EMPTY: the held-out views render nothing (mean alpha 0" in said and "not the 0.5-200 m" in said
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["test_metrics"]["alpha"] == 0 and report["empty_result"].startswith("the held-out views render")
+
+    cfg = dataclasses.replace(TrainConfig(), strategy=dataclasses.replace(TrainConfig().strategy, prune_opa=1.0))
+    s = SimpleNamespace(state={"cue_type": []}, guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28)
+    empty = empty_result(cfg, s, {"psnr": 4.49, "alpha": 0.0})
+    assert empty == "the run ended with 0 Gaussians: every one was pruned; check the settings in use (--strategy.prune-opa 1.0)"
+    said = final_warnings(cfg, s, {"triangles": 0}, "4.49 dB", "RUN", empty)
+    assert said == [f"the model of RUN is EMPTY: {empty}"]  # not the TSDF settings, nor idle loss terms
+    s.state["cue_type"] = [0] * 10
+    assert empty_result(cfg, s, {"psnr": 30.0, "alpha": 0.9}) is None
+
