@@ -47,10 +47,22 @@ class GuardConfig:
     """Scene bounds: the cue cloud's centre +- this times the scene scale."""
 
     def validate(self) -> None:
+        """Raise ValueError naming the first impossible --guard.* setting (a NaN spike factor trained to
+        the end and failed writing report.json; --guard.bounds-mult 0 'diverged' at step 0)."""
         if self.snapshot_every < 1 or self.max_rollbacks < 1:
-            raise ValueError("guard.snapshot_every and guard.max_rollbacks must be >= 1")
+            raise ValueError(f"--guard.snapshot-every and --guard.max-rollbacks must be >= 1, got "
+                             f"{self.snapshot_every}, {self.max_rollbacks}")
         if not 0 < self.lr_factor < 1:
-            raise ValueError(f"guard.lr_factor must be in (0, 1), got {self.lr_factor}")
+            raise ValueError(f"--guard.lr-factor must be in (0, 1), got {self.lr_factor}")
+        if not (math.isfinite(self.spike_factor) and self.spike_factor > 1):
+            raise ValueError(f"--guard.spike-factor is a multiple of the loss's running mean and must be a finite "
+                             f"number > 1, got {self.spike_factor}")
+        if not 0 < self.max_outside <= 1:
+            raise ValueError(f"--guard.max-outside is a fraction of the Gaussians and must be in (0, 1], got "
+                             f"{self.max_outside}")
+        if not (math.isfinite(self.bounds_mult) and self.bounds_mult >= 1):
+            raise ValueError(f"--guard.bounds-mult must be a finite number >= 1 (bounds smaller than the scene "
+                             f"call its own Gaussians divergent), got {self.bounds_mult}")
 
 
 def _not_finite(tensors: dict[str, Tensor], extra: Tensor | None = None) -> list:

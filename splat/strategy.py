@@ -24,6 +24,7 @@ All iteration counts are the paper's for 30,000 iterations and scale with ``tota
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -103,6 +104,34 @@ class IndoorStrategyConfig:
     """Types under IndoorGS's own rule (above). A type left out gets plain 3DGS density control:
     clone in place / free split on every refine step in (start, stop) -- the paper's Tab. 3 rows
     "w/o customised ADC" (none listed), "w/o line / SfM / plane ADC" (that one left out)."""
+
+    def validate(self) -> None:
+        """Raise ValueError naming (as `splat train` spells it) the first impossible setting: a NaN
+        threshold trained to the end and then failed writing report.json, --strategy.reset-opacity 2
+        failed at the first reset (step 3000 of 30k) without naming the option."""
+        def flag(name: str) -> str:
+            return f"--strategy.{name.replace('_', '-')}"
+
+        for name in ("refine_start", "refine_stop", "sfm_pause", "sfm_resume", "min_reset_every"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{flag(name)} must be >= 0, got {getattr(self, name)}")
+        for name in ("refine_every", "reset_every", "min_refine_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{flag(name)} must be >= 1, got {getattr(self, name)}")
+        for name in ("grow_grad2d", "grow_scale3d", "prune_scale3d"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{flag(name)} must be a finite number > 0, got {getattr(self, name)}")
+        for name in ("line_clone_step", "precedence_sigmas"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ValueError(f"{flag(name)} must be a finite number >= 0, got {getattr(self, name)}")
+        if not 0 <= self.prune_opa < 1:  # 1 prunes every Gaussian at the first refine step
+            raise ValueError(f"{flag('prune_opa')} is an opacity and must be in [0, 1), got {self.prune_opa}")
+        if not 0 < self.reset_opacity < 1:
+            raise ValueError(f"{flag('reset_opacity')} is an opacity and must be in (0, 1), got {self.reset_opacity}")
+        if self.plane_rule not in ("none", "tangent"):
+            raise ValueError(f"{flag('plane_rule')} must be 'none' or 'tangent', got {self.plane_rule!r}")
+        if bad := [t for t in self.custom_types if t not in CueType.__members__]:
+            raise ValueError(f"{flag('custom_types')}: unknown cue types {bad}; choose from {list(CueType.__members__)}")
 
 
 @dataclass(frozen=True)

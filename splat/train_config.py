@@ -199,5 +199,6 @@ class TrainConfig:
             raise ValueError("--log-every, --mesh-every and --view-every must be >= 1")
         if not 0 <= self.view_port < 65536:
             raise ValueError(f"--view-port must be in 0..65535, got {self.view_port}")
+        self.strategy.validate()
         self.tsdf.validate()
         self.guard.validate()

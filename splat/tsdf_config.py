@@ -3,6 +3,7 @@ dataclass :class:`TSDFConfig` and the device spelling Open3D takes (splat/mesh.p
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 
@@ -61,6 +62,11 @@ class TSDFConfig:
 
     def validate(self) -> None:
         """Raise ValueError on an impossible setting, naming the option as `splat train` / `splat mesh` spell it."""
+        for name in ("voxel_size", "sdf_trunc", "depth_max", "weight_threshold", "consistency_px",
+                     "consistency_rel_depth", "max_depth_spread", "min_component_diag"):
+            value = getattr(self, name)
+            if value is not None and not math.isfinite(value):  # inf voxels: an empty mesh; a NaN weight a false surface
+                raise ValueError(f"--tsdf.{name.replace('_', '-')} must be a finite number, got {value}")
         if not self.voxel_size > 0:
             raise ValueError(f"--tsdf.voxel-size must be positive, got {self.voxel_size}")
         if not self.trunc >= 2.0 * self.voxel_size:
