@@ -223,6 +223,9 @@ def _gather_alpha(packed_t: Tensor, sel: Tensor, pix_xy: Tensor):
     valid = sel >= 0
     idx = sel.clamp(min=0).reshape(-1)
     data = torch.index_select(packed_t, 1, idx).view(-1, rows, k)  # [6 + C, R, K]
+    # pads read Gaussian 0: zero them, or a non-finite value of Gaussian 0 reaches every padded pixel
+    # (0 * NaN) and its gradient (the C++ backend never reads pads)
+    data = torch.where(valid[None], data, data.new_zeros(()))
     dx = data[0] - pix_xy[:, 0:1]
     dy = data[1] - pix_xy[:, 1:2]
     _, gauss, raw = gaussian_alpha(dx, dy, data[2], data[3], data[4], data[5])

@@ -99,7 +99,9 @@ def render(
       means2d [N, 2]          projected means (retain_grad() set when they require grad)
       radii [N] int32, visible [N] bool, n_contrib [H, W] int32
 
-    ``max_per_pixel``: the most Gaussians composited per pixel, front to back (every backend).
+    ``max_per_pixel``: the most Gaussians composited per pixel, front to back, by the torch backend (its
+    memory grows with it); the compiled backends composite every Gaussian until transmittance falls
+    under 1e-4, so with more than this many translucent Gaussians on a pixel they differ (splat/composite.py).
     ``near``, ``far`` (metres, 0 < near < far): view-space depths outside are culled.
 
     ``maps=False`` composites the colour alone (3 channels, no median): rgb, alpha, means2d, radii,
