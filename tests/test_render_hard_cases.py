@@ -157,3 +157,27 @@ def test_world_offset_1e4(backend):
     far = render_and_check(moved, make_camera(center=offset.double().numpy(), yaw=0.3), backend)
     for key in ("rgb", "depth", "median_depth", "normal", "alpha"):
         torch.testing.assert_close(far[key], base[key], rtol=1e-5, atol=1e-5, msg=key)
+
+
+@pytest.mark.parametrize("index", [0, 3])
+def test_a_nan_colour_stays_in_its_gaussian_s_footprint(backend, index):
+    """A non-finite colour of one Gaussian reaches only the pixels it blends into. The torch backend
+    gathered the -1 pads of its per-pixel selection as Gaussian 0 and multiplied them by alpha 0:
+    Gaussian 0's NaN reached 27 pixels outside its 43-pixel footprint (0 * NaN = NaN)."""
+    params = make_params(8, seed=3)
+    params["means"][index] = torch.tensor([-0.5, -0.3, 2.0])
+    device = "cuda" if backend == "cuda" else "cpu"
+    name = "torch" if backend == "cuda" else backend
+
+    def rgb(p):
+        with torch.no_grad():
+            return render({k: v.to(device) for k, v in p.items()}, make_camera().to(device), backend=name)["rgb"].cpu()
+
+    brighter = {k: v.clone() for k, v in params.items()}
+    brighter["sh0"][index] += 1.0
+    footprint = (rgb(brighter) - rgb(params)).abs().amax(-1) > 0
+    poisoned = {k: v.clone() for k, v in params.items()}
+    poisoned["sh0"][index, 0, 0] = float("nan")
+    nan_px = ~torch.isfinite(rgb(poisoned)).all(-1)
+    assert footprint.sum() > 10 and bool(nan_px[footprint].all())
+    assert not bool(nan_px[~footprint].any()), int(nan_px[~footprint].sum())
