@@ -105,7 +105,8 @@ def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int,
                    generator: torch.Generator | None = None, rel_std_eps: float = 1e-5) -> Tensor:
     """L_d (IndoorGS §4.3): (1/N) Σ_i (1 − PCC(P̂_i, P_mono,i)) over random non-overlapping patches.
 
-    depth: [H, W] rendered z-depth (m); prior: [H, W] monocular depth (any positive scale/shift);
+    depth: [H, W] rendered z-depth (m); prior: [H, W] monocular depth (any positive scale/shift, up to
+    float range: each patch's prior is rescaled by a power of two before the sums);
     valid: [H, W] bool, pixels to use (the caller's prior > 0 and alpha test). Patches are S × S
     cells of a grid (``sample_patch_grid``); the PCC uses only the valid pixels of a patch.
     A patch is skipped when fewer than half of its pixels are valid or when either side's std is
@@ -125,6 +126,11 @@ def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int,
     # pixel) would leak into the sums as NaN (fuzz finding, tests/test_fuzz_losses.py)
     x = torch.where(mb, _gather_patches(depth, corners, ph, pw).flatten(1), 0.0)
     y = torch.where(mb, _gather_patches(prior.to(depth.dtype), corners, ph, pw).flatten(1), 0.0)
+    # the PCC does not change when y is scaled: each patch's prior is brought to [1, 2) in magnitude by a
+    # power of two (exact: the same bits of the PCC), so that a prior of any scale (1e18, 1e-30) neither
+    # overflows nor underflows vy in float32 (an exact prior x 1e18 gave L_d 1, x 1e20 a NaN gradient)
+    top = y.abs().amax(1, keepdim=True)
+    y = y / torch.where(top > 0, torch.exp2(torch.floor(torch.log2(top))), torch.ones_like(top))
     n = m.sum(1)  # [M]
     n_safe = n.clamp(min=1)
     mx, my = (x * m).sum(1) / n_safe, (y * m).sum(1) / n_safe

@@ -119,6 +119,22 @@ def test_depth_pcc_loss(depth, prior, a, b, patch, n_patches, seed):
     assert results[torch.float32] == pytest.approx(results[torch.float64], abs=1e-3)
 
 
+@pytest.mark.parametrize("scale", [1e-30, 1e-20, 1e12, 1e18, 1e20, 1e30])
+def test_depth_pcc_loss_takes_a_prior_of_any_scale(scale):
+    """L_d is 0 for a prior that is the depth times any positive factor (its docstring: any scale): in
+    float32 vx * vy overflowed from 1e18 (L_d 1, then NaN gradients at 1e20) and vy underflowed at 1e-20
+    (every patch 'flat', the term idle). Each patch's prior is rescaled by a power of two (exact)."""
+    g = torch.Generator().manual_seed(0)
+    depth = (1.0 + torch.rand(32, 32, generator=g)).requires_grad_()
+    loss = depth_pcc_loss(depth, depth.detach() * scale, torch.ones(32, 32, dtype=torch.bool), 16, 4,
+                          generator=torch.Generator().manual_seed(1))
+    loss.backward()
+    assert abs(float(loss.detach())) < 1e-6 and torch.isfinite(depth.grad).all()
+    anti = depth_pcc_loss(depth.detach(), (3.0 - depth.detach() * 0.5) * scale, torch.ones(32, 32, dtype=torch.bool), 16, 4,
+                          generator=torch.Generator().manual_seed(1))
+    assert float(anti) == pytest.approx(2.0, abs=1e-5)  # still a correlation: reversed depth is the worst
+
+
 # --------------------------------------------------------------------------------------- L_n
 
 
