@@ -65,6 +65,21 @@ class GuardConfig:
                              f"call its own Gaussians divergent), got {self.bounds_mult}")
 
 
+def divergence_hint(event: dict) -> str:
+    """What to change after a divergence, from its event: the loss terms that went bad first point at
+    their weights and inputs (a prior of 1e30, --loss.lambda-depth 1e38), a loss spike at the weights,
+    anything else at the learning rates first (the advice was the learning rates whatever the cause)."""
+    if event.get("terms"):
+        return (f"The loss term{'s' * (len(event['terms']) > 1)} {', '.join(map(str, event['terms']))} went bad first: "
+                "check their weights (--loss.lambda-*) and what they read (the scene's depth/normal priors, the "
+                "cues), then the learning rates (--lr.*)")
+    if "running mean" in event["reason"]:
+        return ("Lower their learning rates (--lr.*) or the loss weights you raised (--loss.lambda-*: a large "
+                "weight makes the loss jump between views by nature; --guard.spike-factor tolerates more)")
+    return ("Lower their learning rates (--lr.*), or check the loss weights you raised (--loss.lambda-*) and the "
+            "inputs (the scene's priors, the cues, --background)")
+
+
 def _not_finite(tensors: dict[str, Tensor], extra: Tensor | None = None) -> list:
     """The names of the tensors whose sum is not finite, in one copy from the device (one wait for a
     GPU, not one per tensor); with ``extra`` (a 0-dim tensor) its value is appended to the list."""
@@ -145,10 +160,7 @@ class NumericsGuard:
             raise TrainingDiverged(
                 f"training diverged at step {event['step']}: {event['reason']} "
                 f"({self.bad_in_row - 1} rollbacks in a row did not help; offending parameters "
-                f"{', '.join(event['params'])}). Lower their learning rates (--lr.*)"
-                + (" or the loss weights you raised (--loss.lambda-*: a large weight makes the loss jump between "
-                   "views by nature; --guard.spike-factor tolerates more)" if "running mean" in event["reason"] else "")
-                + " or check the inputs")
+                f"{', '.join(event['params'])}). {divergence_hint(event)}")
         for key in event["params"]:
             self.lr_mult[key] = self.lr_mult.get(key, 1.0) * self.cfg.lr_factor
         log.warning("step %d: %s (loss terms %s; Gaussians %s); rolled back to the last good state, "

@@ -9,6 +9,7 @@ import logging
 import re
 
 import pytest
+import torch
 
 from cues_synth import make_room_scene
 from splat.train_config import TrainConfig
@@ -198,3 +199,21 @@ def test_an_empty_model_is_an_error_with_its_cause(scene, tmp_path, capsys, capl
     s.state["cue_type"] = [0] * 10
     assert empty_result(cfg, s, {"psnr": 30.0, "alpha": 0.9}) is None
 
+
+
+def test_a_divergence_names_what_to_change_from_its_cause():
+    """Every divergence advised lowering the learning rates, also when a prior of 1e30 or
+    --loss.lambda-depth 1e38 made a loss term non-finite: the terms that went bad first are named with
+    their weights and inputs; a loss spike names the weights; the rest the learning rates first."""
+    from splat.guard import GuardConfig, NumericsGuard, TrainingDiverged, divergence_hint
+
+    said = divergence_hint({"reason": "non-finite loss", "terms": ["depth"]})
+    assert said.startswith("The loss term depth went bad first: check their weights (--loss.lambda-*)")
+    assert "depth/normal priors" in said
+    assert "--guard.spike-factor" in divergence_hint({"reason": "loss 9 is 40x its running mean 0.2", "terms": []})
+    assert divergence_hint({"reason": "non-finite gradients", "terms": []}).startswith("Lower their learning rates")
+    guard = NumericsGuard(GuardConfig(max_rollbacks=1), torch.zeros(3), 1.0)
+    event = {"step": 7, "reason": "non-finite loss", "terms": ["depth", "normal"], "params": ["means"], "gaussians": {}}
+    guard.on_rollback(event)
+    with pytest.raises(TrainingDiverged, match=r"The loss terms depth, normal went bad first"):
+        guard.on_rollback(event)
