@@ -428,3 +428,32 @@ def test_render_backward_refine_smoke():
     out = render(params, cam, sh_degree=1, backend="torch")  # the new Gaussians render and train
     out["rgb"].mean().backward()
     assert torch.isfinite(params["means"].grad).all()
+
+
+@pytest.mark.parametrize("key, index, value", [("opacities", 2, float("nan")), ("means", 0, float("nan")),
+                                               ("scales", (slice(None), 0), 89.0)])
+def test_density_control_leaves_no_non_finite_gaussian(key, index, value):
+    """A NaN opacity was cloned and never pruned (sigmoid(NaN) < prune_opa is False), a split of a
+    Gaussian whose exp(scale) overflows float32 made non-finite means: the refine step prunes every
+    Gaussian with a non-finite parameter (the guard rolled such steps back in training)."""
+    from geocues.types import CueType
+
+    types = [int(CueType.SFM), int(CueType.LINE), int(CueType.PLANE)] * 2
+    params = make_params(len(types))
+    with torch.no_grad():
+        params[key][index] = value
+    opts = make_optimizers(params)
+    adam_step(params, opts, 0.0)
+    strategy = IndoorStrategy(IndoorStrategyConfig())
+    state = strategy.initialize_state(1.0)
+    state["cue_type"] = torch.tensor(types)
+    n = len(types)
+    means2d = torch.zeros(n, 2, requires_grad=True)
+    means2d.grad = torch.full((n, 2), 1.0)
+    params["means"].grad = torch.full((n, 3), 1.0)
+    info = {"means2d": means2d, "radii": torch.full((n,), 3, dtype=torch.int32), "width": 64, "height": 48,
+            "camera_center": torch.zeros(3)}
+    strategy.step_post_backward(params, opts, state, 600, info)
+    assert len(params["means"]) > 0
+    for name, p in params.items():
+        assert torch.isfinite(p.detach()).all(), name
