@@ -157,6 +157,10 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         if depth is None:
             raise ValueError(f"--median-depth: {scene_dir} has fewer than 10 SfM points in its views (run `geocues sfm`)")
         scale = cfg.median_depth / depth
+    extent = scene_extent(scene) * scale
+    if not (np.isfinite(extent) and 1e-6 <= extent <= 1e7):  # float32 training breaks far before 1e300
+        raise ValueError(f"the factor {scale:.6g} makes {scene_dir} {extent:.3g} m across: no scene is; check "
+                         "--scale (metres per unit of the scene)")
     import pycolmap
 
     transforms = find_transforms(scene_dir)

@@ -82,6 +82,10 @@ def test_bad_options_are_named(rooms, tmp_path):
         run(RescaleConfig(median_depth=0.0), root, tmp_path / "x")
     with pytest.raises(ValueError, match="positive"):
         run(RescaleConfig(scale=-2.0), root, tmp_path / "x")
+    for scale in (1e300, 1e-12):  # accepted: training then failed on an inf camera, the scale unnamed
+        with pytest.raises(ValueError, match=r"m across: no scene is; check --scale"):
+            run(RescaleConfig(scale=scale), root, tmp_path / "x")
+    assert not (tmp_path / "x").exists()
     plain = make_room_scene(tmp_path / "plain", n_views=4, w=64, h=48, priors="none")
     with pytest.raises(ValueError, match="no view of .* has a depth prior"):
         run(RescaleConfig(from_priors=True), plain, tmp_path / "y")
