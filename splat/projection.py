@@ -106,6 +106,23 @@ def ewa_covariance_2d(axes_cam: Tensor, scales: Tensor, p_cam: Tensor, camera: C
     return torch.stack([a, b, c], -1), (minors * minors).sum(-1)
 
 
+class _DivideRows(torch.autograd.Function):
+    """``num [N, K] / den [N]`` with d/d den = -(g . out) / den, as the C++ projection computes it:
+    autograd's -g num / den^2 underflows den^2 in float32 for a Gaussian under 1e-7 px^2 with
+    eps2d = 0 (a 1e-8 m Gaussian 2 m away: NaN gradients where the C++ backend gave 0)."""
+
+    @staticmethod
+    def forward(ctx, num: Tensor, den: Tensor) -> Tensor:
+        out = num / den[:, None]
+        ctx.save_for_backward(out, den)
+        return out
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        out, den = ctx.saved_tensors
+        return g / den[:, None], -(g * out).sum(-1) / den
+
+
 def low_pass_conic(cov2d: Tensor, det: Tensor, eps2d: float) -> tuple[Tensor, Tensor, Tensor]:
     """Conic of the low-passed covariance Sigma' + eps2d I, its det, and 3DGS's largest eigenvalue.
 
@@ -114,7 +131,7 @@ def low_pass_conic(cov2d: Tensor, det: Tensor, eps2d: float) -> tuple[Tensor, Te
     """
     a, b, c = (cov2d + torch.tensor([eps2d, 0.0, eps2d], dtype=cov2d.dtype, device=cov2d.device)).unbind(-1)
     det_lp = det + eps2d * (cov2d[:, 0] + cov2d[:, 2]) + eps2d * eps2d
-    conics = torch.stack([c / det_lp, -b / det_lp, a / det_lp], -1)
+    conics = _DivideRows.apply(torch.stack([c, -b, a], -1), det_lp)
     half_diff = 0.5 * (a - c)
     lam = 0.5 * (a + c) + torch.sqrt(torch.clamp(half_diff * half_diff + b * b, min=0.1))
     return conics, det_lp, lam

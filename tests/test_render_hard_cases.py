@@ -181,3 +181,19 @@ def test_a_nan_colour_stays_in_its_gaussian_s_footprint(backend, index):
     nan_px = ~torch.isfinite(rgb(poisoned)).all(-1)
     assert footprint.sum() > 10 and bool(nan_px[footprint].all())
     assert not bool(nan_px[~footprint].any()), int(nan_px[~footprint].sum())
+
+
+def test_a_vanishing_gaussian_without_low_pass_keeps_finite_gradients(backend):
+    """eps2d = 0 (allowed) and a 1e-8 m Gaussian 2 m away: its 2D covariance determinant is ~1e-28 px^4,
+    and autograd's -g c / det^2 of the torch projection underflowed det^2 in float32 (NaN gradients of
+    means and scales, where the C++ backend computed -(g . conic) / det and gave 0)."""
+    device = "cuda" if backend == "cuda" else "cpu"
+    cam = Camera.from_Rt(np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]]), np.eye(3), np.zeros(3), 16, 12)
+    p = {"means": torch.tensor([[0.0, 0.0, 2.0]]), "quats": torch.tensor([[1.0, 0, 0, 0]]),
+         "scales": torch.full((1, 3), math.log(1e-8)), "opacities": torch.zeros(1),
+         "sh0": torch.full((1, 1, 3), 0.5), "shN": torch.zeros(1, 0, 3)}
+    p = {k: v.to(device).requires_grad_() for k, v in p.items()}
+    out = render(p, cam.to(device), backend="torch" if backend == "cuda" else backend, eps2d=0.0)
+    (out["rgb"].sum() + out["depth"].sum()).backward()
+    for key in ("means", "scales", "quats"):
+        assert torch.isfinite(p[key].grad).all(), key
