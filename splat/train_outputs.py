@@ -155,8 +155,12 @@ def final_warnings(cfg: TrainConfig, s: TrainingSetup, mesh: dict | None, psnr: 
     elif mesh is not None and mesh["triangles"] < FEW_TRIANGLES:
         changed = [f"--tsdf.{k.replace('_', '-')} {getattr(cfg.tsdf, k)}" for k in TSDF_SAYS
                    if getattr(cfg.tsdf, k) != getattr(type(cfg.tsdf)(), k)]  # from the command line or a preset
+        from geocues.rescale import metric_warning
+
+        unit = metric_warning(s.scene) if getattr(s, "scene", None) is not None else None
         cause = (f"{len(s.train_views)} training views are too few to fit a room (it wants dozens)"
                  if len(s.train_views) < FEW_VIEWS else
+                 unit if unit else  # a scene in mm: every depth beyond --tsdf.depth-max, voxels of 2 mm
                  f"check the TSDF settings in use ({', '.join(changed)})" if changed else
                  "check the cameras (geocues info) and the learning rates (--lr.*)")
         what = ("is EMPTY (no rendered depth was fused" if mesh["triangles"] == 0 else

@@ -116,7 +116,7 @@ def test_a_backend_fallback_is_said_once(caplog, monkeypatch):
     assert caplog.text.count("backend 'cuda' needs CUDA tensors") == 1
 
 
-def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement():
+def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement(monkeypatch):
     """A run whose guard rolled back steps (--lr.means 1e3: a 38-triangle mesh) or whose focal went
     to x114 (--focal-lr 1) ended 'done' without a word."""
     from types import SimpleNamespace
@@ -140,6 +140,14 @@ def test_final_warnings_name_rollbacks_and_a_runaway_camera_refinement():
                             SimpleNamespace(guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28),
                             {"triangles": 1}, "20 dB", "RUN")  # --tsdf.voxel-size 0.5 on a room: one triangle
     assert len(coarse) == 1 and "has only 1 triangle (a room" in coarse[0] and "(--tsdf.voxel-size 0.5)" in coarse[0]
+    mm = SimpleNamespace(guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28,
+                         scene=SimpleNamespace(root="ROOM_MM"))
+    import geocues.rescale as rescale
+
+    # a scene in millimetres: the unit is named, not the cameras and learning rates
+    monkeypatch.setattr(rescale, "metric_warning", lambda scene: f"the scene spans 3500 units: make {scene.root} metric")
+    unit = final_warnings(TrainConfig(), mm, {"triangles": 0}, "20 dB", "RUN")
+    assert len(unit) == 1 and unit[0].endswith("the scene spans 3500 units: make ROOM_MM metric")
 
 
 def test_the_iteration_factor_follows_the_flag_not_its_value(scene, tmp_path, monkeypatch):
