@@ -233,8 +233,8 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
     first_path = next(iter(files.values()))
     first = load_image(first_path)
     cam0 = scene.cameras[0]
-    downscale = cam0.width / first.shape[1]
-    if abs(cam0.height / downscale - first.shape[0]) > 1:
+    downscale = render_downscale(cam0.width, cam0.height, first.shape[1], first.shape[0], renders_dir)
+    if downscale is None:
         raise ValueError(f"render {first_path} is {first.shape[1]}x{first.shape[0]}, not a downscale of the "
                          f"scene's {cam0.width}x{cam0.height}")
     scene = Scene.load(scene_dir, downscale=downscale, test_every=test_every, check_priors=False)
@@ -254,6 +254,24 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
     result["renders"], result["scene"], result["downscale"] = str(renders_dir), str(scene_dir), downscale
     result["n_test_views"], result["missing_views"] = len(tests), missing
     return result
+
+
+def render_downscale(width: int, height: int, rw: int, rh: int, renders_dir: Path | None = None) -> float | None:
+    """The ``--downscale`` that makes a ``width`` x ``height`` photo the ``rw`` x ``rh`` render, as training
+    rounds each side (geocues.scene.downscaled_size), or None. Tried: the run's own (RUN/report.json beside
+    RUN/test_renders), the whole factor, then each side's ratio: 321x239 at --downscale 2 is 160x120, whose
+    width ratio 2.006 gives 160x119."""
+    import json
+
+    from geocues.scene import downscaled_size
+
+    tries = []
+    try:
+        tries.append(float(json.loads((Path(renders_dir).parent / "report.json").read_text())["config"]["downscale"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    tries += [float(round(width / rw)), width / rw, height / rh]
+    return next((d for d in tries if d > 0 and downscaled_size(width, height, d) == (rw, rh)), None)
 
 
 def _reference_names(files: dict[str, Path], test_stems: list[str], renders_dir: Path) -> dict[str, Path]:

@@ -122,6 +122,11 @@ class Camera:
         return np.stack([x, y, np.ones_like(x, dtype=np.float64)], axis=-1)
 
 
+def downscaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
+    """The image size a ``downscale`` gives (each side rounded on its own, at least 1 px)."""
+    return max(1, int(round(width / downscale))), max(1, int(round(height / downscale)))
+
+
 @dataclass
 class Points3D:
     """SfM points of the model (possibly empty)."""
@@ -241,7 +246,7 @@ class Scene(ScenePriors):
                                  f"{im.width}x{im.height}")
             if not (np.isfinite(im.K).all() and np.isfinite(im.R).all() and np.isfinite(im.t).all()):
                 raise ValueError(f"image {im.name} in {model_dir} has a non-finite pose or intrinsics")
-            nw, nh = max(1, int(round(im.width / downscale))), max(1, int(round(im.height / downscale)))
+            nw, nh = downscaled_size(im.width, im.height, downscale)
             if min(nw, nh) < MIN_SIDE:  # 1-px images trained to a PSNR that meant nothing
                 raise ValueError(f"downscale {downscale:g} makes {im.name} ({im.width}x{im.height}) {nw}x{nh} px; "
                                  f"a side under {MIN_SIDE} px shows no scene: use at most "

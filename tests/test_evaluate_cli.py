@@ -311,3 +311,15 @@ def test_renders_named_as_the_reference_render_py_names_them_are_matched():
         "00000": Path("r/00000.png"), "00008": Path("r/00001.png"), "00016": Path("r/00002.png")}
     assert _reference_names({"00000": Path("r/00000.png"), "00008": Path("r/00008.png")}, rooms, Path("r")) == {
         "00000": Path("r/00000.png"), "00008": Path("r/00008.png")}  # the room's own names win
+
+
+def test_the_downscale_of_renders_of_odd_sized_photos_is_found():
+    """321x239 photos trained at --downscale 2 render 160x120 (each side rounded); the width ratio 2.006
+    read the photos at 160x119 and refused the run ('an image and its reference must have one size')."""
+    from evaluation.image_metrics import render_downscale
+
+    assert render_downscale(321, 239, 160, 120) == 2.0
+    assert render_downscale(640, 480, 640, 480) == 1.0
+    assert render_downscale(640, 480, 213, 160) == 3.0
+    assert render_downscale(1000, 750, 400, 300) == 2.5  # a fractional factor: the ratio
+    assert render_downscale(640, 480, 100, 100) is None  # no downscale of the photo
