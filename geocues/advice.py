@@ -88,6 +88,8 @@ def photos_only_summary(root: Path) -> list[str] | None:
     names = list_images(images)
     if not names or (root / "cache" / "sfm").is_dir():  # an unfinished sfm: its error says what to do
         return None
+    if (root / "sparse").is_dir() and any((root / "sparse").glob("*/cameras.*")):
+        return None  # a model in sparse/1 (COLMAP's mapper leaves them there): the error says to move it
     out = _sibling(root, "map")
     return [f"scene      {root}",
             f"photos     {len(names)} in {images} (no camera model yet: `geocues sfm` estimates poses, "

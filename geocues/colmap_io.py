@@ -153,8 +153,11 @@ def _check_text_model(model_dir: Path) -> None:
     cams, imgs = model_dir / "cameras.txt", model_dir / "images.txt"
     if not (cams.is_file() and imgs.is_file()):
         return
-    camera_ids = {ln.split()[0] for ln in cams.read_text(errors="replace").splitlines()
-                  if ln.strip() and not ln.lstrip().startswith("#")}
+    camera_lines = [(k + 1, ln.split()) for k, ln in enumerate(cams.read_text(errors="replace").splitlines())
+                    if ln.strip() and not ln.lstrip().startswith("#")]
+    for n, fields in camera_lines:
+        _check_camera_line(cams, n, fields)
+    camera_ids = {fields[0] for _, fields in camera_lines}
     lines = [(k + 1, ln) for k, ln in enumerate(imgs.read_text(errors="replace").splitlines())
              if not ln.lstrip().startswith("#")]
     while lines and not lines[-1][1].strip():  # trailing empty lines: the last image's empty 2D points and blanks
@@ -174,6 +177,24 @@ def _check_text_model(model_dir: Path) -> None:
                              "when it has no points")
 
 
+def _check_camera_line(path: Path, n: int, fields: list[str]) -> None:
+    """CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]: the parameter count the model takes (pycolmap's own check
+    said only "Check failed: camera.VerifyParams()")."""
+    import pycolmap
+
+    if len(fields) < 4:
+        raise ValueError(f"{path}: line {n} should be a camera (CAMERA_ID MODEL WIDTH HEIGHT PARAMS...), got "
+                         f"{' '.join(fields)[:80]!r}")
+    try:
+        info = pycolmap.Camera.create_from_model_name(1, fields[1], 1.0, 1, 1).params_info
+    except (ValueError, RuntimeError):
+        raise ValueError(f"{path}: line {n}: camera {fields[0]} has an unknown model {fields[1]!r}") from None
+    names = [s.strip() for s in info.split(",")]
+    if len(fields) - 4 != len(names):
+        raise ValueError(f"{path}: line {n}: camera {fields[0]} ({fields[1]}) takes {len(names)} parameters "
+                         f"({' '.join(names)}), got {len(fields) - 4}")
+
+
 def load_reconstruction(model_dir: Path):
     """pycolmap's Reconstruction of the model in ``model_dir``, with errors that name the folder. A posed
     model without a points3D file (cameras and images only: `geocues sfm`'s input) is read as one
@@ -184,7 +205,12 @@ def load_reconstruction(model_dir: Path):
     for stem in ("cameras", "images"):
         if not any((model_dir / f"{stem}.{ext}").is_file() for ext in ("bin", "txt")):
             raise FileNotFoundError(f"no {stem}.txt or {stem}.bin in {model_dir}")
-    _check_text_model(model_dir)
+    if (model_dir / "images.bin").is_file() and (model_dir / "images.txt").is_file():
+        newer = (model_dir / "images.txt").stat().st_mtime > (model_dir / "images.bin").stat().st_mtime
+        log.warning("%s holds a binary and a text model: the binary one (*.bin) is read%s", model_dir,
+                    "; images.txt is newer (edited?): remove the .bin files to read it" if newer else "")
+    else:
+        _check_text_model(model_dir)
     try:
         if any((model_dir / f"points3D.{ext}").is_file() for ext in ("bin", "txt")):
             return pycolmap.Reconstruction(str(model_dir))

@@ -122,3 +122,7 @@ def test_info_on_a_folder_of_photos_says_the_first_step(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"photos     3 in {photos / 'images'} (no camera model yet" in out
     assert f"geocues sfm '{photos}' -o '{tmp_path / 'my photos_map'}'" in out
+    (photos / "sparse" / "1").mkdir(parents=True)  # COLMAP's mapper left its model there: not "no model yet"
+    (photos / "sparse" / "1" / "cameras.txt").write_text("# an empty model\n")
+    assert main(["info", str(photos)]) == 1
+    assert f"{photos / 'sparse' / '1'} holds a model: move (or link) it to" in capsys.readouterr().err

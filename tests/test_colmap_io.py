@@ -187,6 +187,33 @@ def test_text_model_mistakes_name_the_file_and_line(tmp_path):
         read_model(model)
 
 
+def test_camera_lines_and_two_models_in_one_folder_are_named(tmp_path, caplog):
+    """A camera line with another parameter count than its model's was pycolmap's bare 'Check failed:
+    camera.VerifyParams()'; a folder with a binary and an edited text model read the binary in silence."""
+    import logging
+    import os
+
+    model = write_model(tmp_path / "m", _images(3))
+    cams = model / "cameras.txt"
+    text = cams.read_text()
+    first = next(ln for ln in text.splitlines() if ln and not ln.startswith("#"))
+    cams.write_text(text.replace(first, first.replace(" PINHOLE ", " OPENCV ")))
+    with pytest.raises(ValueError, match=r"cameras.txt: line \d+: camera \d+ \(OPENCV\) takes 8 parameters "
+                                         r"\(fx fy cx cy k1 k2 p1 p2\), got 4"):
+        read_model(model)
+    cams.write_text(text.replace(first, first.replace(" PINHOLE ", " PINHOL ")))
+    with pytest.raises(ValueError, match=r"camera \d+ has an unknown model 'PINHOL'"):
+        read_model(model)
+    cams.write_text(text)
+    write_model(tmp_path / "b", _images(3), binary=True)
+    for f in (tmp_path / "b").iterdir():
+        os.replace(f, model / f.name)
+    os.utime(model / "images.txt", (2e9, 2e9))  # the text model edited after the binary was written
+    with caplog.at_level(logging.WARNING, logger="geocues"):
+        read_model(model)
+    assert "holds a binary and a text model: the binary one (*.bin) is read; images.txt is newer" in caplog.text
+
+
 def test_no_model_names_what_the_folder_holds_instead(tmp_path):
     """The first command on a folder of photos, on a scene's images/ folder, or on a model kept in
     sparse/1 names the step that fixes it, not only the files it looked for."""
