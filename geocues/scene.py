@@ -48,12 +48,27 @@ def no_images_folder(image_dir: Path) -> FileNotFoundError:
     own = [p for p in given.iterdir() if is_image(p)] if given.is_dir() else []
     if not given.exists():
         return FileNotFoundError(f"the scene folder {given} does not exist")
+    if not own and (given / "transforms.json").is_file():  # a nerfstudio scene with frames in rgb/, ...
+        return FileNotFoundError(f"no images folder at {image_dir}: {given}/transforms.json keeps its frames "
+                                 f"elsewhere{_frames_folder(given)}, and this step reads photos in COLMAP's layout, "
+                                 f"SCENE/images/: link that folder as {image_dir}")
     if not own:
         return FileNotFoundError(f"no images folder at {image_dir}")
     fix = (f"pass the scene folder above it, {given.parent}" if given.name == "images"
            else f"move them into {image_dir}/ and pass {given}")
     return FileNotFoundError(f"no images folder at {image_dir}; {given} holds {len(own)} images itself, but a "
                              f"scene keeps them in images/ (COLMAP's layout): {fix}")
+
+
+def _frames_folder(root: Path) -> str:
+    """" (in X/)" naming the folder of a transforms.json's first frame, or "" when it cannot be read."""
+    import json
+
+    try:
+        first = Path(json.loads((root / "transforms.json").read_text())["frames"][0]["file_path"])
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return ""
+    return f" (in {first.parent}/)" if str(first.parent) not in ("", ".") else ""
 
 
 MIN_SIDE = 8  # pixels: the smallest image side a downscale may leave

@@ -209,3 +209,16 @@ def test_commands_that_take_a_colmap_model_take_a_nerfstudio_scene(colmap_scene,
     meta = tmp_path / "ns_sfm" / "scene.json"
     assert not meta.is_file() or "arbitrary" not in meta.read_text()
     _assert_same_cameras(scene, Scene.load(tmp_path / "ns_sfm"), same_paths=False)
+
+
+def test_a_step_that_needs_images_names_where_a_transforms_json_keeps_its_frames(tmp_path):
+    """`geocues sfm` on a nerfstudio scene with its frames in rgb/ said only "no images folder at
+    SCENE/images" (after `geocues info` advised it)."""
+    import json
+
+    from geocues.scene import no_images_folder
+
+    (tmp_path / "rgb").mkdir()
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": [{"file_path": "rgb/00000.png"}]}))
+    msg = str(no_images_folder(tmp_path / "images"))
+    assert "transforms.json keeps its frames elsewhere (in rgb/)" in msg and f"link that folder as {tmp_path / 'images'}" in msg
