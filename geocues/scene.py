@@ -60,6 +60,22 @@ def no_images_folder(image_dir: Path) -> FileNotFoundError:
                              f"scene keeps them in images/ (COLMAP's layout): {fix}")
 
 
+def _rotation_hint(path: Path, stored: tuple[int, int], model: tuple[int, int]) -> str:
+    """The likely cause when a photo's sides are the model's swapped and it carries an EXIF rotation."""
+    if stored != model[::-1]:
+        return ""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as img:
+            turned = img.getexif().get(0x0112, 1) in (5, 6, 7, 8)  # Orientation: a quarter turn
+    except Exception:  # noqa: BLE001  (a hint only: the size error stands on its own)
+        return ""
+    return ("; the file carries an EXIF rotation tag, which this toolkit does not apply (it reads the stored "
+            "pixels, docs/scenes.md): the model was made from the rotated photos, so save the photos rotated "
+            "(e.g. PIL.ImageOps.exif_transpose) or map the stored ones again") if turned else ""
+
+
 def _frames_folder(root: Path) -> str:
     """" (in X/)" naming the folder of a transforms.json's first frame, or "" when it cannot be read."""
     import json
@@ -258,7 +274,7 @@ class Scene(ScenePriors):
             w, h = _read_image_size(path)
             if (w, h) != (im.width, im.height):
                 raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "
-                                 f"{im.width}x{im.height}")
+                                 f"{im.width}x{im.height}{_rotation_hint(path, (w, h), (im.width, im.height))}")
             if not (np.isfinite(im.K).all() and np.isfinite(im.R).all() and np.isfinite(im.t).all()):
                 raise ValueError(f"image {im.name} in {model_dir} has a non-finite pose or intrinsics")
             nw, nh = downscaled_size(im.width, im.height, downscale)

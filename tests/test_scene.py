@@ -450,3 +450,20 @@ def test_prior_files_that_match_no_image_are_named_and_dotted_stems_find_theirs(
     assert s.depth_prior_path(1) is None  # not frame.npy
     np.save(depth / "frame.0001.npy", np.ones((cam.height, cam.width), np.float32))
     assert s.depth_prior_path(1) == depth / "frame.0001.npy"
+
+
+def test_a_photo_turned_by_its_exif_tag_is_named_as_the_cause_of_swapped_sides(tmp_path: Path):
+    """A model made from upright (EXIF-applied) phone photos, the files stored sideways with Orientation
+    6: the size error now says why; a plain size mismatch says nothing more."""
+    from PIL import Image
+
+    for name, orientation in (("turned", 6), ("plain", 1)):
+        root = tmp_path / name
+        (root / "images").mkdir(parents=True)
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(root / "images" / "a.jpg", exif=exif.tobytes())
+        write_model(root / "sparse" / "0", [RawImage(1, 1, "a.jpg", "PINHOLE", 48, 64, K, np.eye(3), np.zeros(3))])
+        with pytest.raises(ValueError, match="is 64x48 but its camera") as err:
+            Scene.load(root)
+        assert ("carries an EXIF rotation tag" in str(err.value)) == (name == "turned"), str(err.value)
