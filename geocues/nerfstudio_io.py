@@ -143,6 +143,10 @@ def read_transforms(path: str | Path) -> TransformsScene:
                 return meta[key]
             if default is not None:
                 return default
+            if "camera_angle_x" in meta or "camera_angle_x" in fr:  # the Blender / instant-ngp synthetic format
+                raise ValueError(f"{path} is a Blender / instant-ngp transforms.json (camera_angle_x), which is not "
+                                 "read: give nerfstudio's intrinsics fl_x = fl_y = w / (2 tan(camera_angle_x / 2)), "
+                                 "cx = w / 2, cy = h / 2, w, h (pixels) and file_path with its extension")
             raise ValueError(f"{path}: {where} has no '{key}' (and the file has none at its top level)")
 
         fx, fy, cx, cy, w, h = (_number(path, where, key, get(key)) for key in INTRINSICS)

@@ -222,3 +222,13 @@ def test_a_step_that_needs_images_names_where_a_transforms_json_keeps_its_frames
     (tmp_path / "transforms.json").write_text(json.dumps({"frames": [{"file_path": "rgb/00000.png"}]}))
     msg = str(no_images_folder(tmp_path / "images"))
     assert "transforms.json keeps its frames elsewhere (in rgb/)" in msg and f"link that folder as {tmp_path / 'images'}" in msg
+
+
+def test_a_blender_transforms_json_is_named_with_what_to_give(tmp_path):
+    """A Blender / instant-ngp file (camera_angle_x, no fl_x) said only "frame 0 has no 'fl_x'"."""
+    (tmp_path / "images").mkdir()
+    frame = {"file_path": "./images/00000", "transform_matrix": np.eye(4).tolist()}
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": [frame]}))
+    with pytest.raises(ValueError, match=r"is a Blender / instant-ngp transforms.json \(camera_angle_x\), which is "
+                                         r"not read: give nerfstudio's intrinsics fl_x = fl_y = w / \(2 tan"):
+        Scene.load(tmp_path)
