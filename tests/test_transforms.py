@@ -214,8 +214,6 @@ def test_commands_that_take_a_colmap_model_take_a_nerfstudio_scene(colmap_scene,
 def test_a_step_that_needs_images_names_where_a_transforms_json_keeps_its_frames(tmp_path):
     """`geocues sfm` on a nerfstudio scene with its frames in rgb/ said only "no images folder at
     SCENE/images" (after `geocues info` advised it)."""
-    import json
-
     from geocues.scene import no_images_folder
 
     (tmp_path / "rgb").mkdir()
