@@ -62,6 +62,18 @@ def undistort(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar
     return 0
 
 
+def _photos_not_in_model(s) -> list[str]:
+    """The photos in SCENE/images/ that no camera of the model names (COLMAP names: relative paths)."""
+    from geocues.photos import list_images
+
+    folder = Path(s.root) / "images"
+    if not folder.is_dir():
+        return []
+    named = {c.name for c in s.cameras} | {Path(c.image_path).resolve().relative_to(folder.resolve()).as_posix()
+                                           for c in s.cameras if Path(c.image_path).resolve().is_relative_to(folder.resolve())}
+    return [n for n in list_images(folder) if n not in named]
+
+
 def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")], downscale: float = 1.0, test_every: int = 8) -> int:
     """Print a summary of SCENE: cameras, image sizes, points, priors, train/test split.
 
@@ -86,6 +98,10 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
     print(f"model      {s.model_dir}")
     print(f"cameras    {len(s)}  sizes {', '.join(f'{w}x{h}' for w, h in sizes)}  "
           f"(first: fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f})")
+    if unposed := _photos_not_in_model(s):
+        print(f"photos     {len(unposed)} in {s.root / 'images'} are not in the model and are not used "
+              f"({', '.join(unposed[:3])}{', ...' if len(unposed) > 3 else ''}): photos added after SfM need "
+              "`geocues sfm` again")
     if len(pts) and not pts.track_length.any():  # a nerfstudio ply_file_path: positions alone
         print(f"points     {len(pts)}  (without tracks: their visibility is tested by projection)")
     elif len(pts):

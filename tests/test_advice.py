@@ -126,3 +126,19 @@ def test_info_on_a_folder_of_photos_says_the_first_step(tmp_path, capsys):
     (photos / "sparse" / "1" / "cameras.txt").write_text("# an empty model\n")
     assert main(["info", str(photos)]) == 1
     assert f"{photos / 'sparse' / '1'} holds a model: move (or link) it to" in capsys.readouterr().err
+
+
+def test_info_counts_photos_the_model_does_not_use(tmp_path, capsys):
+    """Photos added to images/ after SfM are ignored by every command: `geocues info` names them."""
+    import shutil
+
+    from cli.geocues_cli import main
+    from cues_synth import make_room_scene
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48, priors="none")
+    assert main(["info", str(root)]) == 0
+    assert "not in the model" not in capsys.readouterr().out
+    first = sorted((root / "images").iterdir())[0]
+    shutil.copy(first, root / "images" / f"zz_added{first.suffix}")
+    assert main(["info", str(root)]) == 0
+    assert f"photos     1 in {root / 'images'} are not in the model and are not used (zz_added" in capsys.readouterr().out
