@@ -1,0 +1,103 @@
+"""The values `geocues extract` refuses before any work (found by a sweep of 150 runs over its options):
+a NaN anywhere, an inf (``--line.support-dist-px inf`` was an OverflowError traceback), and values that
+gave empty cues or garbage without a word (``--plane.min-ray-cos 2``, ``--sor.sor-neighbors 1``,
+``--texture.work-width 0``, a negative angle). One error naming the option as the command spells it.
+The stages' own ``validate()`` (lines, floor) run after these."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields, is_dataclass
+from typing import Any
+
+POSITIVE = {  # > 0
+    "line": ("min_length_px", "dedup_dist_px", "support_dist_px", "support_depth_rel", "max_depth_m",
+             "max_line_sigma_m", "link_depth_rel", "merge_dist_m", "merge_gap_m", "sample_step"),
+    "texture": ("graph_sigma", "graph_k", "merge_step", "sift_contrast_threshold", "weak_density",
+                "max_segment_density"),
+    "align": ("inlier_rel", "min_depth_spread", "huber_rel", "edge_rel", "warp_max", "min_scale"),
+    "plane": ("voxel_size", "anchor_sigma", "max_plane_std", "cut_px", "max_depth", "ransac_dist", "ransac_rel",
+              "occlusion_rel", "agree_search_rel", "agree_dist", "occluder_jump", "occluder_step_px",
+              "free_ransac_dist", "free_loo_dist", "fuse_dist", "fuse_prior_rel", "fuse_prior_dist",
+              "support_radius", "conflict_radius"),
+    "floor": ("ceiling_margin",),
+}
+NON_NEGATIVE = {  # >= 0 (0: off where the option says so)
+    "sor": ("max_reproj_error", "min_track_length"),
+    "align": ("warp_degree", "warp_ridge", "edge_px"),
+    "texture": ("erode_px",),
+    "plane": ("border_px", "min_agree_anchors", "free_min_off_line"),
+}
+AT_LEAST_ONE = {  # counts and sizes
+    "line": ("max_segments", "n_neighbors", "topk_matches", "min_track_nodes"),
+    "texture": ("segment_width", "graph_min_size", "slic_region_size", "density_window"),
+    "align": ("min_anchors", "max_anchors", "ransac_iters"),
+    "plane": ("pixel_stride", "min_region_points", "max_planes", "free_min_anchors", "free_min_groups",
+              "free_local_k", "min_plane_views", "min_views"),
+    "floor": ("ceiling_min_views",),
+}
+FRACTIONS = {  # in [0, 1]
+    "line": ("min_pair_overlap", "support_coverage", "min_support_ratio", "min_track_ratio", "extent_min_share",
+             "min_epipolar_iou"),
+    "texture": ("min_region_frac",),
+    "plane": ("min_plane_frac", "free_min_inlier_ratio", "free_local_ratio", "min_ray_cos"),
+}
+MIN_WORK_WIDTH = 16  # px: texture.work_width below this was raised to it in silence
+
+
+def flag(path: str) -> str:
+    return "--" + path.replace("_", "-")
+
+
+def _floats(obj: Any, prefix: str = ""):
+    """(dotted path, value) of every float of a config, tuples' items included."""
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if is_dataclass(value):
+            yield from _floats(value, f"{prefix}{f.name}.")
+        elif isinstance(value, float):
+            yield prefix + f.name, value
+        elif isinstance(value, tuple):
+            yield from ((prefix + f.name, v) for v in value if isinstance(v, float))
+
+
+def check_extract_options(cfg) -> None:
+    """Raise ValueError naming the first impossible option of ``cfg`` (a geocues.extract.ExtractConfig)."""
+    for path, value in _floats(cfg):
+        if not math.isfinite(value):
+            raise ValueError(f"{flag(path)} must be a finite number, got {value}")
+    for path, value in _floats(cfg):
+        if path.endswith("_deg") and not 0 <= value <= 180:
+            raise ValueError(f"{flag(path)} is an angle and must be in [0, 180] degrees, got {value}")
+
+    def each(table):
+        for group, names in table.items():
+            for name in names:
+                yield f"{group}.{name}", getattr(getattr(cfg, group), name)
+
+    for path, value in each(POSITIVE):
+        if not value > 0:
+            raise ValueError(f"{flag(path)} must be > 0, got {value}")
+    for path, value in each(NON_NEGATIVE):
+        if value < 0:
+            raise ValueError(f"{flag(path)} must be >= 0 (0: off), got {value}")
+    for path, value in each(AT_LEAST_ONE):
+        if value < 1:
+            raise ValueError(f"{flag(path)} must be >= 1, got {value}")
+    for path, value in each(FRACTIONS):
+        if not 0 <= value <= 1:
+            raise ValueError(f"{flag(path)} is a share and must be in [0, 1], got {value}")
+    if cfg.sor.sor_neighbors < 2:  # Open3D's outlier removal with one neighbour removes every point
+        raise ValueError(f"--sor.sor-neighbors must be >= 2, got {cfg.sor.sor_neighbors}")
+    if not cfg.sor.sor_std_ratio > 0:
+        raise ValueError(f"--sor.sor-std-ratio must be > 0, got {cfg.sor.sor_std_ratio}")
+    if cfg.texture.work_width < MIN_WORK_WIDTH:
+        raise ValueError(f"--texture.work-width must be >= {MIN_WORK_WIDTH} px, got {cfg.texture.work_width}")
+    if cfg.align.max_anchors < cfg.align.min_anchors:
+        raise ValueError(f"--align.max-anchors ({cfg.align.max_anchors}) must be >= --align.min-anchors "
+                         f"({cfg.align.min_anchors}): every image would be skipped for too few anchors")
+    if not cfg.downscale > 0:
+        raise ValueError(f"--downscale must be > 0, got {cfg.downscale}")
+
+
+__all__ = ["check_extract_options"]
