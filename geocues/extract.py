@@ -101,6 +101,8 @@ def _key_config(cfg: ExtractConfig) -> dict:
     """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` and ``floor`` left out
     while off)."""
     d = asdict(cfg)
+    if cfg.line.use_test_views:  # added later; only says which views to leave out when they are left out
+        d["line"].pop("test_every")
     if cfg.floor.lines:  # added after --floor.wall-front-gap folders were made: out of the key while off
         for k in _CEILING_FIELDS if not cfg.floor.ceiling else ():
             d["floor"].pop(k)

@@ -44,3 +44,21 @@ def test_the_command_refuses_before_any_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--line.support-dist-px must be a finite number" in err and "Traceback" not in err
     assert not (tmp_path / "cues").exists()
+
+
+def test_lines_leave_out_the_held_out_views_when_asked(tmp_path, monkeypatch):
+    """--line.no-use-test-views was ignored (extract reads the scene with every view, so 'the training
+    views' were all of them): the views with index % --line.test-every == 0 are left out of the pairs."""
+    import geocues.extract as ex
+    import geocues.lines.pipeline as pipeline
+    from cues_synth import make_room_scene
+
+    root = make_room_scene(tmp_path / "room", n_views=10, w=96, h=72, priors="none")
+    used = []
+    real = pipeline.select_neighbors
+    monkeypatch.setattr(pipeline, "select_neighbors", lambda scene, cfg, use: used.append(list(use)) or real(scene, cfg, use))
+    for keep, test_every, out in ((True, 8, "all"), (False, 8, "train8"), (False, 3, "train3")):
+        cfg = apply_overrides(ExtractConfig(), {"planes": False, "line.use_test_views": keep,
+                                                "line.test_every": test_every})
+        ex.run(cfg, root, tmp_path / out)
+    assert used == [list(range(10)), [1, 2, 3, 4, 5, 6, 7, 9], [1, 2, 4, 5, 7, 8]]

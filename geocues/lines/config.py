@@ -31,6 +31,9 @@ class LineConfig:
     """Perpendicular distance (px at reference_width) of duplicates; twice it across RGB/normals."""
     use_test_views: bool = True
     """Use the held-out test views too (as SfM does); False restricts lines to training views."""
+    test_every: int = 8
+    """With use_test_views False: the held-out views to leave out are every n-th image in name order
+    (index % n == 0), as `splat train --test-every n` holds them out (its default 8)."""
     # ---- view pairs (pairs.py)
     n_neighbors: int = 10
     """Neighbour views per image used for matching and multi-view scoring."""
@@ -110,6 +113,8 @@ class LineConfig:
             raise ValueError(f"detector must be 'lsd' or 'fld', got {self.detector!r}")
         if self.matcher not in ("lbd", "epipolar"):
             raise ValueError(f"matcher must be 'lbd' or 'epipolar', got {self.matcher!r}")
+        if self.test_every < 1:
+            raise ValueError(f"--line.test-every must be >= 1 (every n-th image is held out), got {self.test_every}")
         if self.min_views < 2:
             raise ValueError(f"min_views must be >= 2, got {self.min_views}")
         if self.seed_views < 0 or 0 < self.seed_views < 2:

@@ -73,7 +73,8 @@ def extract_line_cues(scene, cfg: LineConfig | None = None, cache_dir: Path | No
     rejected["duplicates_2d"] = int(sum(det["duplicates_2d"]))
     rejected["images_without_segments"] = int(sum(n == 0 for n in det["segments"]))
     t0 = time.perf_counter()
-    use = [c.index for c in cams] if cfg.use_test_views else scene.train_indices
+    # the scene is read with every view (test_every 0): the held-out split to leave out is the option's
+    use = [c.index for c in cams if cfg.use_test_views or c.index % cfg.test_every != 0]
     neighbors, pair_stats = select_neighbors(scene, cfg, use)
     timings["lines_pairs"] = time.perf_counter() - t0
     rejected["images_without_neighbors"] = pair_stats["images_without_neighbors"]
