@@ -307,6 +307,9 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     clouds.append(plane_cloud)
     cues = CueCloud.concat(clouds)
     out_dir.mkdir(parents=True, exist_ok=True)
+    # an earlier run's report marks OUT finished: gone before the first file is replaced, so that a kill
+    # among the writes (--overwrite) leaves no mix of two runs that a rerun would take as finished
+    report_path.unlink(missing_ok=True)
     write_cues_ply(out_dir / "cues.ply", cues)
     write_cues_by_type_ply(out_dir / "cues_by_type.ply", cues)  # for looking at: coloured by type
     lc = lines if lines is not None else LineCues.empty()

@@ -62,3 +62,28 @@ def test_lines_leave_out_the_held_out_views_when_asked(tmp_path, monkeypatch):
                                                 "line.test_every": test_every})
         ex.run(cfg, root, tmp_path / out)
     assert used == [list(range(10)), [1, 2, 3, 4, 5, 6, 7, 9], [1, 2, 4, 5, 7, 8]]
+
+
+def test_a_kill_among_the_writes_of_an_overwrite_leaves_no_finished_mix(tmp_path, monkeypatch):
+    """A kill right after cues.ply of an --overwrite run was renamed into place left the old report.json
+    (the finished marker) beside the new cues: the rerun with the first options skipped, 'already holds
+    this run', and returned the other run's cues."""
+    import geocues.extract as ex
+    from cues_synth import make_room_scene
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=96, h=72, priors="none")
+    out = tmp_path / "cues"
+    first = apply_overrides(ExtractConfig(), {"planes": False})
+    ex.run(first, root, out)
+    wanted = (out / "cues.ply").read_bytes()
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ex, "write_cues_by_type_ply", killed)  # after cues.ply is in place
+    with pytest.raises(KeyboardInterrupt):
+        ex.run(apply_overrides(first, {"sor.sor_std_ratio": 0.3}), root, out, overwrite=True)
+    assert (out / "cues.ply").read_bytes() != wanted and not (out / "report.json").exists()
+    monkeypatch.undo()
+    ex.run(first, root, out)  # no --overwrite: extracted again, not skipped as finished
+    assert (out / "cues.ply").read_bytes() == wanted and (out / "report.json").is_file()
