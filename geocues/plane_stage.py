@@ -189,6 +189,12 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         if n_aligned < n_prior:
             notes.append(f"depth alignment skipped for {n_prior - n_aligned} of {n_prior} images: "
                          + ", ".join(f"{k} x{v}" for k, v in rej_align.items()))
+            if n_aligned < 0.5 * n_prior:  # priors given and mostly unused: said at INFO only, nothing with -q
+                log.warning("the depth priors of %d of %d images could not be aligned to the scene (%s): their "
+                            "plane cues are %s, and splat train's anchored depth term reads no aligned prior there; are the priors "
+                            "this scene's, and depth (or --prior-kind disparity)?", n_prior - n_aligned, n_prior,
+                            ", ".join(f"{k} x{v}" for k, v in rej_align.items()),
+                            "prior-free" if cfg.prior_free_fallback else "none")
         warning = kind_warning(fits, scene.root / "scene.json", cfg.align.inlier_rel)
         if warning:
             log.warning("%s", warning)
