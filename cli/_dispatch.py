@@ -288,11 +288,15 @@ def _run(fn: Callable, rest: list[str], sub_prog: str, verbose: bool) -> int:
 
 
 def option_from_argv(argv: list[str], name: str) -> str | None:
-    """The value of option ``name`` in ``argv`` (``NAME VALUE`` or ``NAME=VALUE``; the first), or None:
-    for commands whose defaults depend on an option (``--preset``) before tyro parses."""
+    """The value of option ``name`` in ``argv`` (``NAME VALUE`` or ``NAME=VALUE``), or None: for commands
+    whose defaults depend on an option (``--preset``) before tyro parses. Given twice with two values it
+    is an error (`--preset room --preset paper` ran room, the first)."""
+    values = []
     for k, a in enumerate(argv):
         if a == name and k + 1 < len(argv):
-            return argv[k + 1]
-        if a.startswith(name + "="):
-            return a.split("=", 1)[1]
-    return None
+            values.append(argv[k + 1])
+        elif a.startswith(name + "="):
+            values.append(a.split("=", 1)[1])
+    if len(set(values)) > 1:
+        raise ValueError(f"{name} is given {len(values)} times ({', '.join(values)}): give it once")
+    return values[0] if values else None

@@ -176,8 +176,22 @@ def _extract_command(preset_name: str = "paper"):
         """
         from geocues.extract import run
 
+        if preset != "paper":
+            try:
+                cfg.floor.validate()
+            except ValueError as exc:  # `--preset room --floor.no-lines` named a flag the user never typed
+                turned = ", ".join(f"--{k.replace('_', '-')}" for k, v in EXTRACT_PRESETS[preset].items() if v is True)
+                raise ValueError(f"{exc} (--preset {preset} turns on {turned}: leaving one out needs the ones "
+                                 "that depend on it off too)") from None
+        report_path = Path(out) / "report.json"
+        before = report_path.stat().st_mtime_ns if report_path.is_file() else None
         out_dir = run(cfg, scene, out, overwrite=overwrite)
         report = json.loads((out_dir / "report.json").read_text())
+        if before is not None and report_path.stat().st_mtime_ns == before:  # the same run finished earlier
+            print(f"{out_dir} already holds these cues (same options and scene): nothing redone; --overwrite "
+                  "extracts them again")
+            print(json.dumps({"counts": report["counts"], "notes": report["notes"]}, indent=2))
+            return 0
         print(json.dumps({k: report[k] for k in ("counts", "seconds", "notes")}, indent=2))
         return 0
 

@@ -87,3 +87,24 @@ def test_a_kill_among_the_writes_of_an_overwrite_leaves_no_finished_mix(tmp_path
     monkeypatch.undo()
     ex.run(first, root, out)  # no --overwrite: extracted again, not skipped as finished
     assert (out / "cues.ply").read_bytes() == wanted and (out / "report.json").is_file()
+
+
+def test_preset_mistakes_and_a_skipped_rerun_are_said(tmp_path, capsys):
+    """`--preset room --preset paper` ran room (the first); `--preset room --floor.no-lines` blamed
+    --floor.walls, a flag the user never typed; a rerun that did nothing printed the old run's seconds
+    as if it had run, and with -q nothing said it was skipped."""
+    from cli.geocues_cli import main
+    from cues_synth import make_room_scene
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=96, h=72, priors="none")
+    out = tmp_path / "cues"
+    assert main(["extract", str(root), "-o", str(out), "--preset", "room", "--preset", "paper"]) == 1
+    assert "--preset is given 2 times (room, paper): give it once" in capsys.readouterr().err
+    assert main(["extract", str(root), "-o", str(out), "--preset", "room", "--floor.no-lines"]) == 1
+    assert "(--preset room turns on --floor.lines, --floor.walls" in capsys.readouterr().err
+    assert main(["-q", "extract", str(root), "-o", str(out), "--no-planes"]) == 0
+    assert '"seconds"' in capsys.readouterr().out
+    assert main(["-q", "extract", str(root), "-o", str(out), "--no-planes"]) == 0
+    said = capsys.readouterr().out
+    assert said.startswith(f"{out} already holds these cues (same options and scene): nothing redone")
+    assert '"seconds"' not in said
