@@ -39,7 +39,7 @@ from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, wri
 from geocues.ceiling import add_level_grids, ceiling_height
 from geocues.floor_lines import FloorLineConfig, floor_line_anchors
 from geocues.depth_align import DepthAlignConfig, write_alignments
-from geocues.extract_checks import check_extract_options
+from geocues.extract_checks import check_extract_options, idle_options
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
 from geocues.plane_stage import plane_stage
@@ -203,6 +203,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     if not scene_dir.exists():
         raise FileNotFoundError(f"scene folder does not exist: {scene_dir}")
     check_extract_options(cfg)  # NaN, inf and values that gave empty cues in silence, before any work
+    for sentence in idle_options(cfg):
+        log.warning("%s", sentence)
     cfg.line.validate()
     cfg.floor.validate()
     check_not_input(out_dir, {"scene": scene_dir})  # cues.ply and report.json written into a scene mix with it

@@ -63,6 +63,8 @@ def _floats(obj: Any, prefix: str = ""):
 
 def check_extract_options(cfg) -> None:
     """Raise ValueError naming the first impossible option of ``cfg`` (a geocues.extract.ExtractConfig)."""
+    if not (cfg.sfm or cfg.lines or cfg.planes):
+        raise ValueError("--no-sfm --no-lines --no-planes leave nothing to extract: keep one stage on")
     for path, value in _floats(cfg):
         if not math.isfinite(value):
             raise ValueError(f"{flag(path)} must be a finite number, got {value}")
@@ -100,4 +102,26 @@ def check_extract_options(cfg) -> None:
         raise ValueError(f"--downscale must be > 0, got {cfg.downscale}")
 
 
-__all__ = ["check_extract_options"]
+def idle_options(cfg) -> list[str]:
+    """Sentences naming options set away from their defaults for a stage that is off (they do nothing:
+    `--floor.min-views 10` without --floor.lines ran as if not given, under the same config key)."""
+    default = type(cfg)()
+    stages = [("floor", not cfg.floor.lines, "floor lines are off (--floor.lines)"),
+              ("line", not cfg.lines, "the line stage is off (--no-lines)"),
+              ("sor", not cfg.sfm, "the SfM stage is off (--no-sfm)"),
+              ("plane", not cfg.planes, "the plane stage is off (--no-planes)"),
+              ("texture", not cfg.planes, "the plane stage is off (--no-planes)"),
+              ("align", not (cfg.planes and cfg.priors), "depth priors are not read (--no-planes or --no-priors)")]
+    out = []
+    for group, off, why in stages:
+        if not off:
+            continue
+        changed = [flag(f"{group}.{f.name}") for f in fields(getattr(cfg, group))
+                   if getattr(getattr(cfg, group), f.name) != getattr(getattr(default, group), f.name)
+                   and not (group == "floor" and f.name == "lines")]
+        if changed:
+            out.append(f"{', '.join(changed)} do{'es' * (len(changed) == 1)} nothing: {why}")
+    return out
+
+
+__all__ = ["check_extract_options", "idle_options"]

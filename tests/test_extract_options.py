@@ -30,6 +30,7 @@ def test_every_preset_passes(name):
     ({"plane.max_planes": 0}, "--plane.max-planes must be >= 1, got 0"),
     ({"line.max_depth_m": -1.0}, "--line.max-depth-m must be > 0, got -1.0"),
     ({"texture.erode_px": -4}, "--texture.erode-px must be >= 0 (0: off), got -4"),
+    ({"sfm": False, "lines": False, "planes": False}, "--no-sfm --no-lines --no-planes leave nothing to extract"),
     ({"align.max_anchors": 10}, "--align.max-anchors (10) must be >= --align.min-anchors (20)"),  # "too few anchors"
 ])
 def test_impossible_options_are_refused_naming_the_flag(change, said):
@@ -108,3 +109,16 @@ def test_preset_mistakes_and_a_skipped_rerun_are_said(tmp_path, capsys):
     said = capsys.readouterr().out
     assert said.startswith(f"{out} already holds these cues (same options and scene): nothing redone")
     assert '"seconds"' not in said
+
+
+def test_options_of_a_stage_that_is_off_are_named():
+    from geocues.extract_checks import idle_options
+
+    assert idle_options(ExtractConfig()) == []
+    said = idle_options(apply_overrides(ExtractConfig(), {"floor.min_views": 10, "plane.surface_angle_deg": 1.0}))
+    assert said == ["--floor.min-views does nothing: floor lines are off (--floor.lines)"]
+    said = idle_options(apply_overrides(ExtractConfig(), {"planes": False, "plane.voxel_size": 0.05,
+                                                          "align.inlier_rel": 0.05}))
+    assert said == ["--plane.voxel-size does nothing: the plane stage is off (--no-planes)",
+                    "--align.inlier-rel does nothing: depth priors are not read (--no-planes or --no-priors)"]
+    assert idle_options(extract_preset_config("room")) == []
