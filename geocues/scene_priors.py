@@ -34,6 +34,14 @@ def load_npy(path: Path, what: str, mmap_mode: str | None = None) -> np.ndarray:
     try:
         return np.load(path, mmap_mode=mmap_mode)
     except (ValueError, OSError, EOFError) as exc:
+        if "allow_pickle" in str(exc):  # numpy's guess for a file without the .npy magic: not an array file
+            try:
+                head = Path(path).read_bytes()[:6]
+            except OSError:
+                head = b""
+            if head != b"\x93NUMPY":
+                raise ValueError(f"cannot read the {what} {path}: it is not a .npy file (numpy.save writes "
+                                 "one; no .npy header)") from None
         raise ValueError(f"cannot read the {what} {path} ({exc})") from None
 
 

@@ -102,6 +102,14 @@ def test_truncated_npy_prior(room, capsys):
     _fails(capsys, geocues, ["extract", str(root), "-o", str(room[0] / "c_trunc")], "00002.npy")
 
 
+def test_a_prior_that_is_no_npy_file_is_named_so(room, capsys):
+    """numpy's own message for a text file named .npy points at unpickling ('allow_pickle=...')."""
+    root = _copy(room, "text_prior")
+    (root / "priors" / "depth" / "00002.npy").write_text("not an array")
+    err = _fails(capsys, geocues, ["extract", str(root), "-o", str(room[0] / "c_text")], "00002.npy")
+    assert "it is not a .npy file" in err and "allow_pickle" not in err
+
+
 def test_wrong_shape_prior(room, capsys):
     root = _copy(room, "shape_prior")
     np.save(root / "priors" / "depth" / "00001.npy", np.ones((48, 64, 2), np.float32))
