@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +33,16 @@ class CueMetricsConfig:
     """A GT sample counts as seen if it lies at most this far behind the GT surface along a ray."""
     seed: int = 0
     """Seed of the GT sampling."""
+
+    def validate(self) -> None:
+        """Raise ValueError naming an impossible option (--coverage-dist -1 printed 'within -100 cm')."""
+        if not (math.isfinite(self.coverage_dist) and self.coverage_dist > 0):
+            raise ValueError(f"--coverage-dist must be a finite distance > 0 (metres), got {self.coverage_dist}")
+        if not (math.isfinite(self.occlusion_tolerance) and self.occlusion_tolerance >= 0):
+            raise ValueError(f"--occlusion-tolerance must be a finite distance >= 0 (metres), got "
+                             f"{self.occlusion_tolerance}")
+        if self.n_gt_samples < 1 or self.seed < 0:
+            raise ValueError(f"--n-gt-samples must be >= 1 and --seed >= 0, got {self.n_gt_samples}, {self.seed}")
 
 
 def share_within(d: np.ndarray, t: float) -> float | None:
@@ -98,6 +109,7 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
     from geocues.scene import Scene
 
     cfg = cfg or CueMetricsConfig()
+    cfg.validate()
     cues_path = Path(cues_dir) / "cues.ply"
     if not cues_path.is_file():
         raise FileNotFoundError(f"no cues.ply in {cues_dir} (run `geocues extract SCENE -o {cues_dir}`)")
@@ -107,14 +119,21 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
         raise FileNotFoundError(f"no GT mesh: pass --gt or put one at {Path(scene_dir) / 'gt' / 'mesh.ply'}")
     from splat.init_gaussians import foreign_cues
 
-    if foreign := foreign_cues(cues_path, scene):  # scored anyway: the figures then measure the mix-up
+    report = Path(cues_dir) / "report.json"
+    try:
+        extracted_from = Path(json.loads(report.read_text())["scene"])
+    except (OSError, ValueError, KeyError, TypeError):
+        extracted_from = None
+    if extracted_from is not None and extracted_from.exists() and extracted_from.resolve() != scene.root.resolve():
+        log.warning("the cues %s were extracted from %s (its report.json), not %s: is SCENE the cues' scene?",
+                    cues_path, extracted_from, scene.root)  # scored anyway: the figures then measure the mix-up
+    elif foreign := foreign_cues(cues_path, scene):
         log.warning("the cues %s were extracted from another scene than %s: %s", cues_path, scene.root, foreign)
     gt = GroundTruth(gt_path, scene.cameras, cfg)
     result = cue_accuracy(read_cues_ply(cues_path), gt, cfg)
     sfm_all = gt.distances(scene.points.xyz)
     result["sfm_before_sor"] = {"n": int(len(sfm_all)), "within_5cm": share_within(sfm_all, 0.05)}
     result.update(cues=str(cues_path), scene=str(scene_dir), gt=str(gt_path))
-    report = Path(cues_dir) / "report.json"
     if report.is_file():
         result["seconds"] = json.loads(report.read_text()).get("seconds", {})
     return result

@@ -94,3 +94,34 @@ def test_cues_of_another_scene_are_scored_with_a_warning(tmp_path, caplog):
         with caplog.at_level(logging.WARNING, logger="evaluation"):
             result = evaluate_cues_dir(cues, root)
         assert ("extracted from another scene" in caplog.text) == warned and result["per_type"]
+
+
+def test_cues_named_by_their_report_as_another_scene_s_are_warned_and_bad_options_refused(tmp_path, caplog):
+    """A room's cues scored against ICL gave a 2263 mm median without a word (the cameras' check let
+    them pass); --coverage-dist -1 printed 'within -100 cm'."""
+    import json
+    import logging
+
+    from cues_synth import make_room_scene
+    from evaluation.cue_metrics import CueMetricsConfig, evaluate_cues_dir
+    from geocues.cue_io import write_cues_ply
+    from geocues.scene import Scene
+
+    from test_ablate import write_gt
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48, priors="none")
+    other = make_room_scene(tmp_path / "other", n_views=4, w=64, h=48, priors="none")
+    write_gt(root)
+    scene = Scene.load(root)
+    cues = tmp_path / "cues"
+    write_cues_ply(cues / "cues.ply", CueCloud.make(scene.points.xyz, np.zeros((len(scene.points), 3), np.uint8),
+                                                    CueType.SFM))
+    for source, warned in ((root, False), (other, True)):
+        (cues / "report.json").write_text(json.dumps({"scene": str(source)}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="evaluation"):
+            evaluate_cues_dir(cues, root)
+        assert (f"were extracted from {other} (its report.json), not" in caplog.text) == warned, caplog.text
+    for bad in ({"coverage_dist": -1.0}, {"coverage_dist": float("nan")}, {"occlusion_tolerance": float("inf")}):
+        with pytest.raises(ValueError, match="must be a finite distance"):
+            evaluate_cues_dir(cues, root, cfg=CueMetricsConfig(**bad))
