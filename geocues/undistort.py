@@ -3,7 +3,8 @@ into a PINHOLE scene with pycolmap's image undistorter (COLMAP ``image_undistort
 
 OUT gets undistorted ``images/``, the model in ``sparse/0`` (cameras now PINHOLE, points kept),
 ``scene.json`` copied and ``gt/`` linked. Priors are per-pixel maps of the distorted images and are
-not carried over (they would need the same warp): a warning says so.
+not carried over (they would need the same warp): a warning says so; a scene already pinhole keeps
+them (linked: nothing was warped).
 """
 
 from __future__ import annotations
@@ -56,10 +57,11 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
     if err := missing_images_error(model_dir, sorted(image_dir / im.name for im in rec.images.values())):
         raise err
     models = sorted({c.model.name for c in rec.cameras.values()})
-    if all(is_pinhole(c.model.name, camera_distortion(c)) for c in rec.cameras.values()):
+    pinhole = all(is_pinhole(c.model.name, camera_distortion(c)) for c in rec.cameras.values())
+    if pinhole:
         log.info("undistort: %s already uses %s cameras without distortion; images are copied unchanged "
                  "(every command reads this scene as it is)", scene_dir, models)
-    if (scene_dir / "priors").is_dir():
+    if (scene_dir / "priors").is_dir() and not pinhole:
         log.warning("undistort: priors in %s are not carried over (they would need the same warp)",
                     scene_dir / "priors")
 
@@ -88,6 +90,9 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
     gt = scene_dir / "gt"
     if gt.is_dir() and not (out_dir / "gt").exists():
         (out_dir / "gt").symlink_to(gt.resolve())
+    priors = scene_dir / "priors"
+    if pinhole and priors.is_dir() and not (out_dir / "priors").exists():  # nothing warped: they still fit
+        (out_dir / "priors").symlink_to(priors.resolve())
     log.info("undistort: wrote %s (cameras now %s)", out_dir,
              sorted({c.model.name for c in new.cameras.values()}))
     return out_dir

@@ -467,3 +467,16 @@ def test_a_photo_turned_by_its_exif_tag_is_named_as_the_cause_of_swapped_sides(t
         with pytest.raises(ValueError, match="is 64x48 but its camera") as err:
             Scene.load(root)
         assert ("carries an EXIF rotation tag" in str(err.value)) == (name == "turned"), str(err.value)
+
+
+def test_undistort_of_a_pinhole_scene_keeps_its_priors(tmp_path: Path):
+    """Nothing is warped in a scene already pinhole: its priors still fit the copied images (they were
+    dropped with 'they would need the same warp')."""
+    from cues_synth import make_room_scene
+    from geocues.undistort import UndistortConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48, priors="all")
+    out = run(UndistortConfig(), root, tmp_path / "und")
+    a, b = Scene.load(root), Scene.load(out)
+    assert b.has_depth_priors
+    np.testing.assert_array_equal(a.depth_prior(1), b.depth_prior(1))
