@@ -31,8 +31,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Sequence
 
@@ -87,6 +88,10 @@ class MvsConfig:
     """a triangle whose plane the view sees at |cos| below this (grazing) gives no plane."""
 
     def validate(self) -> None:
+        for f in fields(self):  # --min-ncc nan was accepted (every comparison with NaN is False)
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"--{f.name.replace('_', '-')} must be a finite number, got {value}")
         if self.max_size < 16 or self.n_depths < 8 or self.window < 3 or self.window % 2 == 0:
             raise ValueError(f"mvs: need max_size >= 16, n_depths >= 8 and an odd window >= 3 "
                              f"(got {self.max_size}, {self.n_depths}, {self.window})")

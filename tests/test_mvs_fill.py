@@ -141,6 +141,8 @@ def test_the_fill_needs_the_consistency_check():
         MvsConfig(planar_fill=True, min_consistent=0).validate()
     with pytest.raises(ValueError, match="fill_stride"):
         MvsConfig(planar_fill=True, fill_stride=0).validate()
+    with pytest.raises(ValueError, match="--min-ncc must be a finite number, got nan"):  # was accepted
+        MvsConfig(min_ncc=float("nan")).validate()
 
 
 @pytest.fixture(scope="module")
