@@ -97,6 +97,25 @@ _WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel", "wall_front_gap")  # added
 _CEILING_FIELDS = ("ceiling", "ceiling_margin", "ceiling_min_views")  # added after --floor.wall-front-gap folders
 
 
+def _what_changed(old: dict, cfg: ExtractConfig, scene_dir: Path) -> str:
+    """Which options differ from an earlier report's (one it does not record counts when set away from
+    its default), or else that the scene's files changed."""
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+        return out
+
+    now, default = (flat(json.loads(json.dumps(asdict(c), default=_json_default))) for c in (cfg, ExtractConfig()))
+    then = flat(old.get("config", {}))
+    changed = ["--" + k.replace("_", "-") for k, v in now.items() if then.get(k, default.get(k)) != v]
+    if changed:
+        return f"options {', '.join(changed[:6])}{', ...' if len(changed) > 6 else ''} differ"
+    if old.get("scene") and Path(old["scene"]).resolve() != Path(scene_dir).resolve():
+        return f"it was extracted from {old['scene']}"
+    return "the same options: the scene's images/, priors/, sparse/ or scene.json changed since"
+
+
 def _key_config(cfg: ExtractConfig) -> dict:
     """The configuration as hashed for OUT's key (:data:`_SURFACE_FIELDS` and ``floor`` left out
     while off)."""
@@ -224,8 +243,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             log.info("extract: %s already holds this run (config %s); skipping", out_dir, key)
             return out_dir
         raise ValueError(f"{out_dir} holds cues of another configuration or scene "
-                         f"(config {old.get('config_key')} vs {key}); pass --overwrite (overwrite=True) "
-                         "to replace them")
+                         f"(config {old.get('config_key')} vs {key}: {_what_changed(old, cfg, scene_dir)}); "
+                         "pass --overwrite (overwrite=True) to replace them")
     log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()

@@ -122,3 +122,22 @@ def test_options_of_a_stage_that_is_off_are_named():
     assert said == ["--plane.voxel-size does nothing: the plane stage is off (--no-planes)",
                     "--align.inlier-rel does nothing: depth priors are not read (--no-planes or --no-priors)"]
     assert idle_options(extract_preset_config("room")) == []
+
+
+def test_a_refused_rerun_says_what_changed(tmp_path):
+    """'holds cues of another configuration or scene (config A vs B)' did not say which: the options that
+    differ, or else that the scene's files changed (a prior touched)."""
+    import os
+
+    import geocues.extract as ex
+    from cues_synth import make_room_scene
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=96, h=72, priors="all")
+    first = apply_overrides(ExtractConfig(), {"planes": False})
+    ex.run(first, root, tmp_path / "cues")
+    with pytest.raises(ValueError, match=r"options --sor\.sor-std-ratio, --line\.min-views differ\); pass --overwrite"):
+        ex.run(apply_overrides(first, {"line.min_views": 4, "sor.sor_std_ratio": 3.0}), root, tmp_path / "cues")
+    prior = sorted((root / "priors" / "depth").iterdir())[0]
+    os.utime(prior, (2e9, 2e9))
+    with pytest.raises(ValueError, match=r"the same options: the scene's images/, priors/, sparse/ or scene.json changed"):
+        ex.run(first, root, tmp_path / "cues")
