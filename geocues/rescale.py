@@ -147,6 +147,10 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     scale, used = cfg.scale, None
     if cfg.from_priors:
         scale, used = scale_from_priors(scene)
+        if isinstance(scene.metadata.get("priors"), dict) and scene.metadata["priors"].get("simulated"):
+            log.warning("--from-priors: the priors of %s are SIMULATED (a random scale error per image, "
+                        "scene.json priors.simulated): the factor %.4g measures their simulated error, not the "
+                        "scene's unit", scene_dir, scale)
         extent = scene_extent(scene) * scale
         if not 0.5 <= extent <= 100.0:  # a room is neither 12 cm nor 5 km across
             log.warning("--from-priors: the factor %.6g makes the scene %.3g m across: are the priors in "

@@ -73,6 +73,22 @@ def test_from_priors_recovers_the_scale_and_round_trips(rooms):
     np.testing.assert_allclose(b.points.xyz, a.points.xyz, rtol=0.01, atol=1e-3)
 
 
+def test_from_priors_on_simulated_priors_is_warned(rooms, tmp_path, caplog):
+    """Simulated priors carry a random scale error per image: the factor they give (1.10 on a metric
+    room) measures that, not the scene's unit; it was written without a word."""
+    import logging
+    import shutil
+
+    base, root, small = rooms
+    sim = tmp_path / "sim"
+    shutil.copytree(small, sim)
+    meta = json.loads((sim / "scene.json").read_text()) if (sim / "scene.json").is_file() else {}
+    (sim / "scene.json").write_text(json.dumps({**meta, "priors": {"simulated": True}}))
+    with caplog.at_level(logging.WARNING, logger="geocues"):
+        run(RescaleConfig(from_priors=True), sim, tmp_path / "out")
+    assert "are SIMULATED" in caplog.text
+
+
 def test_bad_options_are_named(rooms, tmp_path):
     _, root, _ = rooms
     for cfg in (RescaleConfig(), RescaleConfig(scale=2.0, median_depth=2.0), RescaleConfig(scale=2.0, from_priors=True)):
