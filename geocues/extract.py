@@ -39,7 +39,7 @@ from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, wri
 from geocues.ceiling import add_level_grids, ceiling_height
 from geocues.floor_lines import FloorLineConfig, floor_line_anchors
 from geocues.depth_align import DepthAlignConfig, write_alignments
-from geocues.extract_checks import check_extract_options, idle_options
+from geocues.extract_checks import check_extract_options, idle_options, what_changed
 from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
 from geocues.plane_stage import plane_stage
@@ -95,25 +95,6 @@ _SURFACE_FIELDS = ("fuse_surfaces", "surface_angle_deg", "surface_consensus_deg"
 _WALL_FIELDS = ("walls", "wall_step", "wall_height")  # added after --floor.lines folders were made
 _WALL_CHECK_FIELDS = ("wall_check", "wall_check_rel", "wall_front_gap")  # added after --floor.walls folders
 _CEILING_FIELDS = ("ceiling", "ceiling_margin", "ceiling_min_views")  # added after --floor.wall-front-gap folders
-
-
-def _what_changed(old: dict, cfg: ExtractConfig, scene_dir: Path) -> str:
-    """Which options differ from an earlier report's (one it does not record counts when set away from
-    its default), or else that the scene's files changed."""
-    def flat(d: dict, prefix: str = "") -> dict:
-        out = {}
-        for k, v in d.items():
-            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
-        return out
-
-    now, default = (flat(json.loads(json.dumps(asdict(c), default=_json_default))) for c in (cfg, ExtractConfig()))
-    then = flat(old.get("config", {}))
-    changed = ["--" + k.replace("_", "-") for k, v in now.items() if then.get(k, default.get(k)) != v]
-    if changed:
-        return f"options {', '.join(changed[:6])}{', ...' if len(changed) > 6 else ''} differ"
-    if old.get("scene") and Path(old["scene"]).resolve() != Path(scene_dir).resolve():
-        return f"it was extracted from {old['scene']}"
-    return "the same options: the scene's images/, priors/, sparse/ or scene.json changed since"
 
 
 def _key_config(cfg: ExtractConfig) -> dict:
@@ -243,7 +224,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             log.info("extract: %s already holds this run (config %s); skipping", out_dir, key)
             return out_dir
         raise ValueError(f"{out_dir} holds cues of another configuration or scene "
-                         f"(config {old.get('config_key')} vs {key}: {_what_changed(old, cfg, scene_dir)}); "
+                         f"(config {old.get('config_key')} vs {key}: {what_changed(old, cfg, scene_dir)}); "
                          "pass --overwrite (overwrite=True) to replace them")
     log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
              json.dumps(asdict(cfg), indent=1, default=_json_default))

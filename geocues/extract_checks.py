@@ -2,12 +2,15 @@
 a NaN anywhere, an inf (``--line.support-dist-px inf`` was an OverflowError traceback), and values that
 gave empty cues or garbage without a word (``--plane.min-ray-cos 2``, ``--sor.sor-neighbors 1``,
 ``--texture.work-width 0``, a negative angle). One error naming the option as the command spells it.
-The stages' own ``validate()`` (lines, floor) run after these."""
+The stages' own ``validate()`` (lines, floor) run after these. Also what a refused rerun changed and the
+options of stages that are off."""
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import fields, is_dataclass
+from dataclasses import asdict, fields, is_dataclass
+from pathlib import Path
 from typing import Any
 
 POSITIVE = {  # > 0
@@ -124,4 +127,23 @@ def idle_options(cfg) -> list[str]:
     return out
 
 
-__all__ = ["check_extract_options", "idle_options"]
+def what_changed(old: dict, cfg, scene_dir: Path) -> str:
+    """Which options differ from an earlier report's (one it does not record counts when set away from
+    its default), or else that the scene's files changed."""
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+        return out
+
+    now, default = (flat(json.loads(json.dumps(asdict(c), default=str))) for c in (cfg, type(cfg)()))
+    then = flat(old.get("config", {}))
+    changed = ["--" + k.replace("_", "-") for k, v in now.items() if then.get(k, default.get(k)) != v]
+    if changed:
+        return f"options {', '.join(changed[:6])}{', ...' if len(changed) > 6 else ''} differ"
+    if old.get("scene") and Path(old["scene"]).resolve() != Path(scene_dir).resolve():
+        return f"it was extracted from {old['scene']}"
+    return "the same options: the scene's images/, priors/, sparse/ or scene.json changed since"
+
+
+__all__ = ["check_extract_options", "idle_options", "what_changed"]
