@@ -166,6 +166,7 @@ class Floor:
     normal: np.ndarray  # [3]
     height: float
     n_points: int  # horizontal PLANE cues it was fitted to
+    cue_cov: np.ndarray | None = None  # [3, 3] covariance of those cues' positions (how far they spread)
 
     def basis(self) -> np.ndarray:
         """[2, 3] orthonormal in-plane axes."""
@@ -213,17 +214,18 @@ def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfi
     if near.sum() < cfg.min_floor_points:
         return None, f"{int(near.sum())} plane cues on the lowest horizontal surface (fewer than {cfg.min_floor_points})"
     normal, height = _level_fit(pts[near], up)
-    return Floor(normal, height, int(near.sum())), ""
+    return Floor(normal, height, int(near.sum()), np.cov(pts[near].T)), ""
 
 
 def snap_to_lines(floor: Floor, segments: np.ndarray, band: float = 0.03, min_length: float = 0.3,
-                  max_tilt_deg: float = 2.0) -> tuple[Floor, int]:
+                  max_tilt_deg: float = 2.0, min_spread: float = 0.3) -> tuple[Floor, int]:
     """The floor refitted through the 3D line cues ``segments`` [L, 2, 3] lying on it: of the lines
     at least ``min_length`` long with both ends within ``band`` of it, the largest set within a third
     of the band of one plane (tried through each line, tilted from the floor's normal just enough to
     hold it, and through each pair; a skirting board's top is not the floor), then a plane through
-    their end points where they span the floor in two directions (0.3 m spread across their main
-    direction), else the floor's normal at their ends' median height. Unchanged when no line lies on
+    their end points where they span the floor in two directions (``min_spread`` across their main
+    direction, or as far as the floor's plane cues spread that way, :func:`_min_spread`), else the
+    floor's normal at their ends' median height. Unchanged when no line lies on
     it, or when the fit tilts more than ``max_tilt_deg`` or moves more than ``band``. Returns (floor,
     lines used)."""
     seg = np.asarray(segments, np.float64).reshape(-1, 2, 3)
@@ -244,13 +246,32 @@ def snap_to_lines(floor: Floor, segments: np.ndarray, band: float = 0.03, min_le
                 if n is not None and n @ floor.normal >= cos_tilt), key=np.sum, default=None)
     if best is None:
         return floor, 0
-    normal, height = _plane_through(seg[best].reshape(-1, 3), floor.normal, min_spread=0.3)
+    pts = seg[best].reshape(-1, 3)
+    normal, height = _plane_through(pts, floor.normal, min_spread=_min_spread(pts, floor, min_spread))
     if normal is None:  # one direction only: the floor's normal at their height
-        normal, height = floor.normal, float(np.median(seg[best].reshape(-1, 3) @ floor.normal))
+        normal, height = floor.normal, float(np.median(pts @ floor.normal))
     if np.degrees(np.arccos(min(1.0, float(normal @ floor.normal)))) > max_tilt_deg \
             or abs(height - floor.height) > band:
         return floor, 0
-    return Floor(normal, height, floor.n_points), int(best.sum())
+    return Floor(normal, height, floor.n_points, floor.cue_cov), int(best.sum())
+
+
+def _min_spread(pts: np.ndarray, floor: Floor, min_spread: float, least: float = 0.1) -> float:
+    """How far the floor lines' end points ``pts`` [N, 3] must spread across their main direction for a
+    plane through them to replace the floor's tilt: ``min_spread``, or less where the plane cues the
+    floor was fitted to (``floor.cue_cov``) spread no farther that way -- never below ``least``. The
+    plane cues' tilt then comes from as short a lever arm, through the aligned priors' warp (a
+    24-view benchmark room's floor cues lay in a strip 1 m wide along one wall, 2 cm higher at its far
+    side: the floor came tilted 0.82 deg, 4 cm high at the far wall), while the lines are good to a few
+    millimetres (the plane through its eight floor lines, 0.24 m spread, was tilted 0.085 deg)."""
+    if floor.cue_cov is None or len(pts) < 2:
+        return min_spread
+    _, _, vt = np.linalg.svd(pts - pts.mean(axis=0))
+    across = vt[1] - (vt[1] @ floor.normal) * floor.normal
+    if np.linalg.norm(across) < 1e-9:
+        return min_spread
+    across /= np.linalg.norm(across)
+    return float(np.clip(np.sqrt(max(float(across @ floor.cue_cov @ across), 0.0)), least, min_spread))
 
 
 def _turn_deg(a: Floor, b: Floor) -> float:

@@ -444,3 +444,33 @@ def test_snap_iterated_levels_a_floor_its_plane_cues_tilted():
     level = Floor(np.array([0.0, 0.0, 1.0]), 0.0, 100)  # every line in the first band: one round, the same floor
     a, b = snap_to_lines(level, seg), snap_iterated(level, seg)
     assert a[1] == b[1] == 9 and np.array_equal(a[0].normal, b[0].normal) and a[0].height == b[0].height
+
+
+def test_snap_levels_a_floor_whose_plane_cues_and_lines_lie_in_one_strip():
+    """A 24-view benchmark room saw its floor only in a strip 1 m wide along one wall: the plane cues
+    there came tilted 0.82 deg across the strip (4 cm high at the far wall), and its eight floor lines,
+    all along the strip, spread only 0.24 m across it -- under the fixed 0.3 m, so the snap kept the
+    tilt and set the height only (the far walls' lifted feet stood 4-7 cm in front of them). Lines
+    spread as far as the plane cues the floor came from level it; where the plane cues spread
+    farther, the tilt stays theirs (one direction only, as before)."""
+    from geocues.floor_lines import snap_iterated, snap_to_lines
+
+    ys = [0.25, 0.38, 0.52, 0.64, 0.65, 0.78, 0.90, 1.04]  # the room's floor lines, along x
+    seg = np.array([[[2.2 + 0.2 * k, y, 0.0], [4.5 + 0.1 * k, y, 0.0]] for k, y in enumerate(ys)])
+    seg[:, :, 2] += 0.002 * np.array([1, -1, 0, 1, -1, 0, 1, -1])[:, None]  # mm-accurate
+    t = np.radians(0.82)
+    normal = np.array([0.0, -np.sin(t), np.cos(t)])
+    strip = np.diag([1.15, 0.20, 0.01]) ** 2  # the cues' spread: x 1.15 m, y 0.20 m (std)
+    wide = np.diag([1.15, 1.0, 0.01]) ** 2
+    tilt = lambda f: np.degrees(np.arccos(min(1.0, f.normal[2])))  # noqa: E731
+    for floor_cov, level in ((strip, True), (wide, False), (None, False)):
+        tilted = Floor(normal, float(normal @ [0.0, 0.65, 0.0]), 100, floor_cov)
+        snapped, n = snap_iterated(tilted, seg)
+        assert n == 8 and abs(snapped.height - (snapped.normal @ [0.0, 0.65, 0.0])) < 0.003
+        if level:
+            assert tilt(snapped) < 0.2 and abs((snapped.height - snapped.normal[1] * 3.6) / snapped.normal[2]) < 0.01
+            assert np.array_equal(snapped.cue_cov, floor_cov)
+        else:
+            assert np.allclose(snapped.normal, normal)  # the plane cues' tilt, the lines' height
+    one, n = snap_to_lines(Floor(normal, 0.0, 100, strip), seg[:1])  # one line: no spread, no plane
+    assert n == 1 and np.allclose(one.normal, normal)
