@@ -25,9 +25,12 @@ aligned depth prior (:func:`on_floor_by_prior`).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -274,6 +277,14 @@ def _min_spread(pts: np.ndarray, floor: Floor, min_spread: float, least: float =
     return float(np.clip(np.sqrt(max(float(across @ floor.cue_cov @ across), 0.0)), least, min_spread))
 
 
+def _strip_width(floor: Floor) -> float | None:
+    """The smaller in-plane standard deviation of the plane cues the floor was fitted to (metres)."""
+    if floor.cue_cov is None:
+        return None
+    b = floor.basis()
+    return float(np.sqrt(max(np.linalg.eigvalsh(b @ floor.cue_cov @ b.T)[0], 0.0)))
+
+
 def _turn_deg(a: Floor, b: Floor) -> float:
     return float(np.degrees(np.arccos(min(1.0, float(a.normal @ b.normal)))))
 
@@ -464,9 +475,14 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
     floor, why = find_floor(plane_xyz, plane_normal, cameras, cfg)
     if floor is None:
         return np.zeros((0, 3)), np.zeros(0, np.int64), [], {"floor": None, "note": f"no floor found: {why}"}
-    n_snap = 0
+    n_snap, cue_floor = 0, floor
     if cfg.line_snap and line_segments is not None and len(line_segments):
         floor, n_snap = snap_iterated(floor, line_segments)
+    strip = _strip_width(cue_floor)
+    if strip is not None and strip < 0.3 and np.array_equal(floor.normal, cue_floor.normal):
+        log.warning("the floor's plane cues lie in a strip %.2f m wide (std across it) and no floor lines level "
+                    "it: its tilt rests on that strip, and walls far from it may be lifted centimetres off "
+                    "(views that see more of the floor help)", strip)
     lifted = lift_segments(cameras, segments, floor, cfg)
     centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
     keep = kept_segments(lifted, centres_uv, cfg)

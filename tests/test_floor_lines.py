@@ -474,3 +474,28 @@ def test_snap_levels_a_floor_whose_plane_cues_and_lines_lie_in_one_strip():
             assert np.allclose(snapped.normal, normal)  # the plane cues' tilt, the lines' height
     one, n = snap_to_lines(Floor(normal, 0.0, 100, strip), seg[:1])  # one line: no spread, no plane
     assert n == 1 and np.allclose(one.normal, normal)
+
+
+def test_a_floor_tilt_resting_on_a_narrow_strip_is_warned(views, caplog):
+    """When no floor line levels a floor whose plane cues lie in a strip under 0.3 m (std) wide, the
+    tilt rests on that strip (far walls lifted centimetres off, found on a 24-view room): said once."""
+    import logging
+
+    from geocues.floor_lines import _strip_width
+
+    cams, segs = views
+    rng = np.random.default_rng(0)
+    normals = np.tile([0.0, 0.0, 1.0], (200, 1))
+    for width, warned in ((0.5, True), (4.0, False)):  # a strip 0.5 m wide (std 0.14 m), the whole floor
+        xyz = np.c_[rng.uniform(0, 4, 200), rng.uniform(0, width, 200), np.zeros(200)]
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="geocues"):
+            floor_line_anchors(cams, segs, xyz, normals, FloorLineConfig())
+        assert ("the floor's plane cues lie in a strip 0.14 m wide" in caplog.text) == warned, caplog.text
+
+    t = np.radians(0.82)
+    normal = np.array([0.0, -np.sin(t), np.cos(t)])
+    strip = Floor(normal, 0.0, 100, np.diag([1.15, 0.20, 0.01]) ** 2)
+    assert _strip_width(strip) == pytest.approx(0.2, abs=0.01)
+    assert _strip_width(Floor(normal, 0.0, 100, np.diag([1.15, 1.0, 0.01]) ** 2)) > 0.9
+    assert _strip_width(Floor(normal, 0.0, 100)) is None
