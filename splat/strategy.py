@@ -361,7 +361,8 @@ class IndoorStrategy:
         cfg = self.cfg
         prune = torch.sigmoid(params["opacities"]) < cfg.prune_opa
         for value in params.values():  # a non-finite Gaussian (NaN opacity: sigmoid(NaN) < x is False, or a split
-            prune |= ~torch.isfinite(value.reshape(len(value), -1)).all(-1)  # whose exp(scale) overflowed) goes too
+            prune |= ~torch.isfinite(value.reshape(value.shape[0], math.prod(value.shape[1:]))).all(-1)  # whose
+            # exp(scale) overflowed) goes too; shape[1:] spelled out: an empty model has no -1 to infer
         if step > self.schedule.big_prune_from:
             prune |= torch.exp(params["scales"]).amax(-1) > cfg.prune_scale3d * state["scene_scale"]
         cue_type = state["cue_type"]

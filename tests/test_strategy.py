@@ -457,3 +457,20 @@ def test_density_control_leaves_no_non_finite_gaussian(key, index, value):
     assert len(params["means"]) > 0
     for name, p in params.items():
         assert torch.isfinite(p.detach()).all(), name
+
+
+def test_density_control_of_an_empty_model_is_a_no_op():
+    """A model pruned to nothing reached its next refine step: the non-finite check's reshape(0, -1)
+    raised (review finding); it returns its counts."""
+    params = make_params(0)
+    opts = make_optimizers(params)
+    strategy = IndoorStrategy(IndoorStrategyConfig())
+    state = strategy.initialize_state(1.0)
+    state["cue_type"] = torch.zeros(0, dtype=torch.long)
+    means2d = torch.zeros(0, 2, requires_grad=True)
+    means2d.grad = torch.zeros(0, 2)
+    params["means"].grad = torch.zeros(0, 3)
+    info = {"means2d": means2d, "radii": torch.zeros(0, dtype=torch.int32), "width": 64, "height": 48,
+            "camera_center": torch.zeros(3)}
+    counts = strategy.step_post_backward(params, opts, state, 600, info)
+    assert counts["n"] == 0 and len(params["means"]) == 0
