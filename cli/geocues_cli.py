@@ -176,13 +176,14 @@ def _extract_command(preset_name: str = "paper"):
         """
         from geocues.extract import run
 
-        if preset != "paper":
+        turned = [f"--{k.replace('_', '-')}" for k, v in EXTRACT_PRESETS[preset].items()
+                  if k.startswith("floor.") and v is True]
+        if turned:
             try:
                 cfg.floor.validate()
             except ValueError as exc:  # `--preset room --floor.no-lines` named a flag the user never typed
-                turned = ", ".join(f"--{k.replace('_', '-')}" for k, v in EXTRACT_PRESETS[preset].items() if v is True)
-                raise ValueError(f"{exc} (--preset {preset} turns on {turned}: leaving one out needs the ones "
-                                 "that depend on it off too)") from None
+                raise ValueError(f"{exc} (--preset {preset} turns on {', '.join(turned)}: leaving one out needs the "
+                                 "ones that depend on it off too)") from None
         report_path = Path(out) / "report.json"
         before = report_path.stat().st_mtime_ns if report_path.is_file() else None
         out_dir = run(cfg, scene, out, overwrite=overwrite)

@@ -13,6 +13,7 @@ LPIPS needs a learned network. Nothing is downloaded: pass a TorchScript file yo
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import warnings
@@ -261,8 +262,6 @@ def render_downscale(width: int, height: int, rw: int, rh: int, renders_dir: Pat
     rounds each side (geocues.scene.downscaled_size), or None. Tried: the run's own (RUN/report.json beside
     RUN/test_renders), the whole factor, then each side's ratio: 321x239 at --downscale 2 is 160x120, whose
     width ratio 2.006 gives 160x119."""
-    import json
-
     from geocues.scene import downscaled_size
 
     tries = []
@@ -289,8 +288,6 @@ def _warn_other_scene(renders_dir: Path, scene_dir: str | Path) -> None:
     """One warning when the run the renders come from (RUN/test_renders, RUN/report.json) was trained
     on another scene: renders are matched to test views by name alone, and two scenes share names
     (a room's renders scored against ICL: 8.6 dB, without a word)."""
-    import json
-
     from splat.run_paths import recorded_path
 
     try:

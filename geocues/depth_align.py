@@ -331,11 +331,13 @@ noise 0.72-0.92, a 15 % warp 0.61-0.97, 30 % noise 0.31-0.64; transposed -0.03-0
 
 
 def _rank_correlation(d: np.ndarray, z: np.ndarray) -> float:
-    """Spearman's rank correlation of ``d`` and ``z`` (NaN when either is constant)."""
+    """Spearman's rank correlation of ``d`` and ``z`` (ties share their average rank: a coarsely
+    quantised prior; NaN when either is constant)."""
+    from scipy.stats import rankdata
+
     if np.ptp(d) == 0 or np.ptp(z) == 0:
         return float("nan")
-    rd, rz = np.argsort(np.argsort(d)).astype(np.float64), np.argsort(np.argsort(z)).astype(np.float64)
-    return float(np.corrcoef(rd, rz)[0, 1])
+    return float(np.corrcoef(rankdata(d), rankdata(z))[0, 1])
 
 
 def _compare_kinds(res: DepthAlignment, d: np.ndarray, z: np.ndarray, s: float, b: float,
@@ -407,9 +409,11 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     rho = _rank_correlation(d, z) * (-1.0 if kind == "disparity" else 1.0)
     res.rank_correlation = rho
     if not rho >= MIN_RANK_CORRELATION:  # NaN: a constant prior
+        spread = float((np.percentile(z, 90) - np.percentile(z, 10)) / np.median(z))
         res.reason = (f"the prior does not follow the scene's depth at its {len(d)} anchors (rank correlation "
-                      f"{rho:.2f} < {MIN_RANK_CORRELATION}): another view's prior, a constant one, or "
-                      f"{'depth' if kind == 'disparity' else 'disparity'} (--prior-kind)")
+                      f"{rho:.2f} < {MIN_RANK_CORRELATION}, their depths spread {100 * spread:.0f} %): another "
+                      f"view's prior, a constant one, {'depth' if kind == 'disparity' else 'disparity'} "
+                      "(--prior-kind), or a view too flat to tell")
         return res
     if _degenerate(s, b, d, z, kind, cfg):
         res.reason = f"degenerate fit (scale {s:.4g}, shift {b:.4g})"

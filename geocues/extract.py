@@ -224,7 +224,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             log.info("extract: %s already holds this run (config %s); skipping", out_dir, key)
             return out_dir
         raise ValueError(f"{out_dir} holds cues of another configuration or scene "
-                         f"(config {old.get('config_key')} vs {key}: {what_changed(old, cfg, scene_dir)}); "
+                         f"(config {old.get('config_key')} vs {key}: {what_changed(old, _key_config(cfg), _key_config(ExtractConfig()), scene_dir)}); "
                          "pass --overwrite (overwrite=True) to replace them")
     log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
              json.dumps(asdict(cfg), indent=1, default=_json_default))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, fields, is_dataclass
+from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -109,8 +109,10 @@ def idle_options(cfg) -> list[str]:
     """Sentences naming options set away from their defaults for a stage that is off (they do nothing:
     `--floor.min-views 10` without --floor.lines ran as if not given, under the same config key)."""
     default = type(cfg)()
-    stages = [("floor", not cfg.floor.lines, "floor lines are off (--floor.lines)"),
-              ("line", not cfg.lines, "the line stage is off (--no-lines)"),
+    stages = [("floor", not (cfg.floor.lines and cfg.planes),
+               "floor lines are off (--floor.lines)" if cfg.planes else "the plane stage is off (--no-planes)"),
+              ("line", not (cfg.lines or (cfg.floor.lines and cfg.planes)),  # floor lines detect with --line.*
+               "the line stage is off (--no-lines)"),
               ("sor", not cfg.sfm, "the SfM stage is off (--no-sfm)"),
               ("plane", not cfg.planes, "the plane stage is off (--no-planes)"),
               ("texture", not cfg.planes, "the plane stage is off (--no-planes)"),
@@ -127,16 +129,17 @@ def idle_options(cfg) -> list[str]:
     return out
 
 
-def what_changed(old: dict, cfg, scene_dir: Path) -> str:
-    """Which options differ from an earlier report's (one it does not record counts when set away from
-    its default), or else that the scene's files changed."""
+def what_changed(old: dict, key_cfg: dict, default_key_cfg: dict, scene_dir: Path) -> str:
+    """Which options of the config key (``key_cfg``: the options as hashed, fields kept out of the key
+    left out) differ from an earlier report's (one it does not record counts when set away from its
+    default, ``default_key_cfg``), or else that the scene's files changed."""
     def flat(d: dict, prefix: str = "") -> dict:
         out = {}
         for k, v in d.items():
             out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
         return out
 
-    now, default = (flat(json.loads(json.dumps(asdict(c), default=str))) for c in (cfg, type(cfg)()))
+    now, default = (flat(json.loads(json.dumps(c, default=str))) for c in (key_cfg, default_key_cfg))
     then = flat(old.get("config", {}))
     changed = ["--" + k.replace("_", "-") for k, v in now.items() if then.get(k, default.get(k)) != v]
     if changed:

@@ -480,9 +480,9 @@ def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarra
         floor, n_snap = snap_iterated(floor, line_segments)
     strip = _strip_width(cue_floor)
     if strip is not None and strip < 0.3 and np.array_equal(floor.normal, cue_floor.normal):
-        log.warning("the floor's plane cues lie in a strip %.2f m wide (std across it) and no floor lines level "
-                    "it: its tilt rests on that strip, and walls far from it may be lifted centimetres off "
-                    "(views that see more of the floor help)", strip)
+        log.warning("the floor's plane cues lie in a strip about %.1f m wide (std %.2f m across it) and no floor "
+                    "lines level it: its tilt rests on that strip, and walls far from it may be lifted centimetres "
+                    "off (views that see more of the floor help)", strip * 12 ** 0.5, strip)
     lifted = lift_segments(cameras, segments, floor, cfg)
     centres_uv = np.array([np.asarray(c.center) for c in cameras]) @ floor.basis().T
     keep = kept_segments(lifted, centres_uv, cfg)

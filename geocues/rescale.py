@@ -145,13 +145,14 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     check_output_dir(out_dir)
     scene = Scene.load(scene_dir, check_priors=False)
     scale, used = cfg.scale, None
+    unscaled = scene_extent(scene)
     if cfg.from_priors:
         scale, used = scale_from_priors(scene)
         if isinstance(scene.metadata.get("priors"), dict) and scene.metadata["priors"].get("simulated"):
             log.warning("--from-priors: the priors of %s are SIMULATED (a random scale error per image, "
                         "scene.json priors.simulated): the factor %.4g measures their simulated error, not the "
                         "scene's unit", scene_dir, scale)
-        extent = scene_extent(scene) * scale
+        extent = unscaled * scale
         if not 0.5 <= extent <= 100.0:  # a room is neither 12 cm nor 5 km across
             log.warning("--from-priors: the factor %.6g makes the scene %.3g m across: are the priors in "
                         "metres? (millimetres: scene.json priors.depth_png_scale 1000 for PNG, or divide the "
@@ -161,8 +162,8 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         if depth is None:
             raise ValueError(f"--median-depth: {scene_dir} has fewer than 10 SfM points in its views (run `geocues sfm`)")
         scale = cfg.median_depth / depth
-    extent = scene_extent(scene) * scale
-    if not (np.isfinite(extent) and 1e-6 <= extent <= 1e7):  # float32 training breaks far before 1e300
+    extent = unscaled * scale  # (cameras that stand still, no points: extent 0, any factor keeps it 0)
+    if not (np.isfinite(extent) and (unscaled == 0 or 1e-6 <= extent <= 1e7)):  # float32 breaks far before 1e300
         raise ValueError(f"the factor {scale:.6g} makes {scene_dir} {extent:.3g} m across: no scene is; check "
                          "--scale (metres per unit of the scene)")
     import pycolmap

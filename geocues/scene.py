@@ -78,8 +78,6 @@ def _rotation_hint(path: Path, stored: tuple[int, int], model: tuple[int, int]) 
 
 def _frames_folder(root: Path) -> str:
     """" (in X/)" naming the folder of a transforms.json's first frame, or "" when it cannot be read."""
-    import json
-
     try:
         first = Path(json.loads((root / "transforms.json").read_text())["frames"][0]["file_path"])
     except (OSError, ValueError, KeyError, IndexError, TypeError):
@@ -151,6 +149,11 @@ class Camera:
         x = (np.asarray(cols) + 0.5 - self.K[0, 2]) / self.K[0, 0]
         y = (np.asarray(rows) + 0.5 - self.K[1, 2]) / self.K[1, 1]
         return np.stack([x, y, np.ones_like(x, dtype=np.float64)], axis=-1)
+
+
+def held_out(index: int, test_every: int) -> bool:
+    """Whether view ``index`` (name order) is a held-out test view: every ``test_every``-th (0: none), as 3DGS."""
+    return test_every > 0 and index % test_every == 0
 
 
 def downscaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
@@ -358,7 +361,7 @@ class Scene(ScenePriors):
     def test_indices(self) -> list[int]:
         if self.test_every == 0:
             return []
-        return [c.index for c in self.cameras if c.index % self.test_every == 0]
+        return [c.index for c in self.cameras if held_out(c.index, self.test_every)]
 
     @property
     def train_indices(self) -> list[int]:

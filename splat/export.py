@@ -104,10 +104,11 @@ def reference_limits(cams: list[dict], cfg_dict: dict, scene: Scene | None = Non
                    "render.py put it (cameras.json has no cx/cy in their format): their renders of this run are "
                    "shifted by as much; `splat render` reads the cx/cy this project adds")
     test_every = int(cfg_dict.get("test_every", 8))
-    if test_every not in (0, 8):
-        out.append(f"this run held out every {test_every}th view (--test-every {test_every}); the reference "
-                   "render.py / metrics.py hold out every 8th (llffhold): their test scores would include "
-                   "views this run trained on")
+    if test_every != 8:
+        held = "no view" if test_every == 0 else f"every {test_every}th view"
+        out.append(f"this run held out {held} (--test-every {test_every}); the reference render.py / "
+                   "metrics.py hold out every 8th (llffhold): their test scores would include views this run "
+                   "trained on")
     background = tuple(float(c) for c in cfg_dict.get("background", (0.0, 0.0, 0.0)))
     if background not in ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)):
         out.append(f"the background {background} is neither black nor white, the only ones the reference "

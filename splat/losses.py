@@ -129,8 +129,7 @@ def depth_pcc_loss(depth: Tensor, prior: Tensor, valid: Tensor, patch_size: int,
     # the PCC does not change when y is scaled: each patch's prior is brought to [1, 2) in magnitude by a
     # power of two (exact: the same bits of the PCC), so that a prior of any scale (1e18, 1e-30) neither
     # overflows nor underflows vy in float32 (an exact prior x 1e18 gave L_d 1, x 1e20 a NaN gradient)
-    top = y.abs().amax(1, keepdim=True)
-    y = y / torch.where(top > 0, torch.exp2(torch.floor(torch.log2(top))), torch.ones_like(top))
+    y = torch.ldexp(y, 1 - torch.frexp(y.abs().amax(1, keepdim=True)).exponent)  # exact on any device
     n = m.sum(1)  # [M]
     n_safe = n.clamp(min=1)
     mx, my = (x * m).sum(1) / n_safe, (y * m).sum(1) / n_safe

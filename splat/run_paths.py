@@ -59,4 +59,3 @@ def gaussians_ply(run_dir: str | Path) -> Path:
         return max(found)[1]
     raise FileNotFoundError(f"{run_dir} holds no point_cloud.ply nor point_cloud/iteration_N/point_cloud.ply "
                             "(not a finished `splat train` folder)")
-

@@ -177,7 +177,7 @@ def test_a_prior_term_that_never_acted_is_named(tmp_path):
 
 
 def test_an_empty_model_is_an_error_with_its_cause(scene, tmp_path, capsys, caplog):
-    """A run that ended with 0 Gaussians (--strategy.prune-opa 1.0) or with Gaussians no view sees (a scene
+    """A run that ended with 0 Gaussians (--init.min-scale 1000) or with Gaussians no view sees (a scene
     in millimetres: all within the 0.01 m near plane) printed "done ... 4.49 dB" and exited 0; with the
     mesh on, the only warning blamed the TSDF settings. Now: exit 1, the files kept, the cause named."""
     from types import SimpleNamespace
@@ -198,15 +198,14 @@ def test_an_empty_model_is_an_error_with_its_cause(scene, tmp_path, capsys, capl
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["test_metrics"]["alpha"] == 0 and report["empty_result"].startswith("the held-out views render")
 
-    cfg = dataclasses.replace(TrainConfig(), strategy=dataclasses.replace(TrainConfig().strategy, prune_opa=1.0))
+    cfg = dataclasses.replace(TrainConfig(), init=dataclasses.replace(TrainConfig().init, min_scale=1000.0))
     s = SimpleNamespace(state={"cue_type": []}, guard=SimpleNamespace(events=[]), refiner=None, train_views=[0] * 28)
     empty = empty_result(cfg, s, {"psnr": 4.49, "alpha": 0.0})
-    assert empty == "the run ended with 0 Gaussians: every one was pruned; check the settings in use (--strategy.prune-opa 1.0)"
+    assert empty == "the run ended with 0 Gaussians: every one was pruned; check the settings in use (--init.min-scale 1000.0)"
     said = final_warnings(cfg, s, {"triangles": 0}, "4.49 dB", "RUN", empty)
     assert said == [f"the model of RUN is EMPTY: {empty}"]  # not the TSDF settings, nor idle loss terms
     s.state["cue_type"] = [0] * 10
     assert empty_result(cfg, s, {"psnr": 30.0, "alpha": 0.9}) is None
-
 
 
 def test_a_divergence_names_what_to_change_from_its_cause():

@@ -113,8 +113,8 @@ class LineConfig:
             raise ValueError(f"detector must be 'lsd' or 'fld', got {self.detector!r}")
         if self.matcher not in ("lbd", "epipolar"):
             raise ValueError(f"matcher must be 'lbd' or 'epipolar', got {self.matcher!r}")
-        if self.test_every < 1:
-            raise ValueError(f"--line.test-every must be >= 1 (every n-th image is held out), got {self.test_every}")
+        if self.test_every < 2:  # 1 holds out every view (Scene.load refuses it too)
+            raise ValueError(f"--line.test-every must be >= 2 (every n-th image is held out), got {self.test_every}")
         if self.min_views < 2:
             raise ValueError(f"min_views must be >= 2, got {self.min_views}")
         if self.seed_views < 0 or 0 < self.seed_views < 2:

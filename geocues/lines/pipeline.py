@@ -19,6 +19,7 @@ from geocues.lines.merge import Views, link_tracks, sample_segments
 from geocues.lines.pairs import select_neighbors
 from geocues.lines.score import LabelMaps, best_per_segment, score_hypotheses
 from geocues.lines.tracks import build_lines
+from geocues.scene import held_out
 from geocues.lines.triangulate import triangulate_matches
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,7 @@ def extract_line_cues(scene, cfg: LineConfig | None = None, cache_dir: Path | No
     rejected["images_without_segments"] = int(sum(n == 0 for n in det["segments"]))
     t0 = time.perf_counter()
     # the scene is read with every view (test_every 0): the held-out split to leave out is the option's
-    use = [c.index for c in cams if cfg.use_test_views or c.index % cfg.test_every != 0]
+    use = [c.index for c in cams if cfg.use_test_views or not held_out(c.index, cfg.test_every)]
     neighbors, pair_stats = select_neighbors(scene, cfg, use)
     timings["lines_pairs"] = time.perf_counter() - t0
     rejected["images_without_neighbors"] = pair_stats["images_without_neighbors"]
