@@ -90,13 +90,24 @@ def cameras_from_json(path: Path, scale: float = 1.0) -> list[ViewCam]:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{path}: camera {k} lacks or has a bad field ({exc!r}); needs position, "
                              f"rotation, fx, fy, width, height") from exc
+        if not all(isinstance(e[side], (int, float)) and float(e[side]).is_integer() for side in ("width", "height")):
+            raise ValueError(f"{path}: camera {k} has width/height {e['width']!r} x {e['height']!r}: whole pixels")
         if Rc2w.shape != (3, 3) or C.shape != (3,) or not (np.isfinite(Rc2w).all() and np.isfinite(C).all()):
             raise ValueError(f"{path}: camera {k} has a bad rotation (3x3) or position (3)")
         if not np.isfinite([fx, fy, cx, cy]).all():
             raise ValueError(f"{path}: camera {k} has a non-finite fx, fy, cx or cy")
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
         R = Rc2w.T
-        cams.append(ViewCam(str(e.get("img_name", f"cam{k:04d}")), K, R, -R @ C, int(w), int(h)))
+        name = str(e.get("img_name", f"cam{k:04d}"))
+        if not name or name in (".", "..") or any(c in name for c in "/\\\0"):  # outputs are OUT/<kind>/<name>.png
+            raise ValueError(f"{path}: camera {k} has img_name {name!r}: a file name without '/' or '\\' "
+                             "(the renders are named after it)")
+        cams.append(ViewCam(name, K, R, -R @ C, int(w), int(h)))
+    seen: dict[str, int] = {}
+    for k, c in enumerate(cams):
+        if c.name in seen:  # one render would overwrite the other
+            raise ValueError(f"{path}: cameras {seen[c.name]} and {k} share the img_name {c.name!r}; give each its own")
+        seen[c.name] = k
     return cams
 
 

@@ -4,6 +4,7 @@ an MP4 with the expected frame count, camera paths and files, and the errors a u
 from __future__ import annotations
 
 import json
+import re
 
 import imageio.v3 as iio
 import numpy as np
@@ -185,3 +186,22 @@ def test_a_run_with_the_reference_layout_only_is_rendered(fake_run, tmp_path):
     shutil.rmtree(copy / "point_cloud")
     with pytest.raises(FileNotFoundError, match="no point_cloud.ply nor point_cloud/iteration_N"):
         gaussians_ply(copy)
+
+
+def test_a_cameras_json_s_names_cannot_leave_the_output_folder(fake_run, tmp_path):
+    """img_name "../../evil" wrote every render of the view outside -o (each kind overwriting the last),
+    "a/b" failed naming the hidden staging folder, two equal names kept one render, a width of 160.5
+    rendered at 160: each is refused naming the camera."""
+    run_dir, scene = fake_run
+    good = [camera_to_json(i, scene.cameras[i]) for i in (0, 3)]
+    for change, said in ((lambda c: c[0].update(img_name="../../evil"), "has img_name '../../evil': a file name"),
+                         (lambda c: c[0].update(img_name="a/b"), "has img_name 'a/b'"),
+                         (lambda c: c[1].update(img_name=c[0]["img_name"]), "cameras 0 and 1 share the img_name"),
+                         (lambda c: c[0].update(width=c[0]["width"] + 0.5), "whole pixels")):
+        cams = json.loads(json.dumps(good))
+        change(cams)
+        path = tmp_path / "path.json"
+        path.write_text(json.dumps(cams))
+        with pytest.raises(ValueError, match=re.escape(said)):
+            run(RenderConfig(views=str(path)), run_dir, tmp_path / "out")
+    assert not (tmp_path / "out").exists() and not list(tmp_path.parent.glob("evil*"))
