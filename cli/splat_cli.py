@@ -260,6 +260,10 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
     from splat.viewer import run as view_run
 
     if screenshot is not None:
+        if screenshot.suffix.lower() != ".png":  # Chromium writes PNG data (a .jpg name held a PNG)
+            raise ValueError(f"--screenshot {screenshot}: the screenshot is a PNG; name it .png")
+        if min(size) < 16 or max(size) > 16384:  # 0 0 hung until killed, -5 was a DevTools traceback
+            raise ValueError(f"--size must be two whole pixels in 16..16384, got {size[0]} {size[1]}")
         check_output_file(screenshot, overwrite)
 
     try:

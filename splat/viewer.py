@@ -73,6 +73,14 @@ class ViewConfig:
             raise ValueError(f"--max-splats and --max-cues must be >= 1 (got {self.max_splats}, {self.max_cues})")
         if not 0 <= self.port < 65536:
             raise ValueError(f"--port must be in 0..65535, got {self.port}")
+        import socket
+
+        try:  # viser waited forever on a host it cannot serve on (and outlived the first SIGTERM)
+            with socket.socket(socket.AF_INET6 if ":" in self.host else socket.AF_INET) as probe:
+                probe.bind((self.host, 0))
+        except (OSError, UnicodeError) as exc:
+            raise ValueError(f"--host {self.host!r} is no address of this machine to serve on ({exc}); "
+                             "127.0.0.1 (this machine only) or 0.0.0.0 (every interface)") from None
 
 
 LAYERS = ("splats", "mesh", "cues", "lines", "cameras")

@@ -174,6 +174,21 @@ class TestErrors:
             run(ViewConfig(port=0), tmp_path, block=False)
         with pytest.raises(ValueError, match="unknown layers"):
             run(ViewConfig(port=0, show=("splats", "walls")), tmp_path, block=False)
+        for host in ("999.1.1.1", "10.99.99.99"):  # viser waited forever on it, outliving a SIGTERM
+            with pytest.raises(ValueError, match=f"--host '{host}' is no address of this machine to serve on"):
+                ViewConfig(port=0, host=host).validate()
+        ViewConfig(port=0, host="localhost").validate()
+
+    def test_screenshot_size_and_name_are_checked_first(self, tmp_path, capsys):
+        """--size 0 0 hung until killed, --size -5 100 was a DevTools traceback, a .jpg name got PNG data."""
+        from cli.splat_cli import main
+
+        for args, said in ((["--size", "0", "0"], "--size must be two whole pixels in 16..16384, got 0 0"),
+                           (["--size", "-5", "100"], "--size must be two whole pixels"),
+                           (["--screenshot", str(tmp_path / "s.jpg")], "the screenshot is a PNG; name it .png")):
+            shot = [] if "--screenshot" in args else ["--screenshot", str(tmp_path / "s.png")]
+            assert main(["view", str(tmp_path), "--port", "0", *shot, *args]) == 1
+            assert said in capsys.readouterr().err
 
     def test_a_scene_or_cues_given_that_do_not_exist_are_errors(self, fake_run, tmp_path):
         run_dir, _, _ = fake_run
