@@ -201,7 +201,8 @@ def mesh(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
 
     Args:
         run: a finished `splat train` folder.
-        out: the mesh to write (default RUN/mesh_<depth>_w<weight-threshold>[_t<smooth-iters>].ply).
+        out: the mesh to write (default RUN/mesh_<depth>_w<weight-threshold>[_<tag><value>...].ply: every
+            option that changes the surface tagged, docs/meshing.md; not one of the run's own files).
         overwrite: replace OUT if it exists.
         cfg: which views and how to fuse them.
     """

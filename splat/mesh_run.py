@@ -15,6 +15,7 @@ from pathlib import Path
 
 from geocues.atomic import check_output_file
 from splat.mesh import TSDFConfig
+from splat.tsdf_config import check_tsdf_resources
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,8 @@ class MeshRunConfig:
         if self.mesh_every < 1:
             raise ValueError(f"--mesh-every must be >= 1, got {self.mesh_every}")
         self.tsdf.validate()
+        if self.tsdf.consistency_neighbours < 1:
+            raise ValueError(f"--tsdf.consistency-neighbours must be >= 1, got {self.tsdf.consistency_neighbours}")
 
 
 # TSDF options that change the surface, by their short tag in mesh file names (the remesh tables' names)
@@ -45,15 +48,21 @@ _TAGS = {"voxel_size": "v", "consistent_views": "c", "consistency_neighbours": "
          "consistency_rel_depth": "rd"}
 
 
-def default_out(run_dir: Path, tsdf: TSDFConfig) -> Path:
+_CONSISTENCY = ("consistency_neighbours", "consistency_px", "consistency_rel_depth")  # act with consistent_views
+
+
+def default_out(run_dir: Path, tsdf: TSDFConfig, views: str = "train", mesh_every: int = 1) -> Path:
     """RUN/mesh_DEPTH_wTHRESHOLD[...]: every surface-changing option that differs from the default
     tagged in the name (``_v0.05`` for --tsdf.voxel-size 0.05, ``_c2``, ``_s0.02``, ``_t30`` for the
-    Taubin steps), so two different meshes never share a file name."""
+    Taubin steps, ``_all`` for --views all, ``_e3`` for --mesh-every 3), so two different meshes never
+    share a file name; the consistency check's settings only while it is on (else they change nothing)."""
     base = TSDFConfig()
     tags = "".join(f"_{tag}{getattr(tsdf, name):g}" for name, tag in _TAGS.items()
-                   if getattr(tsdf, name) != getattr(base, name) and getattr(tsdf, name) is not None)
+                   if getattr(tsdf, name) != getattr(base, name) and getattr(tsdf, name) is not None
+                   and (tsdf.consistent_views is not None or name not in _CONSISTENCY))
     smooth = f"_t{tsdf.smooth_iters}" if tsdf.smooth_iters else ""
-    return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}{tags}{smooth}.ply"
+    chosen = ("_all" if views == "all" else "") + (f"_e{mesh_every}" if mesh_every != 1 else "")
+    return run_dir / f"mesh_{tsdf.depth}_w{tsdf.weight_threshold:g}{tags}{smooth}{chosen}.ply"
 
 
 def fuse_cameras(params, cameras: list, sh_degree: int, tsdf, *, backend: str = "auto",
@@ -122,10 +131,16 @@ def run(cfg: MeshRunConfig, run_dir: str | Path, out: str | Path | None = None, 
     from splat.render_run import load_run
 
     cfg.validate()
+    check_tsdf_resources(cfg.tsdf)  # Open3D's traceback after the rendering otherwise
     run_dir = Path(run_dir)
-    out = Path(out) if out is not None else default_out(run_dir, cfg.tsdf)
+    out = Path(out) if out is not None else default_out(run_dir, cfg.tsdf, cfg.views, cfg.mesh_every)
     if out.suffix.lower() != ".ply":
         raise ValueError(f"the mesh is written as PLY: name a .ply file, got {out}")
+    own = {run_dir / n for n in ("point_cloud.ply", "input.ply", "mesh.ply")}
+    if out.resolve() in {p.resolve() for p in own} or run_dir.resolve() / "point_cloud" in out.resolve().parents \
+            or run_dir.resolve() / "checkpoints" in out.resolve().parents:
+        raise ValueError(f"{out} is one of the run's own files: name another -o (the default names the mesh "
+                         "after its settings)")
     check_output_file(out, overwrite)
     scene, params, train_cfg = load_run(run_dir, cfg.scene)
     idx = list(scene.train_indices) if cfg.views == "train" else list(range(len(scene.cameras)))

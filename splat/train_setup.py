@@ -33,6 +33,7 @@ from splat.losses import LossConfig, without_priors
 from splat.multiview import training_neighbours
 from splat.strategy import PAPER_ITERS, IndoorStrategy
 from splat.train_config import LearningRates, TrainConfig
+from splat.tsdf_config import check_tsdf_resources
 from splat.views import ViewSet, warn_large_images
 
 log = logging.getLogger(__name__)
@@ -47,12 +48,8 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     if not cues_ply.is_file():
         raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
     cfg.validate()
-    if cfg.mesh and cfg.tsdf.device.lower().startswith("cuda"):  # found after the training, it lost the run
-        import open3d as o3d
-
-        if not o3d.core.cuda.is_available():
-            raise ValueError(f"--tsdf.device {cfg.tsdf.device}: this Open3D build has no CUDA device; "
-                             "fuse on the CPU (--tsdf.device cpu, the default)")
+    if cfg.mesh:  # found after the training, it lost the run
+        check_tsdf_resources(cfg.tsdf)
     work = staging_dir(out_dir)
     # cfg_args: only a run writes it (an extract's folder has a report.json too)
     check_replaceable(out_dir, "cfg_args", "a `splat train` run", {"scene": scene_dir, "cues": cues})

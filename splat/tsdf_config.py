@@ -95,6 +95,31 @@ class TSDFConfig:
             raise ValueError(f"--tsdf.smooth-iters must be >= 0, got {self.smooth_iters}")
 
 
+BLOCK_BYTES = 80_000  # one 16^3 block of the voxel grid (TSDF, weight, colour), allocated up front
+
+
+def check_tsdf_resources(cfg: TSDFConfig) -> None:
+    """Raise ValueError before any work when fusion cannot run here: ``--tsdf.device cuda`` on an
+    Open3D built without CUDA, or a ``--tsdf.block-count`` that allocates more than the machine's
+    memory up front (both were tracebacks from Open3D after the work before them was done)."""
+    import os
+
+    if cfg.device.lower().startswith("cuda"):
+        import open3d as o3d
+
+        if not o3d.core.cuda.is_available():
+            raise ValueError(f"--tsdf.device {cfg.device}: this Open3D build has no CUDA device; "
+                             "fuse on the CPU (--tsdf.device cpu, the default)")
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not on this platform: nothing to compare with
+        return
+    if cfg.block_count * BLOCK_BYTES > memory:
+        raise ValueError(f"--tsdf.block-count {cfg.block_count} allocates {cfg.block_count * BLOCK_BYTES / 1e9:.0f} GB "
+                         f"up front; this machine has {memory / 1e9:.0f} GB (the grid grows as needed from the "
+                         "default 1000)")
+
+
 def open3d_device(name: str) -> str:
     """The toolkit's device spelling ("cpu", "cuda", "cuda:1") as Open3D's ("CPU:0", "CUDA:1")."""
     kind, _, index = name.strip().lower().partition(":")

@@ -467,3 +467,21 @@ def test_splat_mesh_names_every_option_that_changes_the_surface():
     mvs = TSDFConfig(weight_threshold=1, consistent_views=2, max_depth_spread=0.02, smooth_iters=30)
     assert default_out(run, mvs).name == "mesh_expected_w1_c2_s0.02_t30.ply"  # the remesh tables' name
     assert default_out(run, TSDFConfig(depth="median", sdf_trunc=0.1)).name == "mesh_median_w3_tr0.1.ply"
+    # --views all and --mesh-every fuse other views: another surface, another name (--overwrite replaced
+    # the default mesh); the consistency check's settings without it change nothing, nor the name
+    assert default_out(run, TSDFConfig(), "all", 3).name == "mesh_expected_w3_all_e3.ply"
+    assert default_out(run, TSDFConfig(consistency_neighbours=2, consistency_px=5.0)).name == "mesh_expected_w3.ply"
+
+
+def test_splat_mesh_refuses_the_run_s_own_files_and_what_cannot_run_here(tmp_path):
+    """`splat mesh RUN -o RUN/point_cloud.ply --overwrite` replaced the run's Gaussians with a mesh;
+    --tsdf.device cuda (an Open3D without CUDA) and --tsdf.block-count 1e8 were Open3D tracebacks."""
+    from splat.mesh_run import MeshRunConfig, run
+
+    (tmp_path / "point_cloud.ply").write_text("the run's Gaussians")
+    for out in ("point_cloud.ply", "input.ply", "point_cloud/iteration_30/point_cloud.ply"):
+        with pytest.raises(ValueError, match="is one of the run's own files"):
+            run(MeshRunConfig(), tmp_path, tmp_path / out, overwrite=True)
+    assert (tmp_path / "point_cloud.ply").read_text() == "the run's Gaussians"
+    with pytest.raises(ValueError, match=r"--tsdf.block-count 100000000 allocates 8000 GB up front"):
+        run(MeshRunConfig(tsdf=TSDFConfig(block_count=100_000_000)), tmp_path)
