@@ -67,7 +67,7 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
     for li, v in enumerate(lines.views if lines is not None else []):
         for c in np.asarray(v, np.int64).tolist():
             lines_of.setdefault(c, []).append(li)
-    for cam in tqdm(scene.cameras, desc=desc, unit="img", disable=None):
+    for cam in tqdm(scene.cameras, desc=desc, unit="img"):
         i = cam.index
         row: dict = {"index": i, "name": cam.name}
         t0 = time.perf_counter()

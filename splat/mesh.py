@@ -253,7 +253,8 @@ def fuse_views(views: Iterable[tuple[np.ndarray, np.ndarray | None, np.ndarray, 
     log.info("TSDF fusion: %s (truncation %.4f m)", asdict(cfg), cfg.trunc)
     t0 = time.perf_counter()
     total = len(views) if hasattr(views, "__len__") else None
-    for view in tqdm(views, total=total, desc="TSDF fusion", unit="view", disable=not progress):
+    quiet = {} if progress else {"disable": True}  # no disable=False: it overrode -q's default (bars on)
+    for view in tqdm(views, total=total, desc="TSDF fusion", unit="view", **quiet):
         if len(view) != 4:
             raise ValueError(f"view {fuser.n_views}: expected (depth, rgb, K, world_to_cam), "
                              f"got a {len(view)}-tuple")

@@ -499,3 +499,17 @@ def test_progress_lines_hold_their_interval_through_explicit_refreshes(monkeypat
         lines.write(text if text == "\n" else "\r" + text + " 1/2 [00:01<00:01]")
     got = [line.split("|")[0].split(" [")[0] for line in capsys.readouterr().err.splitlines()]
     assert got == ["splat train:  40%", "splat train:  80%", "splat train:  90%", "190it"], got
+
+
+def test_quiet_silences_bars_that_ask_for_progress(capsys):
+    """`splat -q mesh` drew the TSDF bar (its explicit disable=False overrode -q's default)."""
+    import numpy as np
+
+    from cli._dispatch import progress_bars_off
+    from splat.mesh import fuse_views
+
+    K = np.array([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]])
+    views = [(np.full((16, 16), 2.0, np.float32), None, K, np.eye(4))] * 3
+    with progress_bars_off():
+        fuse_views(views, progress=True)
+    assert "TSDF fusion" not in capsys.readouterr().err
