@@ -18,7 +18,7 @@ class TSDFConfig:
     depth_max: float = 10.0
     """depths beyond this (metres) are ignored; rooms are under 10 m across."""
     weight_threshold: float = 3.0
-    """marching cubes keeps voxels seen by more than this many views (Open3D's default); lowered to n - 1 when only n <= it views had valid depth."""
+    """marching cubes keeps voxels seen by more than this many views (Open3D's default); lowered to n - 1 when only n <= it views had valid depth (then a voxel must be seen by every one of them: near n the mesh is empty unless the views all overlap)."""
     block_count: int = 1000
     """initial capacity of the block hash map (16^3 voxels, 80 kB each, allocated up front); it grows as needed."""
     device: str = "cpu"
