@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -224,6 +225,16 @@ class TestSceneAndLayouts:
             make_room(tmp_path / "x", replace(TINY, layout="castle"))
         with pytest.raises(ValueError, match="already exists"):
             make_room(rooms["a"], TINY)
+        # --image-noise nan/-1 gave noise-free images, --focal -525 a mirrored camera, --priors.depth-warp 100
+        # negative prior depths, --trajectory.clearance nan was accepted
+        for change, said in ((dict(image_noise=float("nan")), "--image-noise is a standard deviation"),
+                             (dict(image_noise=-1.0), "--image-noise is a standard deviation"),
+                             (dict(focal=-525.0), "--focal must be a finite focal length > 0"),
+                             (dict(priors=replace(TINY.priors, depth_warp=100.0)), "--priors.depth-warp must be under 1/3"),
+                             (dict(trajectory=replace(TINY.trajectory, clearance=float("nan"))),
+                              "--trajectory.clearance must be a finite number")):
+            with pytest.raises(ValueError, match=re.escape(said)):
+                make_room(tmp_path / "x", replace(TINY, **change))
         assert not (tmp_path / "x").exists()
 
 

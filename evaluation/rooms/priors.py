@@ -61,6 +61,9 @@ class PriorConfig:
                 raise ValueError(f"--priors.{name.replace('_', '-')} must be >= 0 and finite, got {value}")
         if self.depth_warp_cells < 1:
             raise ValueError(f"--priors.depth-warp-cells must be >= 1, got {self.depth_warp_cells}")
+        if self.depth_warp >= 1 / 3:  # the warp field is clipped to 3 sigma: 1 - 3 w must stay > 0
+            raise ValueError(f"--priors.depth-warp must be under 1/3 (a 3-sigma warp of the depth keeps it positive), "
+                             f"got {self.depth_warp}")
 
 
 def _blur(img: np.ndarray, sigma: float, mask: np.ndarray | None = None) -> np.ndarray:

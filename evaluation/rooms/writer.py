@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Literal
 
@@ -93,6 +94,17 @@ def _check(cfg: RoomConfig) -> None:
         raise ValueError(f"supersample must be >= 1, got {cfg.supersample}")
     if cfg.seed < 0:
         raise ValueError(f"seed must be >= 0, got {cfg.seed}")
+    # --image-noise nan/-1 gave noise-free images, --focal -525 a mirrored camera, nan a message about
+    # GT depth; --trajectory.clearance nan was accepted
+    if not (math.isfinite(cfg.focal) and cfg.focal > 0):
+        raise ValueError(f"--focal must be a finite focal length > 0 (pixels at 640 px width), got {cfg.focal}")
+    if not (math.isfinite(cfg.image_noise) and 0 <= cfg.image_noise <= 1):
+        raise ValueError(f"--image-noise is a standard deviation of [0, 1] pixel values and must be in [0, 1], "
+                         f"got {cfg.image_noise}")
+    for f in fields(cfg.trajectory):
+        value = getattr(cfg.trajectory, f.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"--trajectory.{f.name.replace('_', '-')} must be a finite number, got {value}")
 
 
 def contact_sheet(images: list[np.ndarray], cols: int = 3, width: int = 320) -> np.ndarray:
