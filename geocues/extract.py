@@ -225,7 +225,7 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
             return out_dir
         raise ValueError(f"{out_dir} holds cues of another configuration or scene "
                          f"(config {old.get('config_key')} vs {key}: {what_changed(old, _key_config(cfg), _key_config(ExtractConfig()), scene_dir)}); "
-                         "pass --overwrite (overwrite=True) to replace them")
+                         "pass --overwrite to replace them")
     log.info("extract: %s -> %s, config %s:\n%s", scene_dir, out_dir, key,
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()

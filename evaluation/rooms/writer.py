@@ -162,7 +162,7 @@ def make_room(out: str | Path, cfg: RoomConfig = RoomConfig(), overwrite: bool =
     _check(cfg)
     check_replaceable(out, "make_room_report.json", "a benchmark room of `evaluate make-room`")
     if out.exists() and not overwrite:
-        raise ValueError(f"{out} already exists; pass overwrite=True (--overwrite) to replace it")
+        raise ValueError(f"{out} already exists; pass --overwrite to replace it")
     check_output_dir(out)
     log.info("make-room %s: config %s", out, asdict(cfg))
     t_start = time.perf_counter()
