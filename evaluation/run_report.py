@@ -200,18 +200,20 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     name = run_dir.resolve().name
     if name == "train":  # `splat ablate`'s OUT/rows/<row>_s<seed>/train: the row names the run
         name = f"{run_dir.resolve().parent.name}/train"
+    held_out = bool(final.get("n_views"))  # --test-every 0: no held-out view (it said 'test PSNR nan dB')
+    scores = (f"test PSNR {final.get('psnr'):.2f} dB, SSIM {final.get('ssim'):.3f} ({final.get('n_views')} views)"
+              if held_out else "no held-out views (--test-every 0): no test PSNR")
     lines = [f"# `splat train` run: {name}", "",
-             f"Scene `{scene_dir.resolve()}`; {report['config']['iters']} iterations; test PSNR "
-             f"{final.get('psnr') or float('nan'):.2f} dB, SSIM {final.get('ssim') or float('nan'):.3f} "
-             f"({final.get('n_views', 0)} views); {_gaussians(report.get('gaussians_final'))}; "
-             f"training {report['timings']['train_s']:.0f} s.", ""]
+             f"Scene `{scene_dir.resolve()}`; {report['config']['iters']} iterations; {scores}; "
+             f"{_gaussians(report.get('gaussians_final'))}; training {report['timings']['train_s']:.0f} s.", ""]
     if meshes:
         m = meshes[-1]
         lines += [f"Final mesh: Chamfer-L1 {m['chamfer_l1'] * 100:.2f} cm, F@5cm {m['f_score']:.3f}, "
                   f"NC {m['normal_consistency']:.3f}.", ""]
     lines += ["![accuracy against time](report_accuracy.png)", "", "![loss terms](report_losses.png)", "",
               "![Gaussians per type](report_gaussians.png)", "",
-              "Held-out views: GT | render | rendered median depth | rendered normals"
+              ("Held-out views" if held_out else "Training views (the run held none out)")
+              + ": GT | render | rendered median depth | rendered normals"
               + (" | depth error against exact GT depth" if sheet["depth_errors"] else "") + ":", "",
               "![held-out views](report_views.png)", ""]
     with atomic_path(run_dir / "report.md") as tmp:

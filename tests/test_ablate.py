@@ -506,7 +506,7 @@ def test_logged_step_reads_the_tail_of_a_working_run(tmp_path):
     assert logged_step(spec) == 30
 
 
-def test_evaluate_report_of_a_run(ablation):
+def test_evaluate_report_of_a_run(ablation, tmp_path):
     from cli.evaluate_cli import main
 
     run = ablation / "rows" / "full_s0" / "train"
@@ -528,6 +528,19 @@ def test_evaluate_report_of_a_run(ablation):
     md = (run / "report.md").read_text()
     assert "report_views.png" in md and "Chamfer-L1" in md
     assert md.startswith("# `splat train` run: full_s0/train")  # the row, not every row's "train"
+    assert "test PSNR" in md and "Held-out views: GT" in md
+    # a run that held no view out (--test-every 0) said "test PSNR nan dB (0 views)" over training views
+    import shutil
+
+    copy = tmp_path / "train_t0"
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("report*.png", "report.md", "report_data.json"))
+    rep = json.loads((copy / "report.json").read_text())
+    rep["config"]["test_every"], rep["test_metrics"] = 0, {"psnr": None, "ssim": None, "n_views": 0}
+    (copy / "report.json").write_text(json.dumps(rep))
+    assert main(["report", str(copy), "--views", "2"]) == 0
+    md = (copy / "report.md").read_text()
+    assert "no held-out views (--test-every 0): no test PSNR" in md and "nan" not in md
+    assert "Training views (the run held none out): GT" in md
     assert re.search(r"; \d+ Gaussians \(SFM \d+, LINE \d+, PLANE \d+\);", md), md
     # a finished report is replaced only with --overwrite (views=1 would change the contact sheet)
     assert main(["report", str(run), "--views", "1"]) == 1
