@@ -50,6 +50,9 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     cfg.validate()
     if cfg.mesh:  # found after the training, it lost the run
         check_tsdf_resources(cfg.tsdf)
+    elif cfg.mesh_at_checkpoints:
+        log.warning("--mesh-at-checkpoints with --no-mesh: no mesh is fused at all (--no-mesh wins), so the "
+                    "accuracy-against-time curve has no mesh figures")
     work = staging_dir(out_dir)
     # cfg_args: only a run writes it (an extract's folder has a report.json too)
     check_replaceable(out_dir, "cfg_args", "a `splat train` run", {"scene": scene_dir, "cues": cues})

@@ -224,3 +224,17 @@ def test_a_divergence_names_what_to_change_from_its_cause():
     guard.on_rollback(event)
     with pytest.raises(TrainingDiverged, match=r"The loss terms depth, normal went bad first"):
         guard.on_rollback(event)
+
+
+def test_checkpoint_meshes_without_meshing_are_named(scene, tmp_path, caplog):
+    """--no-mesh --mesh-at-checkpoints made no checkpoint mesh without a word (evaluate report then had
+    no mesh-against-time plot)."""
+    from splat.train import run
+
+    base, root, cues = scene
+    cfg = dataclasses.replace(TrainConfig(), iters=4, sh_degree=0, mesh=False, mesh_at_checkpoints=True,
+                              checkpoints=(1.0,))
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        run(cfg, root, cues, tmp_path / "run")
+    assert "--mesh-at-checkpoints with --no-mesh: no mesh is fused at all" in caplog.text
+
