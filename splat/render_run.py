@@ -241,6 +241,9 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
     import imageio.v3 as iio
 
     pooled = []  # every view's depths, subsampled: the video's one colour range
+    empty: list[str] = []  # views that see no Gaussian
+    if not cfg.video and (cfg.frames, cfg.fps) != (RenderConfig.frames, RenderConfig.fps):
+        log.warning("--frames / --fps shape the video: without --video they do nothing")
     with atomic_dir(out) as tmp:
         for sub in ("rgb", "depth", "normal", "alpha", "panels"):
             (tmp / sub).mkdir(parents=True)
@@ -258,6 +261,8 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
                         gt_d = load_gt_depth(gt_depth_dir, scene.cameras[v.index].stem, r["median_depth"].shape, 1000.0)
                     except FileNotFoundError:
                         gt_d = None
+            if float(r["alpha"].max()) < 0.01:  # black images with a 0.00-1.00 m depth strip, said nowhere
+                empty.append(v.name)
             lo, hi = depth_range(gt_d if gt_d is not None else r["median_depth"])
             tiles = {"rgb": _u8(r["rgb"]), "depth": colorize_depth(r["median_depth"], lo, hi),
                      "normal": _normal_u8(r["normal"]), "alpha": np.repeat(_u8(r["alpha"])[..., None], 3, -1)}
@@ -284,6 +289,9 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
                                                     "names": [v.name for v in views],
                                                     "video_frames": cfg.frames if cfg.video else 0}, indent=1))
     log.info("rendered %d views of %s into %s", len(views), run_dir, out)
+    if empty:
+        log.warning("%d of %d views see no Gaussian (%s%s): their images are the background; are the cameras "
+                    "in the run's frame?", len(empty), len(views), ", ".join(empty[:3]), ", ..." if len(empty) > 3 else "")
     return out
 
 

@@ -205,3 +205,19 @@ def test_a_cameras_json_s_names_cannot_leave_the_output_folder(fake_run, tmp_pat
         with pytest.raises(ValueError, match=re.escape(said)):
             run(RenderConfig(views=str(path)), run_dir, tmp_path / "out")
     assert not (tmp_path / "out").exists() and not list(tmp_path.parent.glob("evil*"))
+
+
+def test_views_that_see_nothing_and_idle_video_options_are_named(fake_run, tmp_path, caplog):
+    """A camera at (100, 100, 100) rendered black images with a 'depth 0.00-1.00 m' strip without a
+    word; --frames / --fps without --video were ignored in silence."""
+    import logging
+
+    run_dir, scene = fake_run
+    far = camera_to_json(0, scene.cameras[0])
+    far["position"] = [100.0, 100.0, 100.0]
+    path = tmp_path / "far.json"
+    path.write_text(json.dumps([far, camera_to_json(3, scene.cameras[3])]))
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        run(RenderConfig(views=str(path), frames=5), run_dir, tmp_path / "out")
+    assert "1 of 2 views see no Gaussian (00000)" in caplog.text
+    assert "--frames / --fps shape the video: without --video they do nothing" in caplog.text
