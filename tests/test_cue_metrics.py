@@ -67,15 +67,9 @@ def test_missing_cues_file_names_the_folder(tmp_path):
         evaluate_cues_dir(tmp_path, tmp_path)
 
 
-def test_cues_of_another_scene_are_scored_with_a_warning(tmp_path, caplog):
-    """`evaluate cues CUES SCENE` with cues from a rescaled copy scored them in silence (`splat train`
-    warned): the same camera check names the mismatch."""
-    import json
-    import logging
-
+def _room_and_its_sfm_cues(tmp_path):
+    """A 4-view room with GT and a cue folder holding its SfM points as cues: (root, scene, cues)."""
     from cues_synth import make_room_scene
-    from evaluation.cue_metrics import evaluate_cues_dir
-    from geocues.camera_signature import camera_signature
     from geocues.cue_io import write_cues_ply
     from geocues.scene import Scene
 
@@ -87,6 +81,19 @@ def test_cues_of_another_scene_are_scored_with_a_warning(tmp_path, caplog):
     cues = tmp_path / "cues"
     write_cues_ply(cues / "cues.ply", CueCloud.make(scene.points.xyz, np.zeros((len(scene.points), 3), np.uint8),
                                                     CueType.SFM))
+    return root, scene, cues
+
+
+def test_cues_of_another_scene_are_scored_with_a_warning(tmp_path, caplog):
+    """`evaluate cues CUES SCENE` with cues from a rescaled copy scored them in silence (`splat train`
+    warned): the same camera check names the mismatch."""
+    import json
+    import logging
+
+    from evaluation.cue_metrics import evaluate_cues_dir
+    from geocues.camera_signature import camera_signature
+
+    root, scene, cues = _room_and_its_sfm_cues(tmp_path)
     for spread, warned in ((1.0, False), (10.0, True)):  # the scene's own cameras, a copy 10x the size
         sig = camera_signature(scene)
         (cues / "report.json").write_text(json.dumps({"cameras": {**sig, "spread": sig["spread"] * spread}}))
@@ -104,18 +111,9 @@ def test_cues_named_by_their_report_as_another_scene_s_are_warned_and_bad_option
 
     from cues_synth import make_room_scene
     from evaluation.cue_metrics import CueMetricsConfig, evaluate_cues_dir
-    from geocues.cue_io import write_cues_ply
-    from geocues.scene import Scene
 
-    from test_ablate import write_gt
-
-    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48, priors="none")
+    root, _, cues = _room_and_its_sfm_cues(tmp_path)
     other = make_room_scene(tmp_path / "other", n_views=4, w=64, h=48, priors="none")
-    write_gt(root)
-    scene = Scene.load(root)
-    cues = tmp_path / "cues"
-    write_cues_ply(cues / "cues.ply", CueCloud.make(scene.points.xyz, np.zeros((len(scene.points), 3), np.uint8),
-                                                    CueType.SFM))
     for source, warned in ((root, False), (other, True)):
         (cues / "report.json").write_text(json.dumps({"scene": str(source)}))
         caplog.clear()
