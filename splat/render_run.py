@@ -224,6 +224,8 @@ def run(cfg: RenderConfig, run_dir: str | Path, out: str | Path | None = None, *
     if cfg.views.endswith(".json") and not Path(cfg.views).is_file():  # before the scene is loaded
         raise FileNotFoundError(f"--views {cfg.views}: no such camera file")
     out = Path(out) if out is not None else run_dir / "renders"
+    if out.exists() and not out.is_dir():  # was a raw "[Errno 20] Not a directory"
+        raise ValueError(f"-o {out} is a file; the renders go into a folder")
     check_replaceable(out, "views.json", "a `splat render` output", {"run": run_dir})
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise ValueError(f"{out} already holds renders; pass --overwrite to replace them")

@@ -221,3 +221,7 @@ def test_views_that_see_nothing_and_idle_video_options_are_named(fake_run, tmp_p
         run(RenderConfig(views=str(path), frames=5), run_dir, tmp_path / "out")
     assert "1 of 2 views see no Gaussian (00000)" in caplog.text
     assert "--frames / --fps shape the video: without --video they do nothing" in caplog.text
+    (tmp_path / "keep.txt").write_text("a user's file")
+    with pytest.raises(ValueError, match="is a file; the renders go into a folder"):
+        run(RenderConfig(), run_dir, tmp_path / "keep.txt", overwrite=True)
+    assert (tmp_path / "keep.txt").read_text() == "a user's file"
