@@ -270,13 +270,13 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
     try:
         with _signals_deferred() as stopped:  # a Ctrl-C inside viser's start-up was lost (it served on)
             server = view_run(cfg, run, block=False)
-    except KeyboardInterrupt:  # the second one: view_run stops what it started on the way out
+    except KeyboardInterrupt as exc:  # the second one: view_run stops what it started on the way out
         print("viewer stopped while loading")
-        return 130
+        return 143 if exc.args and exc.args[0] == "SIGTERM" else 130
     if stopped:
         stop(server)
         print("viewer stopped while loading")
-        return 130
+        return 128 + int(stopped[0])  # 130 Ctrl-C, 143 SIGTERM, as a shell reports a process a signal ended
     if screenshot is None:
         try:  # a Ctrl-C between the print and serve()'s own handler must stop the server too,
             # or its threads keep the process alive

@@ -287,9 +287,12 @@ def test_ctrl_c_ends_with_one_line(fake_run):
     assert "Traceback" not in err, err
 
 
-def test_ctrl_c_while_loading_stops_the_viewer_even_where_a_library_swallows_it(monkeypatch, tmp_path, capsys):
-    """A SIGINT during start-up ends the command (exit 130, one line), even when the code it lands in
-    swallows the KeyboardInterrupt (as viser's start-up did: the viewer served on until a second Ctrl-C)."""
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_while_loading_stops_the_viewer_even_where_a_library_swallows_it(monkeypatch, tmp_path, capsys,
+                                                                                 sig, code):
+    """A SIGINT during start-up ends the command (exit 130, one line; SIGTERM 143), even when the code it
+    lands in swallows the KeyboardInterrupt (as viser's start-up did: the viewer served on until a second
+    Ctrl-C)."""
     import splat.viewer as viewer
     from cli.splat_cli import main
 
@@ -297,7 +300,7 @@ def test_ctrl_c_while_loading_stops_the_viewer_even_where_a_library_swallows_it(
 
     def loading_that_swallows(cfg, run_dir, *, port=None, block=True):
         try:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), sig)
             time.sleep(0.2)
         except KeyboardInterrupt:
             pass  # a library's start-up
@@ -308,7 +311,7 @@ def test_ctrl_c_while_loading_stops_the_viewer_even_where_a_library_swallows_it(
     monkeypatch.setattr(viewer, "stop", lambda server: calls.append(f"stopped {server}"))
     monkeypatch.setattr(viewer, "url_of", lambda server: "http://127.0.0.1:1")
     before = signal.getsignal(signal.SIGINT)
-    assert main(["view", str(tmp_path), "--port", "0"]) == 130
+    assert main(["view", str(tmp_path), "--port", "0"]) == code
     assert calls == ["stopped server"]
     assert capsys.readouterr().out.strip() == "viewer stopped while loading"
     assert signal.getsignal(signal.SIGINT) is before  # the handlers are back
