@@ -409,7 +409,6 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     rho = _rank_correlation(d, z) * (-1.0 if kind == "disparity" else 1.0)
     res.rank_correlation = rho
     if not rho >= MIN_RANK_CORRELATION:  # NaN: a constant prior
-        spread = float((np.percentile(z, 90) - np.percentile(z, 10)) / np.median(z))
         res.reason = (f"the prior does not follow the scene's depth at its {len(d)} anchors (rank correlation "
                       f"{rho:.2f} < {MIN_RANK_CORRELATION}, their depths spread {100 * spread:.0f} %): another "
                       f"view's prior, a constant one, {'depth' if kind == 'disparity' else 'disparity'} "

@@ -49,15 +49,16 @@ MIN_WORK_WIDTH = 16  # px: texture.work_width below this was raised to it in sil
 
 
 def flag(path: str) -> str:
+    """A config field's dotted path as the command line spells it: ``line.min_views`` -> ``--line.min-views``."""
     return "--" + path.replace("_", "-")
 
 
-def _floats(obj: Any, prefix: str = ""):
+def float_options(obj: Any, prefix: str = ""):
     """(dotted path, value) of every float of a config, tuples' items included."""
     for f in fields(obj):
         value = getattr(obj, f.name)
         if is_dataclass(value):
-            yield from _floats(value, f"{prefix}{f.name}.")
+            yield from float_options(value, f"{prefix}{f.name}.")
         elif isinstance(value, float):
             yield prefix + f.name, value
         elif isinstance(value, tuple):
@@ -68,10 +69,8 @@ def check_extract_options(cfg) -> None:
     """Raise ValueError naming the first impossible option of ``cfg`` (a geocues.extract.ExtractConfig)."""
     if not (cfg.sfm or cfg.lines or cfg.planes):
         raise ValueError("--no-sfm --no-lines --no-planes leave nothing to extract: keep one stage on")
-    for path, value in _floats(cfg):
-        if not math.isfinite(value):
-            raise ValueError(f"{flag(path)} must be a finite number, got {value}")
-    for path, value in _floats(cfg):
+    check_finite(cfg)
+    for path, value in float_options(cfg):
         if path.endswith("_deg") and not 0 <= value <= 180:
             raise ValueError(f"{flag(path)} is an angle and must be in [0, 180] degrees, got {value}")
 
@@ -149,4 +148,12 @@ def what_changed(old: dict, key_cfg: dict, default_key_cfg: dict, scene_dir: Pat
     return "the same options: the scene's images/, priors/, sparse/ or scene.json changed since"
 
 
-__all__ = ["check_extract_options", "idle_options", "what_changed"]
+def check_finite(cfg: Any, prefix: str = "") -> None:
+    """Raise ValueError naming the first NaN or infinite float of the config ``cfg`` (options under
+    ``prefix``): every comparison with NaN is False, so range checks let it through."""
+    for path, value in float_options(cfg, prefix):
+        if not math.isfinite(value):
+            raise ValueError(f"{flag(path)} must be a finite number, got {value}")
+
+
+__all__ = ["check_extract_options", "check_finite", "flag", "float_options", "idle_options", "what_changed"]

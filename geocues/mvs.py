@@ -31,9 +31,8 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -88,10 +87,9 @@ class MvsConfig:
     """a triangle whose plane the view sees at |cos| below this (grazing) gives no plane."""
 
     def validate(self) -> None:
-        for f in fields(self):  # --min-ncc nan was accepted (every comparison with NaN is False)
-            value = getattr(self, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise ValueError(f"--{f.name.replace('_', '-')} must be a finite number, got {value}")
+        from geocues.extract_checks import check_finite
+
+        check_finite(self)  # --min-ncc nan was accepted (every comparison with NaN is False)
         if self.max_size < 16 or self.n_depths < 8 or self.window < 3 or self.window % 2 == 0:
             raise ValueError(f"mvs: need max_size >= 16, n_depths >= 8 and an odd window >= 3 "
                              f"(got {self.max_size}, {self.n_depths}, {self.window})")

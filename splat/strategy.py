@@ -31,6 +31,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from geocues.extract_checks import flag as cli_flag
 from geocues.types import CueType
 from splat.densify_ops import (duplicate, flat_normal, free_split_offsets, near_any, remove,
                                reset_opacities, split, tangent_clone_means, tangent_split_offsets)
@@ -110,7 +111,7 @@ class IndoorStrategyConfig:
         threshold trained to the end and then failed writing report.json, --strategy.reset-opacity 2
         failed at the first reset (step 3000 of 30k) without naming the option."""
         def flag(name: str) -> str:
-            return f"--strategy.{name.replace('_', '-')}"
+            return cli_flag(f"strategy.{name}")
 
         for name in ("refine_start", "refine_stop", "sfm_pause", "sfm_resume", "min_reset_every"):
             if getattr(self, name) < 0:

@@ -28,7 +28,7 @@ import shutil
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -39,6 +39,7 @@ from evaluation.rooms.layout import make_room_geometry
 from evaluation.rooms.priors import PriorConfig, simulate_depth_prior, simulate_normal_prior
 from evaluation.rooms.render import add_sensor_noise, pixel_directions, render_view
 from evaluation.rooms.trajectory import TrajectoryConfig, make_trajectory
+from geocues.extract_checks import check_finite
 
 log = logging.getLogger(__name__)
 
@@ -101,10 +102,7 @@ def _check(cfg: RoomConfig) -> None:
     if not (math.isfinite(cfg.image_noise) and 0 <= cfg.image_noise <= 1):
         raise ValueError(f"--image-noise is a standard deviation of [0, 1] pixel values and must be in [0, 1], "
                          f"got {cfg.image_noise}")
-    for f in fields(cfg.trajectory):
-        value = getattr(cfg.trajectory, f.name)
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"--trajectory.{f.name.replace('_', '-')} must be a finite number, got {value}")
+    check_finite(cfg.trajectory, "trajectory.")
 
 
 def contact_sheet(images: list[np.ndarray], cols: int = 3, width: int = 320) -> np.ndarray:
