@@ -37,7 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from geocues.cue_io import read_cues_ply  # noqa: E402
-from geocues.floor_lines import Floor, FloorLineConfig, depth_along, kept_segments, lift_segments  # noqa: E402
+from geocues.floor import Floor  # noqa: E402
+from geocues.floor_lines import FloorLineConfig, depth_along, kept_segments, lift_segments  # noqa: E402
 from geocues.lines.config import LineConfig  # noqa: E402
 from geocues.lines.detect import detect_gray  # noqa: E402
 from geocues.scene import Scene  # noqa: E402

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geocues.floor_lines import Floor
+from geocues.floor import Floor
 from geocues.plane_fit import ray_plane_depth
 
 HORIZONTAL_COS = np.cos(np.radians(20.0))  # a surface within 20 degrees of level is horizontal

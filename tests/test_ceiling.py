@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from geocues.ceiling import ceiling_anchors, ceiling_edges, ceiling_height, view_ceiling_height
-from geocues.floor_lines import Floor, FloorLineConfig
+from geocues.floor import Floor
+from geocues.floor_lines import FloorLineConfig
 
 from test_floor_lines import H, W, camera
 
