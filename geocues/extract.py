@@ -380,7 +380,8 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
                              desc="planes (first pass: the floor)")
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
-                                        cfg.floor, aligned, lines.segments if lines is not None else None)
+                                        cfg.floor, aligned, lines.segments if lines is not None else None,
+                                        anchors.xyz)
     W, WL, cuts, levels = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros((0, 4))
     snap_walls = np.zeros((0, 4))
     if cfg.floor.walls and len(P):
@@ -414,6 +415,8 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     timings["floor_lines"] = time.perf_counter() - t0
     if "note" in stats:
         notes.append(f"floor lines: {stats['note']}; no floor-line anchors")
+        log.warning("--floor.lines: %s: no floor lines, walls or level planes (the cues are those without them)",
+                    stats["note"])
     else:
         notes.append(f"floor lines: floor found in {stats['floor']['n_points']} plane cues; {stats['kept']} of "
                      f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors"

@@ -43,8 +43,56 @@ def up_direction(cameras) -> np.ndarray | None:
     return m / n if n >= 0.5 else None
 
 
-def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfig) -> tuple[Floor | None, str]:
-    """The floor from PLANE cues ``xyz`` / ``normal`` [N, 3]; (None, why) when there is none."""
+MIN_ACROSS_STD = 0.05
+"""A floor whose cues lie in a patch narrower than this (metres, standard deviation across its longer
+direction) is not found: nothing there fixes its tilt across the patch (two 24-view benchmark rooms saw
+their bare floor only in a strip 0.07 m wide (std 0.02 m): fitted 9 and 15 degrees off level)."""
+BELOW_MARGIN = 0.05
+"""3D cues (SfM points, line samples) more than this (metres) below a floor candidate are under it ..."""
+BELOW_SHARE = 0.05
+"""... and a candidate with this share of the 3D cues below the cameras under it (and at least
+``min_floor_points``) is no floor: a table top whose plane cues are the lowest horizontal ones (a
+textured floor is SfM points, not plane cues)."""
+
+
+def _lowest_layer(h: np.ndarray, min_points: int) -> float | None:
+    """Height of the lowest well-filled 2 cm layer of heights ``h`` [N]: the peak bin of the lowest
+    run of three bins holding ``min_points`` and a fifth of the fullest run; None when none does."""
+    if len(h) < min_points:
+        return None
+    bins = np.floor((h - h.min()) / 0.02).astype(np.int64)
+    count = np.bincount(bins)
+    width3 = np.convolve(count, np.ones(3, np.int64), mode="same")  # a surface spreads over a few bins
+    full = np.flatnonzero(width3 >= max(min_points, 0.2 * width3.max()))
+    if not len(full):
+        return None
+    b = max(int(full[0]) - 1, 0)
+    b += int(np.argmax(count[b:int(full[0]) + 2]))  # the peak bin of that surface
+    return float(h.min() + 0.02 * (b + 0.5))
+
+
+def _fit_layer(pts: np.ndarray, up: np.ndarray, h0: float, level: bool = False) -> tuple[Floor, np.ndarray]:
+    """The floor through the points ``pts`` [N, 3] within 3 cm of height ``h0`` (:func:`_level_fit`;
+    ``level``: normal ``up`` at their median height); (floor, their mask)."""
+    near = np.abs(pts @ up - h0) < 0.03
+    normal, height = (up, float(np.median(pts[near] @ up))) if level else _level_fit(pts[near], up)
+    return Floor(normal, height, int(near.sum()), np.cov(pts[near].T)), near
+
+
+def _under(floor: Floor, support: np.ndarray, min_points: int) -> int | None:
+    """How many of the 3D cues ``support`` [M, 3] (already below the cameras) lie more than
+    BELOW_MARGIN under ``floor``, when that many say it is no floor; else None."""
+    n = int(np.sum(support @ floor.normal - floor.height < -BELOW_MARGIN))
+    return n if n >= max(min_points, BELOW_SHARE * len(support)) else None
+
+
+def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfig,
+               support: np.ndarray | None = None) -> tuple[Floor | None, str]:
+    """The floor from PLANE cues ``xyz`` / ``normal`` [N, 3]; (None, why) when there is none.
+    ``support`` [M, 3]: the scene's 3D cues (SfM points, line samples), which a floor has (almost)
+    none of under it: when the lowest horizontal plane cues have (BELOW_SHARE), the floor is the lowest
+    well-filled layer of the 3D cues under them (parallel to the plane fitted to those plane cues, at
+    the layer's median height: a few dozen points tilted it 0.3 degrees), or there is none."""
     up = up_direction(cameras)
     if up is None:
         return None, "the cameras agree on no up direction"
@@ -57,23 +105,35 @@ def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfi
         up = (n[horiz] * np.sign(n[horiz] @ up)[:, None]).mean(axis=0)
         up /= np.linalg.norm(up)
     horiz = np.abs(n @ up) > np.cos(np.radians(cfg.horizontal_deg))
-    h = x[horiz] @ up
-    below = h < min(float(np.asarray(c.center) @ up) for c in cameras)
-    h, pts = h[below], x[horiz][below]
-    if len(h) < cfg.min_floor_points:
-        return None, f"{len(h)} horizontal plane cues below the cameras (fewer than {cfg.min_floor_points})"
-    bins = np.floor((h - h.min()) / 0.02).astype(np.int64)  # 2 cm bins; the lowest well-filled one
-    count = np.bincount(bins)
-    width3 = np.convolve(count, np.ones(3, np.int64), mode="same")  # a surface spreads over a few bins
-    need = max(cfg.min_floor_points, 0.2 * width3.max())
-    b = int(np.flatnonzero(width3 >= need)[0])
-    b = max(b - 1, 0) + int(np.argmax(count[max(b - 1, 0):b + 2]))  # the peak bin of that surface
-    h0 = h.min() + 0.02 * (b + 0.5)
-    near = np.abs(h - h0) < 0.03
+    lowest_camera = min(float(np.asarray(c.center) @ up) for c in cameras)
+    pts = x[horiz][x[horiz] @ up < lowest_camera]
+    if len(pts) < cfg.min_floor_points:
+        return None, f"{len(pts)} horizontal plane cues below the cameras (fewer than {cfg.min_floor_points})"
+    h0 = _lowest_layer(pts @ up, cfg.min_floor_points)
+    if h0 is None:
+        return None, f"no height holds {cfg.min_floor_points} of the {len(pts)} horizontal plane cues below the cameras"
+    floor, near = _fit_layer(pts, up, h0)
     if near.sum() < cfg.min_floor_points:
         return None, f"{int(near.sum())} plane cues on the lowest horizontal surface (fewer than {cfg.min_floor_points})"
-    normal, height = _level_fit(pts[near], up)
-    return Floor(normal, height, int(near.sum()), np.cov(pts[near].T)), ""
+    if support is not None and len(support):
+        s = np.asarray(support, np.float64).reshape(-1, 3)
+        s = s[s @ up < lowest_camera]
+        if (under := _under(floor, s, cfg.min_floor_points)) is not None:
+            n_top = floor.normal  # the lowest horizontal plane cues' fitted plane: the floor is parallel to it
+            h0 = _lowest_layer(s[s @ n_top - floor.height < -BELOW_MARGIN] @ n_top, cfg.min_floor_points)
+            lower, near = _fit_layer(np.r_[pts, s], n_top, h0, level=True) if h0 is not None else (None, None)
+            if lower is None or near.sum() < cfg.min_floor_points \
+                    or _under(lower, s, cfg.min_floor_points) is not None:
+                return None, (f"{under} of the {len(s)} SfM points and line samples below the cameras lie under the "
+                              f"lowest horizontal plane cues ({lowest_camera - floor.height:.2f} m below the lowest "
+                              "camera: a table?) and no layer of them is a floor")
+            floor = lower
+    b = floor.basis()
+    across = float(np.sqrt(max(np.linalg.eigvalsh(b @ floor.cue_cov @ b.T)[0], 0.0)))
+    if across < MIN_ACROSS_STD:
+        return None, (f"the floor's {floor.n_points} cues lie in a strip {across * 12 ** 0.5:.2f} m wide (std "
+                      f"{across:.3f} m < {MIN_ACROSS_STD}): nothing fixes its tilt across it")
+    return floor, ""
 
 
 def snap_to_lines(floor: Floor, segments: np.ndarray, band: float = 0.03, min_length: float = 0.3,
@@ -176,12 +236,14 @@ def _plane_through(pts: np.ndarray, up: np.ndarray, min_spread: float = 0.0) -> 
     return n, float(n @ c)
 
 
-def _level_fit(pts: np.ndarray, up: np.ndarray, cell: float = 0.25, band: float = 0.01) -> tuple[np.ndarray, float]:
+def _level_fit(pts: np.ndarray, up: np.ndarray, cell: float = 0.25, band: float = 0.01,
+               max_tilt_deg: float = 2.0) -> tuple[np.ndarray, float]:
     """(normal, height) of the plane through floor points ``pts`` [N, 3]: the median height of each
     ``cell``-wide square (things lying on the floor, or a prior's local bump, are not the floor but
     pull a least-squares fit: 0.7 degrees on a benchmark room), then a plane through the cell
     medians, refitted without cells more than ``band`` from it; level (normal ``up``) with fewer
-    than three cells."""
+    than three cells or where that plane tilts more than ``max_tilt_deg`` from ``up`` (the floor
+    line snap turns a floor no farther either; cells in one row gave 15 degrees on a benchmark room)."""
     floor = Floor(up, 0.0, 0)
     uv, h = pts @ floor.basis().T, pts @ up
     key = np.floor(uv / cell).astype(np.int64)
@@ -203,4 +265,6 @@ def _level_fit(pts: np.ndarray, up: np.ndarray, cell: float = 0.25, band: float 
     e = floor.basis()
     n = up - coef[0] * e[0] - coef[1] * e[1]  # h = a u + b v + c  <=>  (up - a e1 - b e2) . X = c
     norm = float(np.linalg.norm(n))
+    if n @ up / norm < np.cos(np.radians(max_tilt_deg)):  # cells in a row: their tilt across is anything
+        return up, float(np.median(h))
     return n / norm, float(coef[2] / norm)

@@ -276,14 +276,15 @@ def on_floor_by_prior(cam, seg: np.ndarray, floor: Floor, prior: np.ndarray, rel
 
 def floor_line_anchors(cameras, segments: list[np.ndarray], plane_xyz: np.ndarray, plane_normal: np.ndarray,
                        cfg: FloorLineConfig, priors: dict[int, np.ndarray] | None = None,
-                       line_segments: np.ndarray | None = None
+                       line_segments: np.ndarray | None = None, support_xyz: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], dict]:
     """The floor-line anchors of a scene: (points [P, 3], kept-segment index [P], views per kept
     segment, statistics for the report; ``"note"`` there when nothing could be lifted). ``priors``:
     image index -> aligned prior depth, for ``cfg.prior_check``; ``line_segments`` [L, 2, 3]: the 3D
-    line cues, for ``cfg.line_snap``."""
+    line cues, for ``cfg.line_snap``; ``support_xyz`` [M, 3]: the 3D cues (SfM points, line samples)
+    that tell a table top from the floor (geocues.floor.find_floor)."""
     cfg.validate()
-    floor, why = find_floor(plane_xyz, plane_normal, cameras, cfg)
+    floor, why = find_floor(plane_xyz, plane_normal, cameras, cfg, support_xyz)
     if floor is None:
         return np.zeros((0, 3)), np.zeros(0, np.int64), [], {"floor": None, "note": f"no floor found: {why}"}
     n_snap, cue_floor = 0, floor

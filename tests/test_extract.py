@@ -7,6 +7,7 @@ chain, not line quality (the line stage has its own tests).
 from __future__ import annotations
 
 import json
+import logging
 import time
 
 import numpy as np
@@ -123,12 +124,12 @@ class TestRun:
         with pytest.raises(ValueError, match="overwrite"):
             ex.run(None, scenes["all"], out)
 
-    def test_floor_lines_run(self, scenes, tmp_path):
+    def test_floor_lines_run(self, scenes, tmp_path, caplog):
         """--floor.lines end to end on the room with a plain floor: the floor from the first plane
         pass, wall and box feet kept as plane anchors, plane cues as accurate as before, no NaN; a
         plain run of that folder is another config, and off it leaves the key of folders made
-        before the option. On the textured floor (no plane cues there): no floor, a note, the cues
-        of a plain run."""
+        before the option. On the textured floor (no plane cues there): no floor, a note and a
+        warning, the cues of a plain run."""
         cfg = ex.ExtractConfig()
         cfg.floor.lines = True
         out = ex.run(cfg, scenes["plain_floor"], tmp_path / "floor")
@@ -170,9 +171,11 @@ class TestRun:
         free = _report(ex.run(cfg, scenes["plain_floor"], tmp_path / "free"))
         assert free_walls["floor_lines"]["walls"]["samples"] > 0 and free_walls["counts"] == free["counts"]
         cfg.priors = True
-        rep = _report(ex.run(cfg, scenes["all"], tmp_path / "textured_floor"))
+        with caplog.at_level(logging.WARNING, logger="geocues"):
+            rep = _report(ex.run(cfg, scenes["all"], tmp_path / "textured_floor"))
         assert rep["floor_lines"]["floor"] is None
         assert any("no floor found" in n and "horizontal plane cues" in n for n in rep["notes"])
+        assert "--floor.lines: no floor found" in caplog.text and "no floor lines, walls or level planes" in caplog.text
         plain = _report(ex.run(None, scenes["all"], tmp_path / "plain_run"))
         assert rep["counts"] == plain["counts"]
 

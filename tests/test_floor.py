@@ -143,3 +143,56 @@ def test_strip_width_is_the_cues_smaller_in_plane_spread():
     assert strip_width(strip) == pytest.approx(0.2, abs=0.01)
     assert strip_width(Floor(normal, 0.0, 100, np.diag([1.15, 1.0, 0.01]) ** 2)) > 0.9
     assert strip_width(Floor(normal, 0.0, 100)) is None
+
+
+def test_a_table_top_above_a_textured_floor_is_no_floor():
+    """A textured floor has SfM points, not plane cues: the lowest horizontal plane cues are a table
+    top 0.7 m up (found on a held-out 24-view room: its cues went 27 cm off). The SfM points and line
+    samples under it say so: the floor is their lowest layer; without such a layer there is no floor."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    Q = Rotation.from_euler("xyz", [10, -5, 20], degrees=True).as_matrix()
+    cams = [camera(k, (x, 0.5, 1.5), (x, 4.0, 0.0), Q) for k, x in enumerate(np.linspace(1, 4, 8))]
+    xyz, n = room_plane_cues(rng, Q, n_floor=0)  # no plane cue on the floor: the table is the lowest
+    table, why = find_floor(xyz, n, cams, FloorLineConfig())
+    assert table is not None and abs(table.height - 0.75) < 0.01, why
+    sfm = np.c_[rng.uniform(0, 5, 400), rng.uniform(0, 4, 400), rng.normal(0, 0.003, 400)]  # the wood floor
+    legs = np.c_[rng.uniform(1, 2, 100), rng.uniform(1, 2, 100), rng.uniform(0, 0.75, 100)]
+    support = np.r_[sfm, legs, np.c_[rng.uniform(0, 5, 300), rng.uniform(0, 4, 300), rng.uniform(0.8, 2.5, 300)]]
+    floor, why = find_floor(xyz, n, cams, FloorLineConfig(), support @ Q.T)
+    assert floor is not None, why
+    assert np.degrees(np.arccos(min(1.0, floor.normal @ Q[:, 2]))) < 0.3 and abs(floor.height) < 0.005
+    above = support[support[:, 2] > 0.1]  # no 3D cue on the floor: under the table, only its legs
+    none, why = find_floor(xyz, n, cams, FloorLineConfig(), above @ Q.T)
+    assert none is None and "under the lowest horizontal plane cues (0.75 m below the lowest camera: a table?)" in why
+    few = np.r_[above, sfm[:20]]  # a handful of floor points (fewer than the floor needs): still none
+    assert find_floor(xyz, n, cams, FloorLineConfig(), few @ Q.T)[0] is None
+    on_top = np.r_[sfm[:0], support[support[:, 2] > 0.8]]  # 3D cues only above the table: it stays the floor
+    kept, _ = find_floor(xyz, n, cams, FloorLineConfig(), on_top @ Q.T)
+    assert kept is not None and abs(kept.height - table.height) < 1e-12
+
+
+def test_a_floor_seen_in_a_thin_strip_is_not_found():
+    """Two held-out 24-view rooms saw their bare floor only along one wall, a strip 7 cm wide: its cell
+    medians lie in one row and the plane through them tilted 9 and 15 degrees. Such a floor is not found
+    (the plain cues follow); a plane through cells in a row is never tilted more than 2 degrees."""
+    from geocues.floor import _level_fit
+
+    rng = np.random.default_rng(4)
+    cams = [camera(k, (2.5, 2.0, 1.5), (2.5 + np.cos(a), 2 + np.sin(a), 1.0))
+            for k, a in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False))]
+    m = 300
+    strip = np.c_[rng.uniform(0.5, 2.5, m), rng.uniform(0.0, 0.07, m), np.zeros(m)]
+    strip[:, 2] += np.where(strip[:, 0] < 1.0, 0.004, 0.0) * (strip[:, 1] / 0.07)  # a bump: a tilt across
+    normals = np.tile([0.0, 0.0, 1.0], (m, 1))
+    floor, why = find_floor(strip, normals, cams, FloorLineConfig())
+    assert floor is None and "strip 0.07 m wide" in why and "tilt" in why, why
+    wide = np.c_[rng.uniform(0.5, 2.5, m), rng.uniform(0.0, 1.0, m), np.zeros(m)]
+    assert find_floor(wide, normals, cams, FloorLineConfig())[0] is not None
+    k = np.arange(6)  # six cells in a row along x, their points 10 cm apart across it and 1 cm apart in height
+    row = np.c_[k * 0.25 + 0.1, 0.05 + 0.1 * (k % 2), 0.01 * (k % 2)].repeat(10, axis=0)  # a plane 5.7 deg
+    normal, height = _level_fit(row, np.array([0.0, 0.0, 1.0]), band=0.05)
+    assert np.array_equal(normal, [0.0, 0.0, 1.0]) and 0.0 <= height <= 0.01
+    normal, _ = _level_fit(row, np.array([0.0, 0.0, 1.0]), band=0.05, max_tilt_deg=6.0)
+    assert 5.6 < np.degrees(np.arccos(normal[2])) < 5.8  # what it fits without the bound
