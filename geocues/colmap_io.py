@@ -8,6 +8,7 @@ diffable) and can convert it to binary with pycolmap.
 
 from __future__ import annotations
 
+import json
 import logging
 import shlex
 import shutil
@@ -128,6 +129,21 @@ def find_model_dir(scene_or_model: Path) -> Path:
                             + _no_model_hint(p))
 
 
+def _unfinished_sfm_hint(p: Path) -> str:
+    """What a `geocues sfm -o p` that wrote no model left: a failure (its reason) or a stop (the
+    command to run again, and whether that reuses the features)."""
+    try:
+        state = json.loads((p / "cache" / "sfm" / "state.json").read_text())
+    except (OSError, ValueError):
+        state = {}
+    if state.get("failed"):
+        return f"; the `geocues sfm` run that wrote {p} failed: {state['failed']}"
+    scene = shlex.quote(state["scene"]) if state.get("scene") else "SCENE"
+    return (f"; {p} holds an unfinished `geocues sfm {scene} -o {shlex.quote(str(p))}` (stopped before it wrote the "
+            "model): run that command again, " + ("it reuses the features and matches" if state.get("extract") else
+                                                  "it starts again (it was stopped while extracting features)"))
+
+
 def _no_model_hint(p: Path) -> str:
     """What the user most likely meant when SCENE holds no COLMAP model."""
     from geocues.photos import is_image, list_images
@@ -136,8 +152,7 @@ def _no_model_hint(p: Path) -> str:
     if others:
         return f"; {others[0]} holds a model: move (or link) it to {p / 'sparse' / '0'}"
     if (p / "cache" / "sfm").is_dir() and not (p / "sfm_report.json").is_file():
-        return (f"; {p} holds an unfinished `geocues sfm -o {shlex.quote(str(p))}` (stopped before it wrote the model): run that "
-                "command again, it reuses what was done")
+        return _unfinished_sfm_hint(p)
     if p.name == "images" and any(is_image(f) for f in p.iterdir()):
         return f"; {p} looks like a scene's images folder: pass the scene folder above it, {p.parent}"
     if (p / "images").is_dir() and list_images(p / "images"):

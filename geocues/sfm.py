@@ -97,6 +97,38 @@ class SfmConfig:
     check_gt: bool = True
     """When the scene has a GT mesh, report the share of points within 2 cm / 5 cm of it."""
 
+    def validate(self) -> None:
+        """Raise ValueError naming the first option out of range (pycolmap's own checks name none)."""
+        import pycolmap
+
+        from geocues.extract_checks import check_finite
+
+        if self.mode not in ("auto", "triangulate", "map"):
+            raise ValueError(f"--mode must be auto, triangulate or map, got {self.mode!r}")
+        if self.verification not in ("poses", "ransac"):
+            raise ValueError(f"--verification must be poses or ransac, got {self.verification!r}")
+        check_finite(self)
+        models = [m for m in pycolmap.CameraModelId.__members__ if m != "INVALID"]
+        if self.camera_model not in models:
+            near = " (camera model names are upper case)" if self.camera_model.upper() in models else ""
+            raise ValueError(f"--camera-model {self.camera_model!r} is no COLMAP camera model{near}; one of "
+                             + ", ".join(models))
+        for name, least in (("max_num_features", 1), ("num_neighbors", 1), ("pair_stride", 1),
+                            ("exhaustive_below", 0), ("sequential_overlap", 1), ("min_num_inliers", 1),
+                            ("min_track_length", 2), ("max_image_size", 0)):
+            if getattr(self, name) < least:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(self, name)}")
+        if self.num_threads == 0 or self.num_threads < -1:
+            raise ValueError(f"--num-threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+        for name, hi in (("peak_threshold", None), ("max_ratio", 1.0), ("max_epipolar_error", None),
+                         ("max_reproj_error", None), ("max_pair_angle", 180.0)):
+            v = getattr(self, name)
+            if not v > 0 or (hi is not None and v > hi):
+                raise ValueError(f"--{name.replace('_', '-')} must be in (0, {hi if hi is not None else 'inf'}"
+                                 f"{']' if hi is not None else ')'}, got {v}")
+        if not 0 <= self.min_tri_angle < 90:
+            raise ValueError(f"--min-tri-angle must be in [0, 90) degrees, got {self.min_tri_angle}")
+
 
 def _key(d: dict) -> str:
     return hashlib.sha1(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -211,10 +243,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     image_dir = scene_dir / "images"
     if not image_dir.is_dir():
         raise no_images_folder(image_dir)
-    if cfg.mode not in ("auto", "triangulate", "map"):
-        raise ValueError(f"mode must be auto, triangulate or map, got {cfg.mode!r}")
-    if cfg.verification not in ("poses", "ransac"):
-        raise ValueError(f"verification must be poses or ransac, got {cfg.verification!r}")
+    cfg.validate()
     try:
         model_dir = find_model_dir(scene_dir)
     except FileNotFoundError:
@@ -273,11 +302,14 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     extract_key = _key({"names": stats, "cams": cams, "size": cfg.max_image_size,
                         "n": cfg.max_num_features, "peak": cfg.peak_threshold})
     state = json.loads(state_path.read_text()) if state_path.is_file() else {}
+    state.pop("failed", None)
     if recompute or state.get("extract") != extract_key:
         if db_path.exists():
             log.info("sfm: discarding cached database %s (--recompute, other parameters, or an extraction that was stopped)", db_path)
         db_path.unlink(missing_ok=True)
         state = {}
+    state["scene"] = str(scene_dir.resolve())  # for `geocues info OUT`'s advice on an unfinished run
+    state_path.write_text(json.dumps(state))
 
     # ---- features
     t0 = time.perf_counter()
@@ -334,9 +366,17 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
             rec = U.triangulate(ref, db_path, image_dir, tmp, cfg)
         else:
             rec = U.incremental_map(db_path, image_dir, tmp, cfg, ref)
+        n_short = U.drop_short_tracks(rec, cfg.min_track_length)
+        if mode == "map" and (rec.num_reg_images() < 3 or rec.num_points3D() == 0):
+            raise ValueError(f"incremental mapping registered {rec.num_reg_images()} of the {len(names)} images in "
+                             f"{image_dir} and kept {rec.num_points3D()} points: no scene to build on. "
+                             + more_points_advice(cfg))
+    except ValueError as e:  # recorded for `geocues info OUT`: a rerun of the same command fails the same way
+        state["failed"] = str(e)
+        state_path.write_text(json.dumps(state))
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    n_short = U.drop_short_tracks(rec, cfg.min_track_length)
     seconds["triangulate" if mode == "triangulate" else "map"] = time.perf_counter() - t0
 
     # ---- write
@@ -372,9 +412,14 @@ FEW_POINTS = 100  # the cues start from the SfM points: fewer leaves most of a r
 
 def few_points_advice(n_points: int, n_images: int, n_short: int, cfg: SfmConfig) -> str:
     """What to do when triangulation left (almost) no points."""
-    two_view = cfg.ignore_two_view_tracks or cfg.min_track_length > 2
     return (f"sfm: only {n_points} points from {n_images} images ({n_short} seen in fewer than "
             f"--min-track-length {cfg.min_track_length} images were dropped): the cues start from these points. "
-            + ("With few images, `--min-track-length 2 --no-ignore-two-view-tracks` keeps points seen in two; "
-               if two_view else "")
-            + "a room wants dozens of overlapping photos, each wall seen from several places")
+            + more_points_advice(cfg))
+
+
+def more_points_advice(cfg: SfmConfig) -> str:
+    """The options and photos that give more points."""
+    two_view = cfg.ignore_two_view_tracks or cfg.min_track_length > 2
+    return (("With few images, `--min-track-length 2 --no-ignore-two-view-tracks` keeps points seen in two; "
+             if two_view else "")
+            + "a room wants dozens of overlapping photos, each wall seen from several places" + U.camera_model_note(cfg))

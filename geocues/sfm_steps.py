@@ -287,6 +287,14 @@ def triangulate(ref: "pycolmap.Reconstruction", db_path: Path, image_dir: Path, 
                                        options=_pipeline_options(cfg), refine_intrinsics=False)
 
 
+def camera_model_note(cfg: "SfmConfig") -> str:
+    """A note on a --camera-model other than the default (every pair can fail verification with one
+    that does not fit the lens: OPENCV_FISHEYE on ordinary photos)."""
+    if cfg.camera_model == "SIMPLE_RADIAL":
+        return ""
+    return f"; or --camera-model {cfg.camera_model} does not fit the photos' lens (the default is SIMPLE_RADIAL)"
+
+
 def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig",
                     ref: "pycolmap.Reconstruction | None") -> "pycolmap.Reconstruction":
     """COLMAP's incremental mapper with its own triangulation defaults (registration needs the
@@ -305,7 +313,7 @@ def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig"
     if not models:
         pairs = num_verified_pairs(db_path, cfg.min_num_inliers)
         why = ("no two photos share enough matches: more overlap between neighbouring photos, more features "
-               "(--max-num-features) or a lower --peak-threshold" if pairs == 0 else
+               "(--max-num-features) or a lower --peak-threshold" + camera_model_note(cfg) if pairs == 0 else
                f"{pairs} pairs of photos match, but none is a starting pair COLMAP accepts (its views of the "
                f"matches {opts.mapper.init_min_tri_angle:g} degrees or more apart): photos taken from one spot, "
                "or too few of them; walk around the room while taking them")

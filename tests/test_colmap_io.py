@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -229,7 +230,18 @@ def test_no_model_names_what_the_folder_holds_instead(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"looks like a scene's images folder: pass the scene folder above it"):
         find_model_dir(photos / "images")
     (photos / "cache" / "sfm").mkdir(parents=True)  # a `geocues sfm -o photos` stopped before its model
-    with pytest.raises(FileNotFoundError, match=r"holds an unfinished `geocues sfm -o .*photos`.*run that command again"):
+    with pytest.raises(FileNotFoundError, match=r"holds an unfinished `geocues sfm SCENE -o .*photos`.*run that "
+                                                r"command again, it starts again \(it was stopped while extracting"):
+        find_model_dir(photos)
+    state = photos / "cache" / "sfm" / "state.json"
+    state.write_text(json.dumps({"scene": "/data/my room", "extract": "k"}))  # stopped after its features
+    with pytest.raises(FileNotFoundError, match=r"unfinished `geocues sfm '/data/my room' -o .*photos`.*it reuses the "
+                                                r"features and matches"):
+        find_model_dir(photos)
+    state.write_text(json.dumps({"scene": "/data/my room", "extract": "k", "failed": "incremental mapping found "
+                                 "no model for the images in x: no two photos share enough matches"}))
+    with pytest.raises(FileNotFoundError, match=r"the `geocues sfm` run that wrote .*photos failed: incremental "
+                                                r"mapping found no model"):
         find_model_dir(photos)
     write_model(tmp_path / "s" / "sparse" / "1", _images(2))
     with pytest.raises(FileNotFoundError, match=r"sparse/1 holds a model: move \(or link\) it to .*sparse/0"):

@@ -16,7 +16,7 @@ import pytest
 
 from cli.geocues_cli import main as geocues_main
 from geocues import sfm_steps
-from geocues.colmap_io import quat_wxyz_to_rotmat, read_model, write_model
+from geocues.colmap_io import find_model_dir, quat_wxyz_to_rotmat, read_model, write_model
 from geocues.scene import Scene
 from geocues.sfm import SfmConfig, run
 
@@ -367,3 +367,44 @@ def test_mapping_that_finds_no_model_says_why(icl_dir: Path, tmp_path: Path):
         cv2.imwrite(str(noise / "images" / f"{k}.png"), rng.integers(0, 255, (240, 320, 3), dtype=np.uint8))
     with pytest.raises(ValueError, match="no two photos share enough matches"):
         run(SfmConfig(check_gt=False), noise, tmp_path / "out_noise")
+
+
+@pytest.mark.parametrize("bad, said", [
+    ({"camera_model": "FOO"}, r"--camera-model 'FOO' is no COLMAP camera model; one of SIMPLE_PINHOLE, PINHOLE"),
+    ({"camera_model": "simple_pinhole"}, r"\(camera model names are upper case\)"),
+    ({"max_num_features": 0}, r"--max-num-features must be >= 1, got 0"),
+    ({"sequential_overlap": 0}, r"--sequential-overlap must be >= 1, got 0"),
+    ({"exhaustive_below": -3}, r"--exhaustive-below must be >= 0, got -3"),
+    ({"min_track_length": 1}, r"--min-track-length must be >= 2"),
+    ({"num_threads": 0}, r"--num-threads must be -1 \(all cores\) or >= 1"),
+    ({"peak_threshold": float("nan")}, r"--peak-threshold must be a finite number"),
+    ({"max_ratio": 2.0}, r"--max-ratio must be in \(0, 1.0\], got 2.0"),
+    ({"min_tri_angle": -1.0}, r"--min-tri-angle must be in \[0, 90\)"),
+])
+def test_options_out_of_range_are_named_before_any_work(tmp_path: Path, bad, said):
+    """pycolmap's own checks named no option ('Check failed: ExistsCameraModelWithName(...)') and left
+    OUT behind; a sequential overlap of 0 matched no pair and blamed the photos."""
+    (tmp_path / "photos" / "images").mkdir(parents=True)
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / "photos" / "images" / f"{k}.png"), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(ValueError, match=said):
+        run(replace(SfmConfig(), **bad), tmp_path / "photos", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    SfmConfig().validate()
+
+
+def test_a_mapping_that_keeps_no_point_fails_and_says_why_later(icl_dir: Path, tmp_path: Path):
+    """A map of 16 photos that registered 2 of them with 0 points exited 0 (the next step failed on
+    it); `geocues info OUT` then said the run was stopped and rerunning it reused what was done. Now
+    it fails, and OUT's hint gives its reason."""
+    scene = make_tiny_icl(icl_dir, tmp_path / "s", frames=[0, 5, 10])
+    shutil.rmtree(scene / "sparse")
+    with pytest.raises(ValueError, match=r"incremental mapping registered 3 of the 3 images in .* and kept 0 points: "
+                                         r"no scene to build on. .*a room wants dozens of overlapping photos"):
+        run(SfmConfig(check_gt=False, min_track_length=4), scene, tmp_path / "out")
+    with pytest.raises(FileNotFoundError, match=r"the `geocues sfm` run that wrote .*out failed: incremental mapping "
+                                                r"registered 3 of the 3 images"):
+        find_model_dir(tmp_path / "out")
+    run(SfmConfig(check_gt=False), scene, tmp_path / "out")  # the same folder, options that keep points
+    assert find_model_dir(tmp_path / "out") == tmp_path / "out" / "sparse" / "0"
+    assert "failed" not in json.loads((tmp_path / "out" / "cache" / "sfm" / "state.json").read_text())
