@@ -108,9 +108,12 @@ def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
         out = _sibling(root, "pinhole")
         return [(f"geocues undistort {q} -o {out}", "the other commands read pinhole cameras only"),
                 (f"geocues info {out}", "then follow its advice")]
-    if not_metric:
+    if not_metric and "rescaled" not in scene.metadata:  # a rescaled copy: its warning names the original
         out = _sibling(root, "metric")
-        how = "--from-priors" if scene.has_depth_priors and scene.depth_kind == "depth" else "--median-depth 2"
+        from geocues.rescale import priors_in_scene_unit
+
+        metric_priors = scene.has_depth_priors and scene.depth_kind == "depth" and not priors_in_scene_unit(scene)
+        how = "--from-priors" if metric_priors else "--median-depth 2"
         return [(f"geocues rescale {q} -o {out} {how}",
                  "every length here is in metres" + ("" if how == "--from-priors" else
                                                      " (2 m: a guess of how far the photos were taken from the walls)")),

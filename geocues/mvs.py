@@ -201,7 +201,7 @@ def _sample(img: torch.Tensor, uv: torch.Tensor, w: int, h: int) -> tuple[torch.
 
 
 MVS_PRIORS = {"source": "geocues mvs", "simulated": False,
-              "method": "plane-sweep stereo of the posed images (depth in metres, no normals)"}
+              "method": "plane-sweep stereo of the posed images (depth in the scene's unit, no normals)"}
 """scene.json's "priors" of a `geocues mvs` scene (`geocues info` advises the mvs recipe for it)."""
 
 

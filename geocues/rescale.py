@@ -7,7 +7,8 @@ points, or of the camera centres without points). A room measures 2–30 m and i
 surfaces 0.5–5 m away; ``metric_warning`` says so when a scene is far outside 0.5–200 units, when its
 views' median depth is outside 0.2–8 units (an images-only SfM normalised by COLMAP often spans a
 plausible 10 units while every length is 3–6× a metre), or when ``geocues sfm --mode map`` marked
-it (scene.json ``"scale": "arbitrary"``; ``geocues rescale`` removes the mark). ``scale_from_priors``
+it (scene.json ``"scale": "arbitrary"``; ``geocues rescale`` removes the mark and records
+``"rescaled"``, after which the user's unit stands: no warning sends them back to rescale). ``scale_from_priors``
 estimates the factor from metric depth priors (a depth sensor, or a metric monocular network a user
 brings): the median over views of median(prior depth at the SfM points) / median(SfM point depth),
 robust to outliers and holes; ``--median-depth M`` guesses it from how far the photos were taken.
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,13 +75,27 @@ def metric_warning(scene: Scene) -> str | None:
                 f"(it spans {ext:.3g} units): {fix}")
     if len(scene.points) < 10:
         return None
+    done = scene.metadata.get("rescaled")
+    if isinstance(done, dict):  # the user's factor: rescaling this copy again by the same rule changes nothing
+        how = (f"--median-depth {done['median_depth']:g}" if done.get("median_depth") is not None else
+               "--from-priors" if done.get("from_priors_views") else f"--scale {done.get('scale', float('nan')):.6g}")
+        fix = (f"`geocues rescale` ({how}) made it so; if the room is not that size, rescale "
+               f"{shlex.quote(str(done.get('from', 'the original')))} again with the factor you know (--scale S, "
+               "metres per unit of that scene) or another guess (--median-depth M)")
     if not ROOM_RANGE[0] <= ext <= ROOM_RANGE[1]:
-        return f"the scene spans {ext:.3g} units, not the 0.5-200 m of an indoor capture: {fix}"
+        return f"the scene spans {ext:.3g} {'m' if done else 'units'}, not the 0.5-200 m of an indoor capture: {fix}"
     depth = median_view_depth(scene)
     if depth is not None and not DEPTH_RANGE[0] <= depth <= DEPTH_RANGE[1]:
-        return (f"the views' median depth is {depth:.3g} units, not the 0.2-8 m of photos of a room "
-                f"(the scene spans {ext:.3g} units): {fix}")
+        return (f"the views' median depth is {depth:.3g} {'m' if done else 'units'}, not the 0.2-8 m of photos of a "
+                f"room (the scene spans {ext:.3g}): {fix}")
     return None
+
+
+def priors_in_scene_unit(scene: Scene) -> bool:
+    """Whether the scene's depth priors are in its own unit (`geocues mvs` wrote them from its photos)
+    rather than metres: they say nothing about its scale."""
+    priors = scene.metadata.get("priors")
+    return isinstance(priors, dict) and priors.get("source") == "geocues mvs"
 
 
 def scale_from_priors(scene: Scene, min_points: int = 20) -> tuple[float, int]:
@@ -147,6 +163,10 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     scale, used = cfg.scale, None
     unscaled = scene_extent(scene)
     if cfg.from_priors:
+        if priors_in_scene_unit(scene):
+            raise ValueError(f"--from-priors: the depth priors of {scene_dir} were written by `geocues mvs` from the "
+                             "scene's own photos, in its own unit: they cannot tell its scale; give --scale (metres per "
+                             "unit) or --median-depth (how far the photos were taken), before or after `geocues mvs`")
         scale, used = scale_from_priors(scene)
         if isinstance(scene.metadata.get("priors"), dict) and scene.metadata["priors"].get("simulated"):
             log.warning("--from-priors: the priors of %s are SIMULATED (a random scale error per image, "

@@ -35,11 +35,16 @@ def test_extent_and_the_warning(rooms, capsys):
     big, tiny = Scene.load(root, check_priors=False), Scene.load(small, check_priors=False)
     assert 2 < scene_extent(big) < 6 and scene_extent(tiny) == pytest.approx(scene_extent(big) / 100)
     assert metric_warning(big) is None
-    assert "geocues rescale" in metric_warning(tiny)
+    # a copy `geocues rescale` made 0.04 m across: said, with the way back to the original (advising to
+    # rescale this copy by the same rule again gave it the same factor, forever)
+    said = metric_warning(tiny)
+    assert "spans 0.0" in said and " m, not the 0.5-200 m" in said and "`geocues rescale` (--scale 0.01) made it so" in said
+    assert f"rescale {root} again with the factor you know (--scale S" in said
     assert main(["info", str(small)]) == 0
     out = capsys.readouterr().out
     assert "extent" in out and "not the 0.5-200 m" in out
     assert re.search(r"extent     [\d.]+ m \(", out)  # rescaled: metres (it said "units" after rescaling)
+    assert "geocues rescale " + str(small) not in out  # no step that rescales the copy again
     assert main(["info", str(root)]) == 0
     assert re.search(r"extent     [\d.]+ units \(", capsys.readouterr().out)  # a model's own unit
 
@@ -57,7 +62,13 @@ def test_a_plausible_extent_with_implausible_depths_is_warned(rooms):
     # nothing known: a guess of the views' median depth makes it metric to within the guess
     guess = Scene.load(run(RescaleConfig(median_depth=2.0), base / "x8", base / "guess"), check_priors=False)
     assert median_view_depth(guess) == pytest.approx(2.0, rel=1e-6) and metric_warning(guess) is None
-    assert "--median-depth 2" in metric_warning(x8)
+    assert "`geocues rescale` (--scale 8) made it so" in metric_warning(x8)
+    import shutil
+
+    shutil.copytree(base / "x8", base / "x8_model")  # the same model, not marked as rescaled: a SfM's own unit
+    meta = json.loads((base / "x8_model" / "scene.json").read_text())
+    (base / "x8_model" / "scene.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "rescaled"}))
+    assert "--median-depth 2" in metric_warning(Scene.load(base / "x8_model", check_priors=False))
 
 
 def test_from_priors_recovers_the_scale_and_round_trips(rooms):
@@ -131,3 +142,27 @@ def test_from_priors_takes_the_points_each_view_sees_and_refuses_disparity(rooms
     (disp / "scene.json").write_text(json.dumps({**meta, "priors": {"depth_kind": "disparity"}}))
     with pytest.raises(ValueError, match="--from-priors needs metric depth priors; .* are disparity"):
         run(RescaleConfig(from_priors=True), disp, tmp_path / "out")
+
+
+def test_priors_of_geocues_mvs_are_in_the_scene_unit_and_tell_no_scale(rooms, tmp_path):
+    """`geocues mvs` writes depth in the scene's own unit: `--from-priors` rescaled such a scene by
+    0.999, dropped its "arbitrary" mark and `geocues info` advised it again, forever."""
+    import shutil
+
+    from geocues.advice import next_steps
+    from geocues.mvs import MVS_PRIORS
+
+    _, _, small = rooms
+    mvs = tmp_path / "mvs"
+    shutil.copytree(small, mvs)
+    meta = json.loads((mvs / "scene.json").read_text())
+    (mvs / "scene.json").write_text(json.dumps({k: v for k, v in meta.items() if k != "rescaled"}
+                                               | {"scale": "arbitrary", "priors": MVS_PRIORS}))
+    with pytest.raises(ValueError, match=r"--from-priors: the depth priors of .* were written by `geocues mvs` .* "
+                                         r"cannot tell its scale; give --scale .* or --median-depth"):
+        run(RescaleConfig(from_priors=True), mvs, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    s = Scene.load(mvs, check_priors=False)
+    cmd = next_steps(s, not_metric=metric_warning(s) is not None)[0][0]
+    assert cmd.startswith(f"geocues rescale {mvs} -o ") and cmd.endswith("--median-depth 2")
+    assert "in the scene's unit" in MVS_PRIORS["method"]
