@@ -303,7 +303,7 @@ def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig"
     import pycolmap
 
     opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads, opts.random_seed, opts.min_num_matches = cfg.num_threads, cfg.seed, cfg.min_num_inliers
+    opts.num_threads, opts.random_seed, opts.min_num_matches = cfg.mapper_threads, cfg.seed, cfg.min_num_inliers
     if ref is not None:  # intrinsics are known: keep them in registration and bundle adjustment
         opts.ba_refine_focal_length = opts.ba_refine_extra_params = False
         opts.ba_refine_principal_point = False

@@ -377,6 +377,7 @@ def test_mapping_that_finds_no_model_says_why(icl_dir: Path, tmp_path: Path):
     ({"exhaustive_below": -3}, r"--exhaustive-below must be >= 0, got -3"),
     ({"min_track_length": 1}, r"--min-track-length must be >= 2"),
     ({"num_threads": 0}, r"--num-threads must be -1 \(all cores\) or >= 1"),
+    ({"mapper_threads": -2}, r"--mapper-threads must be -1 \(all cores\) or >= 1"),
     ({"peak_threshold": float("nan")}, r"--peak-threshold must be a finite number"),
     ({"max_ratio": 2.0}, r"--max-ratio must be in \(0, 1.0\], got 2.0"),
     ({"min_tri_angle": -1.0}, r"--min-tri-angle must be in \[0, 90\)"),
@@ -408,3 +409,21 @@ def test_a_mapping_that_keeps_no_point_fails_and_says_why_later(icl_dir: Path, t
     run(SfmConfig(check_gt=False), scene, tmp_path / "out")  # the same folder, options that keep points
     assert find_model_dir(tmp_path / "out") == tmp_path / "out" / "sparse" / "0"
     assert "failed" not in json.loads((tmp_path / "out" / "cache" / "sfm" / "state.json").read_text())
+
+
+def test_the_mapper_runs_on_one_thread_unless_asked(icl_dir: Path, tmp_path: Path, monkeypatch):
+    """COLMAP's mapper on several threads gave 2 or 6 registered images of the same 16 photos, run to
+    run, with one seed; --mapper-threads (1) is what it gets, --num-threads only extraction and matching."""
+    seen = []
+    real = pycolmap.incremental_mapping
+
+    def spy(*args, options=None, **kw):
+        seen.append(options.num_threads)
+        return real(*args, options=options, **kw)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
+    scene = make_tiny_icl(icl_dir, tmp_path / "s", frames=[0, 5, 10])
+    shutil.rmtree(scene / "sparse")
+    run(SfmConfig(check_gt=False, num_threads=2), scene, tmp_path / "one")
+    run(SfmConfig(check_gt=False, mapper_threads=-1), scene, tmp_path / "all")
+    assert seen == [1, -1]
