@@ -44,7 +44,8 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         renders: a folder of rendered test views named like their images (splat train's
             OUT/test_renders); needs SCENE.
         test_every: the held-out split the renders were made for (every n-th image).
-        lpips: a TorchScript LPIPS network you made (no weights are downloaded); adds LPIPS.
+        lpips: a TorchScript LPIPS network you made (no weights are downloaded); adds LPIPS to --renders' figures
+            (refused without --renders).
         align_to: the GT scene of a reconstruction made in its own frame (e.g. `geocues sfm --mode
             map`): the mesh (in the frame of SCENE) is moved into GT_SCENE's frame by the similarity
             of the camera centres both share (Umeyama), then scored against GT_SCENE's GT mesh
@@ -57,6 +58,9 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
     if renders is not None and scene is None:
         raise ValueError("--renders needs SCENE (the test images are the scene's): "
                          "evaluate PRED_MESH SCENE --renders DIR")
+    if lpips is not None and renders is None:  # it was ignored without a word
+        raise ValueError(f"--lpips {lpips} scores rendered views, and there are none: pass --renders DIR "
+                         "(and SCENE) with it, or leave --lpips out")
     images = None
     if renders is not None:  # first: a bad folder is named before the minute the mesh metrics take
         from evaluation.image_metrics import evaluate_renders

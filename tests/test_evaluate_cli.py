@@ -256,6 +256,16 @@ def test_renders_are_checked_first_and_scored_to_strict_json(tmp_path, capsys, m
     assert f"come from a run trained on {tmp_path / 'another_room'}, not {scene}" in caplog.text
 
 
+def test_lpips_without_renders_is_refused_naming_it(tmp_path, capsys):
+    """Regression: `evaluate MESH SCENE --lpips FILE` without --renders ignored the network without a word."""
+    scene = make_scene(tmp_path / "scene")
+    pred = write_mesh(tmp_path / "pred.ply", *rects((-1, 1, -1, 1, 2.0)))
+    assert main([str(pred), str(scene), "--lpips", str(tmp_path / "lpips.pt"), "--n-samples", "2000"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert f"--lpips {tmp_path / 'lpips.pt'}" in err and "pass --renders DIR" in err
+
+
 def test_a_render_of_another_size_is_named(tmp_path):
     from evaluation.image_metrics import evaluate_images
 
