@@ -50,7 +50,8 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
             map`): the mesh (in the frame of SCENE) is moved into GT_SCENE's frame by the similarity
             of the camera centres both share (Umeyama), then scored against GT_SCENE's GT mesh
             (or --gt) culled to GT_SCENE's cameras. Needs SCENE.
-        icp: after --align-to, refine with ICP (rotation, translation and scale) against the GT mesh.
+        icp: after --align-to, refine with ICP (rotation, translation and scale) against the GT mesh; a
+            correction over 3 deg, 5 % of scale or a mean surface shift of 2 x --threshold is warned about.
     """
     _check_arguments(pred_mesh, scene, gt)
     if json is not None:

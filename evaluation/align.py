@@ -113,10 +113,49 @@ def icp_refine(points: np.ndarray, gt_points: np.ndarray, max_dist: float, iters
                                 reg_.TransformationEstimationPointToPoint(with_scaling=True),
                                 reg_.ICPConvergenceCriteria(max_iteration=iters))
     T = np.asarray(reg.transformation)
+    return T, {"fitness": float(reg.fitness), "inlier_rmse_m": float(reg.inlier_rmse), **correction_size(T, points)}
+
+
+def correction_size(T: np.ndarray, points: np.ndarray) -> dict:
+    """Scale, rotation (degrees), translation (metres, about the origin) of a [4, 4] similarity ``T``, and
+    the mean distance it moves ``points`` [N, 3] (the surface's shift: the translation includes the
+    rotation's lever arm about the origin)."""
     scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
     cos = np.clip((np.trace(T[:3, :3] / scale) - 1) / 2, -1, 1)
-    return T, {"fitness": float(reg.fitness), "inlier_rmse_m": float(reg.inlier_rmse), "scale": scale,
-               "rotation_deg": float(np.degrees(np.arccos(cos))), "translation_m": float(np.linalg.norm(T[:3, 3]))}
+    moved = np.linalg.norm(np.asarray(points, np.float64) @ (T[:3, :3] - np.eye(3)).T + T[:3, 3], axis=1)
+    return {"scale": scale, "rotation_deg": float(np.degrees(np.arccos(cos))),
+            "translation_m": float(np.linalg.norm(T[:3, 3])), "mean_shift_m": float(moved.mean())}
+
+
+ICP_MAX_ROTATION_DEG = 3.0
+"""ICP check: most rotation an ICP refinement may add before a warning. Measured after camera alignments:
+0.6-1.5 deg on ICL (images-only and known-pose meshes, bench/results/icl_images_only*.json), 1.7 deg on the
+test's room with 1 cm of camera noise; 3 deg moves a wall 2.5 m from a room's centre by 13 cm, more than
+the 10 cm (2 x the F-score threshold) within which ICP pairs points."""
+ICP_MAX_SCALE_CHANGE = 0.05
+"""ICP check: most relative scale change |scale - 1|; measured 0.1-1.9 %; 5 % moves that wall by 12 cm."""
+ICP_MAX_SHIFT_THRESHOLDS = 2.0
+"""ICP check: most mean shift of the surface, in F-score thresholds: the correspondence distance ICP is
+given (2 x 5 cm); a fit that moved the surface further than it could pair points at the start walked
+there. Measured: 5.6 cm on the test's room with 1 cm of camera noise (ICL's refinements: 0.7-3.3 cm of
+translation about the origin)."""
+
+
+def icp_warning(icp: dict, residual_median_m: float, threshold: float) -> str | None:
+    """A warning when the ICP correction ``icp`` (:func:`icp_refine`'s dict) is large for a refinement:
+    rotation > ``ICP_MAX_ROTATION_DEG``, scale change > ``ICP_MAX_SCALE_CHANGE`` or mean surface shift >
+    ``ICP_MAX_SHIFT_THRESHOLDS`` x ``threshold``, else None. ICP with scaling can slide a mesh onto another
+    part of the GT and shrink it there (a 7.6 cm camera alignment followed by 24.7 deg, scale 0.72, 1.2 m:
+    precision 0.15 -> 0.91), which flatters accuracy and precision."""
+    rot, scale, shift = icp["rotation_deg"], icp["scale"], icp["mean_shift_m"]
+    max_shift = ICP_MAX_SHIFT_THRESHOLDS * threshold
+    if rot <= ICP_MAX_ROTATION_DEG and abs(scale - 1) <= ICP_MAX_SCALE_CHANGE and shift <= max_shift:
+        return None
+    return (f"ICP turned the mesh {rot:.1f} deg, scaled it {scale:.3f}x and moved its surface {shift:.3f} m on "
+            f"average after a camera alignment good to {residual_median_m:.3f} m (median centre residual): more than "
+            f"a refinement (over {ICP_MAX_ROTATION_DEG:g} deg, {100 * ICP_MAX_SCALE_CHANGE:.0f} % scale or "
+            f"{max_shift:g} m), so it may have slid the mesh onto another part of the GT: compare with the figures "
+            "without --icp")
 
 
 def evaluate_aligned(pred_path: str | Path, pred_scene: str | Path, gt_scene: str | Path,
@@ -141,6 +180,10 @@ def evaluate_aligned(pred_path: str | Path, pred_scene: str | Path, gt_scene: st
         pts, _ = sample_surface(gt, 100_000, rng)
         T, alignment.icp = icp_refine(src, pts, max_dist=2 * cfg.threshold)
         vertices = vertices @ T[:3, :3].T + T[:3, 3]
+        warning = icp_warning(alignment.icp, float(np.median(alignment.residuals_m)), cfg.threshold)
+        if warning is not None:
+            log.warning("%s", warning)
+        alignment.icp["warning"] = warning
     result = evaluate_meshes(TriMesh(vertices, pred.faces, name=f"{pred.name} (aligned)"), gt, cfg, cameras)
     result.protocol.update({"pred_mesh": str(pred_path), "gt_mesh": str(gt_path), "scene": str(gt_scene),
                             "pred_scene": str(pred_scene), "alignment": alignment.to_dict()})

@@ -115,6 +115,36 @@ def test_icp_refines_a_noisy_camera_alignment(scenes):
     same = _self_score(gt_root)
     assert refined.chamfer_l1 < plain.chamfer_l1 - 0.002, (plain.chamfer_l1, refined.chamfer_l1)
     assert refined.chamfer_l1 < same.chamfer_l1 + 0.002, (refined.chamfer_l1, same.chamfer_l1)
+    assert refined.protocol["alignment"]["icp"]["warning"] is None  # a refinement: no word
+
+
+def test_an_icp_correction_larger_than_a_refinement_is_named(scenes, monkeypatch, caplog, capsys):
+    """Regression: ICP turned an images-only mesh 24.7 deg, scaled it 0.72x and moved it 1.2 m after a
+    camera alignment good to 7.6 cm, and the flattered figures (precision 0.15 -> 0.91) came without a word."""
+    import evaluation.align
+    from cli.evaluate_cli import main
+
+    base, gt_root, pred_root, _ = scenes
+    R = Rotation.from_euler("z", 24.7, degrees=True).as_matrix()
+    slid = Similarity(0.72, R, np.array([0.3, -0.2, 0.1])).matrix()  # what the h36b audit's ICP returned, about
+
+    def bad_icp(points, gt_points, max_dist, iters=100):
+        shift = np.linalg.norm(points @ slid[:3, :3].T + slid[:3, 3] - points, axis=1).mean()
+        return slid, {"fitness": 0.955, "inlier_rmse_m": 0.03, "scale": 0.72, "rotation_deg": 24.7,
+                      "translation_m": float(np.linalg.norm(slid[:3, 3])), "mean_shift_m": float(shift)}
+
+    monkeypatch.setattr(evaluation.align, "icp_refine", bad_icp)
+    out = base / "slid.json"
+    with caplog.at_level("WARNING", logger="evaluation.align"):
+        assert main([str(base / "pred_mesh.ply"), str(pred_root), "--align-to", str(gt_root), "--icp",
+                     "--n-samples", "5000", "-o", str(out)]) == 0
+    said = [r.getMessage() for r in caplog.records if "ICP turned the mesh" in r.getMessage()]
+    assert len(said) == 1 and "\n" not in said[0], said
+    assert re.search(r"ICP turned the mesh 24\.7 deg, scaled it 0\.720x and moved its surface [\d.]+ m on average "
+                     r"after a camera alignment good to 0\.000 m", said[0]), said[0]
+    assert "over 3 deg, 5 % scale or 0.1 m" in said[0] and "without --icp" in said[0]
+    assert json.loads(out.read_text())["protocol"]["alignment"]["icp"]["warning"] == said[0]
+    capsys.readouterr()
 
 
 def test_too_few_shared_images_is_named(scenes, tmp_path):
