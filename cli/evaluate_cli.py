@@ -71,19 +71,14 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         if scene is None:
             raise ValueError("--align-to needs SCENE, the scene whose frame the mesh is in: "
                              "evaluate PRED_MESH SCENE --align-to GT_SCENE")
-        from evaluation.align import evaluate_aligned
+        from evaluation.align import alignment_line, evaluate_aligned
 
         result = evaluate_aligned(pred_mesh, scene, align_to, gt, cfg, icp=icp)
-        a = result.protocol["alignment"]
-        res, icp_ = a["centre_residual_m"], a["icp"]
-        print(f"aligned to {align_to}: scale {a['scale']:.4f} from {a['shared_images']} shared images, camera "
-              f"centre residual RMS {res['rms']:.4f} m, median {res['median']:.4f} m, max {res['max']:.4f} m"
-              + (f"; ICP {icp_['rotation_deg']:.3f} deg, {icp_['translation_m']:.4f} m, scale {icp_['scale']:.4f}, "
-                 f"fitness {icp_['fitness']:.3f}, inlier RMSE {icp_['inlier_rmse_m']:.4f} m" if icp_ else ""))
+        print(alignment_line(align_to, result.protocol["alignment"]))
     else:
         if icp:
             raise ValueError("--icp refines an --align-to alignment; pass --align-to GT_SCENE")
-        _warn_own_frame(scene)
+        _warn_own_frame(scene, "mesh")
         result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
     print(format_table(result))
     if images is not None:
@@ -117,18 +112,12 @@ def _check_arguments(pred_mesh: Path, scene: Path | None, gt: Path | None) -> No
                                                                   and (gt / "sparse").is_dir() else ""))
 
 
-def _warn_own_frame(scene: Path | None) -> None:
-    """One warning when SCENE was mapped from images alone (`geocues sfm --mode map` marks scene.json):
-    its mesh is in its own frame, so scoring it against a GT mesh needs --align-to."""
-    import json as _json
+def _warn_own_frame(scene: Path | None, what: str) -> None:
+    """One warning when SCENE was mapped from images alone (evaluation.align.own_frame_warning)."""
+    from evaluation.align import own_frame_warning
 
-    from geocues.scene import OWN_FRAME
-
-    meta = Path(scene) / "scene.json" if scene is not None else None
-    if meta is not None and meta.is_file() and _json.loads(meta.read_text()).get("frame") == OWN_FRAME:
-        print(f"warning: {scene} was mapped from images alone, so its mesh is in its own frame (origin, axes, "
-              "unit), not the ground truth's: pass --align-to GT_SCENE (a scene in the GT's frame with the same "
-              "image names) to score it", file=sys.stderr)
+    if (warning := own_frame_warning(scene, what)) is not None:
+        print(f"warning: {warning}", file=sys.stderr)
 
 
 def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CUES")],
@@ -136,15 +125,21 @@ def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="
          gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
          json: Annotated[Path | None, tyro.conf.arg(metavar="OUT", aliases=("-o",))] = None,
          overwrite: bool = False,
+         align_to: Annotated[Path | None, tyro.conf.arg(metavar="GT_SCENE")] = None,
          cfg: Annotated[CueMetricsConfig, tyro.conf.arg(name="")] = CueMetricsConfig()) -> int:
-    """Accuracy (distance to GT per cue type) and coverage of `geocues extract` output.
+    """Accuracy (distance to GT per cue type) and coverage of `geocues extract` output. Cues of a scene
+    mapped from images alone are in its own frame: score them with --align-to (a warning says so).
 
     Args:
         cues_dir: the folder `geocues extract` wrote (cues.ply, report.json).
         scene: the scene the cues came from (its cameras define the seen GT surface).
-        gt: the ground-truth mesh (default: SCENE/gt/mesh.ply).
+        gt: the ground-truth mesh (default: SCENE/gt/mesh.ply, or GT_SCENE's with --align-to).
         json: write the result to this JSON file.
         overwrite: replace OUT if it exists.
+        align_to: the GT scene of a SCENE in its own frame (e.g. `geocues sfm --mode map`): the cues are
+            moved into GT_SCENE's frame by the similarity of the camera centres both share, as
+            `evaluate PRED_MESH SCENE --align-to GT_SCENE` does, and the seen surface is what GT_SCENE's
+            cameras of those images see.
     """
     import json as _json
 
@@ -152,7 +147,14 @@ def cues(cues_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="
 
     if json is not None:
         check_output_file(json, overwrite)
-    result = evaluate_cues_dir(cues_dir, scene, gt, cfg)
+    if align_to is None:
+        _warn_own_frame(scene, "cues")
+        result = evaluate_cues_dir(cues_dir, scene, gt, cfg)
+    else:
+        from evaluation.align import alignment_line
+
+        result = evaluate_cues_dir(cues_dir, scene, gt, cfg, align_to=align_to)
+        print(alignment_line(align_to, result["alignment"]))
     print(format_cue_table(result))
     if json is not None:
         with atomic_path(json) as tmp:

@@ -18,6 +18,35 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
+def own_frame_warning(scene: str | Path | None, what: str = "mesh") -> str | None:
+    """The warning for a SCENE mapped from images alone (`geocues sfm --mode map` marks scene.json,
+    `rescale`, `undistort` and `mvs` keep the mark): its frame is its own, so scoring its ``what``
+    (mesh, cues, ...) against a GT needs --align-to. None for any other scene."""
+    import json
+
+    from geocues.scene import OWN_FRAME
+
+    meta = Path(scene) / "scene.json" if scene is not None else None
+    try:
+        own = meta is not None and meta.is_file() and json.loads(meta.read_text()).get("frame") == OWN_FRAME
+    except (ValueError, AttributeError):  # a damaged scene.json is the scene loader's to name
+        own = False
+    if not own:
+        return None
+    return (f"{scene} was mapped from images alone, so its frame (origin, axes, unit) is its own, not the ground "
+            "truth's: pass --align-to GT_SCENE (a scene in the GT's frame with the same image names) to score its "
+            f"{what}")
+
+
+def alignment_line(gt_scene: str | Path, a: dict) -> str:
+    """One line of an :meth:`Alignment.to_dict` (``a``): what `evaluate ... --align-to` prints."""
+    res, icp = a["centre_residual_m"], a["icp"]
+    return (f"aligned to {gt_scene}: scale {a['scale']:.4f} from {a['shared_images']} shared images, camera "
+            f"centre residual RMS {res['rms']:.4f} m, median {res['median']:.4f} m, max {res['max']:.4f} m"
+            + (f"; ICP {icp['rotation_deg']:.3f} deg, {icp['translation_m']:.4f} m, scale {icp['scale']:.4f}, "
+               f"fitness {icp['fitness']:.3f}, inlier RMSE {icp['inlier_rmse_m']:.4f} m" if icp else ""))
+
+
 @dataclass
 class Similarity:
     """x_gt = s R x + t."""

@@ -103,9 +103,14 @@ def cue_accuracy(cues: CueCloud, gt: GroundTruth, cfg: CueMetricsConfig) -> dict
 
 
 def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str | Path | None = None,
-                      cfg: CueMetricsConfig | None = None) -> dict:
+                      cfg: CueMetricsConfig | None = None, align_to: str | Path | None = None) -> dict:
     """Evaluate ``CUES/cues.ply`` against the GT mesh (default ``SCENE/gt/mesh.ply``), with the
-    SfM points of the scene before statistical outlier removal as a reference."""
+    SfM points of the scene before statistical outlier removal as a reference.
+
+    ``align_to``: the GT scene of a SCENE in its own frame (`geocues sfm --mode map`): the cues and SfM
+    points are moved into its frame by `evaluate --align-to`'s similarity of the shared camera centres
+    (:func:`evaluation.align.align_scenes`) and scored against its GT mesh (or ``gt_path``), the seen
+    surface being what its cameras of the shared images see."""
     from geocues.scene import Scene
 
     cfg = cfg or CueMetricsConfig()
@@ -114,9 +119,15 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
     if not cues_path.is_file():
         raise FileNotFoundError(f"no cues.ply in {cues_dir} (run `geocues extract SCENE -o {cues_dir}`)")
     scene = Scene.load(scene_dir, check_priors=False)
-    gt_path = Path(gt_path) if gt_path is not None else scene.gt_mesh_path
+    gt_scene, alignment = scene, None
+    if align_to is not None:
+        from evaluation.align import align_scenes
+
+        alignment = align_scenes(scene_dir, align_to)
+        gt_scene = Scene.load(align_to, check_priors=False)
+    gt_path = Path(gt_path) if gt_path is not None else gt_scene.gt_mesh_path
     if gt_path is None:
-        raise FileNotFoundError(f"no GT mesh: pass --gt or put one at {Path(scene_dir) / 'gt' / 'mesh.ply'}")
+        raise FileNotFoundError(f"no GT mesh: pass --gt or put one at {gt_scene.root / 'gt' / 'mesh.ply'}")
     from splat.init_gaussians import foreign_cues
 
     report = Path(cues_dir) / "report.json"
@@ -129,11 +140,17 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
                     cues_path, extracted_from, scene.root)  # scored anyway: the figures then measure the mix-up
     elif foreign := foreign_cues(cues_path, scene):
         log.warning("the cues %s were extracted from another scene than %s: %s", cues_path, scene.root, foreign)
-    gt = GroundTruth(gt_path, scene.cameras, cfg)
-    result = cue_accuracy(read_cues_ply(cues_path), gt, cfg)
-    sfm_all = gt.distances(scene.points.xyz)
+    cues, sfm_xyz, cameras = read_cues_ply(cues_path), scene.points.xyz, scene.cameras
+    if alignment is not None:  # into the GT's frame and unit; the shared images' cameras there
+        cues.xyz, sfm_xyz = alignment.transform.apply(cues.xyz), alignment.transform.apply(sfm_xyz)
+        cameras = [c for c in gt_scene.cameras if c.name in set(alignment.shared)]
+    gt = GroundTruth(gt_path, cameras, cfg)
+    result = cue_accuracy(cues, gt, cfg)
+    sfm_all = gt.distances(sfm_xyz)
     result["sfm_before_sor"] = {"n": int(len(sfm_all)), "within_5cm": share_within(sfm_all, 0.05)}
     result.update(cues=str(cues_path), scene=str(scene_dir), gt=str(gt_path))
+    if alignment is not None:
+        result.update(gt_scene=str(align_to), alignment=alignment.to_dict())
     if report.is_file():
         result["seconds"] = json.loads(report.read_text()).get("seconds", {})
     return result

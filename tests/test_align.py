@@ -160,3 +160,46 @@ def test_too_few_shared_images_is_named(scenes, tmp_path):
         p.rename(p.with_name("renamed_" + p.name))
     with pytest.raises(ValueError, match="at least 3 images registered in both"):
         align_scenes(other, gt_root)
+
+
+def test_cues_of_a_scene_in_its_own_frame_are_warned_about_and_scored_with_align_to(scenes, tmp_path, capsys):
+    """Regression: `evaluate cues CUES SCENE --gt GT` of a photos-only scene gave every type ~1.2 m median,
+    0 % within 5 cm, rc 0 and no word; now the frame warning of `evaluate mesh`, and --align-to moves the
+    cues into the GT's frame by the same camera-centre similarity."""
+    from cli.evaluate_cli import main
+    from geocues.cue_io import write_cues_ply
+    from test_train import surface_cues
+
+    base, gt_root, pred_root, T = scenes
+    own = shutil.copytree(pred_root, tmp_path / "own")
+    (own / "scene.json").write_text(json.dumps({"frame": "mapped from images", "scale": "arbitrary"}))
+    cues = surface_cues(gt_root, n_plane=3000)  # on the GT surface, in the GT's frame
+    write_cues_ply(tmp_path / "gt_cues" / "cues.ply", cues)
+    cues.xyz = T.apply(cues.xyz)  # the same cues in the scene's own frame
+    write_cues_ply(tmp_path / "cues" / "cues.ply", cues)
+    gt_mesh = str(gt_root / "gt" / "mesh.ply")
+
+    assert main(["cues", str(tmp_path / "cues"), str(own), "--gt", gt_mesh, "-o", str(tmp_path / "plain.json")]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "mapped from images alone" in line]
+    assert len(said) == 1 and f"{own} was mapped from images alone" in said[0], err
+    assert "pass --align-to GT_SCENE" in said[0] and said[0].endswith("to score its cues"), said[0]
+    assert json.loads((tmp_path / "plain.json").read_text())["per_type"]["PLANE"]["within_5cm"] < 0.5
+
+    out = tmp_path / "aligned.json"
+    assert main(["cues", str(tmp_path / "cues"), str(own), "--align-to", str(gt_root), "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "mapped from images alone" not in captured.err
+    assert "aligned to" in captured.out and "residual RMS 0.0000 m" in captured.out  # evaluate mesh's line
+    aligned = json.loads(out.read_text())
+    assert aligned["alignment"]["shared_images"] == 10 and aligned["alignment"]["centre_residual_m"]["max"] < 1e-6
+    assert aligned["gt"] == gt_mesh and aligned["gt_scene"] == str(gt_root)
+    assert main(["cues", str(tmp_path / "gt_cues"), str(gt_root), "-o", str(tmp_path / "in_frame.json")]) == 0
+    in_frame = json.loads((tmp_path / "in_frame.json").read_text())
+    for t in ("PLANE", "LINE", "SFM"):  # as if the cues had been extracted in the GT's frame
+        a, b = aligned["per_type"][t], in_frame["per_type"][t]
+        assert a["within_1cm"] == pytest.approx(b["within_1cm"], abs=0.002), t
+        assert a["median_m"] == pytest.approx(b["median_m"], abs=1e-5), t
+    assert aligned["per_type"]["PLANE"]["within_1cm"] > 0.99
+    assert aligned["coverage"]["ALL"] == pytest.approx(in_frame["coverage"]["ALL"], abs=0.01)
+    capsys.readouterr()
