@@ -168,12 +168,15 @@ def report(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
            gt: Annotated[Path | None, tyro.conf.arg(metavar="GT_MESH")] = None,
            gt_depth: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None,
            views: int = 4,
-           overwrite: bool = False) -> int:
+           overwrite: bool = False,
+           align_to: Annotated[Path | None, tyro.conf.arg(metavar="GT_SCENE")] = None) -> int:
     """Plots and a contact sheet of one `splat train` folder, linked from RUN/report.md.
 
     Loss terms and Gaussians per type against iterations; test PSNR/SSIM (and mesh metrics of the
     checkpoint meshes when a GT mesh is at hand) against seconds; held-out views as GT | render |
-    depth | normals | depth error. -v/--verbose: debug logging.
+    depth | normals | depth error. The checkpoint meshes of a run on a scene mapped from images alone
+    are scored with --align-to (without it they are left out, with a warning and a note in
+    report.md). -v/--verbose: debug logging.
 
     Args:
         run: the `splat train` output folder.
@@ -182,10 +185,13 @@ def report(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN
         gt_depth: folder of exact depth maps for the depth-error panel (default: SCENE/gt/depth).
         views: held-out views in the contact sheet.
         overwrite: replace an earlier report in RUN (report.md, its plots and report_data.json).
+        align_to: the GT scene of a run on a scene in its own frame (e.g. `geocues sfm --mode map`): the
+            checkpoint meshes are moved into GT_SCENE's frame and scored as `evaluate PRED_MESH SCENE
+            --align-to GT_SCENE` does (GT: --gt or GT_SCENE's gt/mesh.ply).
     """
     from evaluation.run_report import write_run_report
 
-    print(f"wrote {write_run_report(run, scene, gt, gt_depth, views, overwrite=overwrite)}")
+    print(f"wrote {write_run_report(run, scene, gt, gt_depth, views, overwrite=overwrite, align_to=align_to)}")
     return 0
 
 

@@ -188,10 +188,12 @@ def icp_warning(icp: dict, residual_median_m: float, threshold: float) -> str | 
 
 
 def evaluate_aligned(pred_path: str | Path, pred_scene: str | Path, gt_scene: str | Path,
-                     gt_path: str | Path | None = None, cfg=None, icp: bool = False):
+                     gt_path: str | Path | None = None, cfg=None, icp: bool = False,
+                     alignment: Alignment | None = None):
     """Score the mesh ``pred_path`` (in the frame of ``pred_scene``) against the GT of ``gt_scene``
-    after :func:`align_scenes` and, with ``icp``, a similarity ICP refinement (correspondences
-    within twice the F-score threshold). The returned metrics' protocol holds the alignment."""
+    after :func:`align_scenes` (or the given ``alignment`` of the two scenes, for several meshes) and,
+    with ``icp``, a similarity ICP refinement (correspondences within twice the F-score threshold).
+    The returned metrics' protocol holds the alignment."""
     from evaluation.mesh_metrics import MeshMetricsConfig, evaluate_meshes, scene_cameras_and_gt
     from evaluation.surfaces import TriMesh, load_mesh, sample_surface
 
@@ -200,7 +202,10 @@ def evaluate_aligned(pred_path: str | Path, pred_scene: str | Path, gt_scene: st
     gt_path = gt_path if gt_path is not None else scene_gt
     if gt_path is None:
         raise ValueError(f"no GT mesh: pass --gt GT_MESH (the scene {gt_scene} has no gt/mesh.ply)")
-    alignment = align_scenes(pred_scene, gt_scene)
+    if alignment is None:
+        alignment = align_scenes(pred_scene, gt_scene)
+    elif icp:  # the ICP record is the alignment's: one per mesh
+        alignment = Alignment(alignment.transform, alignment.shared, alignment.residuals_m)
     pred, gt = load_mesh(pred_path), load_mesh(gt_path)
     vertices = alignment.transform.apply(pred.vertices)
     if icp:

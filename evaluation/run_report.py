@@ -5,7 +5,9 @@ Writes into RUN: ``report.md`` linking ``report_losses.png`` (loss terms against
 PSNR / SSIM and, when a GT mesh is at hand, mesh metrics of the checkpoint meshes against training
 seconds), ``report_views.png`` (held-out views: GT | render | rendered depth | rendered normals |
 depth error against exact GT depth where it exists) and ``report_data.json``, the data every figure
-was drawn from. Rendering goes through splat's public API (``splat.render_run.load_run``, ``render``).
+was drawn from. The checkpoint meshes of a run on a scene mapped from images alone are scored only with
+``align_to`` (`evaluate report RUN --align-to GT_SCENE`, the alignment of `evaluate --align-to`).
+Rendering goes through splat's public API (``splat.render_run.load_run``, ``render``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import shlex
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -53,20 +56,48 @@ def _gaussians(final) -> str:
     return f"{final} Gaussians" if final is not None else "Gaussians unknown"
 
 
-def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None) -> list[dict]:
-    """Mesh metrics of each checkpoint mesh the run kept (paths relative to RUN; needs a GT mesh)."""
+@dataclass
+class MeshCurve:
+    """Mesh metrics of a run's checkpoint meshes (:func:`mesh_curve`)."""
+
+    points: list[dict]  # per checkpoint mesh: step, train_s, chamfer_l1, f_score, normal_consistency
+    alignment: dict | None = None  # with --align-to: Alignment.to_dict() of the run's scene to GT_SCENE
+    skipped: str | None = None  # why no mesh was scored though a GT mesh is at hand
+
+
+def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None,
+               align_to: Path | None = None) -> MeshCurve:
+    """Mesh metrics of each checkpoint mesh the run kept (paths relative to RUN; needs a GT mesh).
+
+    ``align_to``: the GT scene of a run whose scene is in its own frame; the meshes are moved into its
+    frame as `evaluate PRED_MESH SCENE --align-to GT_SCENE` does (one alignment for all) and scored
+    against its GT mesh (or ``gt``). Without it, the meshes of a scene mapped from images alone are not
+    scored: a warning, and ``skipped`` says why (the report carries it)."""
+    from evaluation.align import align_scenes, evaluate_aligned, own_frame_warning
     from evaluation.mesh_metrics import evaluate_with_scene
     from geocues.scene import gt_mesh_file
 
     points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and (run_dir / p["mesh"]).is_file()]
-    if not points or (gt is None and (scene is None or gt_mesh_file(scene) is None)):
-        return []
+    alignment = None
+    if align_to is not None:
+        alignment = align_scenes(scene, align_to)  # first: too few shared images is named before any scoring
+    elif not points or (gt is None and (scene is None or gt_mesh_file(scene) is None)):
+        return MeshCurve([])
+    elif (warning := own_frame_warning(scene, "checkpoint meshes")) is not None:
+        log.warning("%s; the report leaves the mesh metrics out", warning)
+        return MeshCurve([], skipped=warning)
+
+    def score(mesh: Path):
+        if alignment is None:
+            return evaluate_with_scene(mesh, gt, scene)
+        return evaluate_aligned(mesh, scene, align_to, gt, alignment=alignment)
+
     out = []
     for p in points:
-        m = evaluate_with_scene(run_dir / p["mesh"], gt, scene).to_dict()
+        m = score(run_dir / p["mesh"]).to_dict()
         out.append({"step": p["step"], "train_s": p["train_s"],
                     **{k: m[k] for k in ("chamfer_l1", "f_score", "normal_consistency")}})
-    return out
+    return MeshCurve(out, alignment.to_dict() if alignment is not None else None)
 
 
 def contact_sheet(run_dir: Path, scene_dir: Path, n_views: int, gt_depth: Path | None) -> dict:
@@ -138,9 +169,11 @@ def _draw_sheet(sheet: dict, path: Path) -> Path:
 
 
 def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: str | Path | None = None,
-                     gt_depth: str | Path | None = None, n_views: int = 4, *, overwrite: bool = False) -> Path:
+                     gt_depth: str | Path | None = None, n_views: int = 4, *, overwrite: bool = False,
+                     align_to: str | Path | None = None) -> Path:
     """The report of one `splat train` folder (module docstring); returns RUN/report.md. An earlier
-    report (RUN/report.md, written last) is replaced only with ``overwrite``."""
+    report (RUN/report.md, written last) is replaced only with ``overwrite``. ``align_to``: the GT scene
+    of a run on a scene in its own frame (:func:`mesh_curve`)."""
     run_dir = Path(run_dir)
     report_path = run_dir / "report.json"
     if not report_path.is_file():
@@ -155,6 +188,8 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
         raise FileNotFoundError(f"the run's scene folder {scene_dir} ({where}) does not exist; give the scene after "
                                 f"RUN: `evaluate report {shlex.quote(str(run_dir))} SCENE`")
     log_rows = _read_log(run_dir)
+    curve = mesh_curve(run_dir, report, Path(gt) if gt else None, scene_dir, Path(align_to) if align_to else None)
+    meshes = curve.points
 
     losses = {t: [(r["step"], r[t]) for r in log_rows if r.get(t) is not None] for t in LOSS_TERMS}
     fig, ax = plt.subplots(figsize=(8, 4.5), constrained_layout=True)
@@ -177,7 +212,6 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
 
     images = [{k: p.get(k) for k in ("step", "train_s", "psnr", "ssim", "n_gaussians")}
               for p in report.get("accuracy_vs_time", [])]
-    meshes = mesh_curve(run_dir, report, Path(gt) if gt else None, scene_dir)
     panels = [("psnr", "test PSNR (dB)", 1.0, images), ("ssim", "test SSIM", 1.0, images)]
     panels += [(k, title, scale, meshes) for k, title, scale in PANELS[:3]] if meshes else []  # C-L1 in cm
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False, constrained_layout=True)
@@ -192,7 +226,8 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
     _draw_sheet(sheet, run_dir / "report_views.png")
 
     data = {"run": str(run_dir), "scene": str(scene_dir), "losses": losses, "gaussians": counts,
-            "images_vs_time": images, "mesh_vs_time": meshes,
+            "images_vs_time": images, "mesh_vs_time": meshes, "mesh_alignment": curve.alignment,
+            "mesh_skipped": curve.skipped,
             "views": [r["name"] for r in sheet["rows"]], "depth_errors": sheet["depth_errors"]}
     with atomic_path(run_dir / "report_data.json") as tmp:
         tmp.write_text(json.dumps(data, indent=1, allow_nan=False))
@@ -207,9 +242,14 @@ def write_run_report(run_dir: str | Path, scene: str | Path | None = None, gt: s
              f"Scene `{scene_dir.resolve()}`; {report['config']['iters']} iterations; {scores}; "
              f"{_gaussians(report.get('gaussians_final'))}; training {report['timings']['train_s']:.0f} s.", ""]
     if meshes:
-        m = meshes[-1]
+        m, a = meshes[-1], curve.alignment
         lines += [f"Final mesh: Chamfer-L1 {m['chamfer_l1'] * 100:.2f} cm, F@5cm {m['f_score']:.3f}, "
-                  f"NC {m['normal_consistency']:.3f}.", ""]
+                  f"NC {m['normal_consistency']:.3f}"
+                  + (f", after aligning the scene to `{align_to}` by the camera centres of {a['shared_images']} "
+                     f"shared images (residual median {100 * a['centre_residual_m']['median']:.1f} cm)" if a else "")
+                  + ".", ""]
+    elif curve.skipped:
+        lines += [f"Mesh metrics left out: {curve.skipped}.", ""]
     lines += ["![accuracy against time](report_accuracy.png)", "", "![loss terms](report_losses.png)", "",
               "![Gaussians per type](report_gaussians.png)", "",
               ("Held-out views" if held_out else "Training views (the run held none out)")

@@ -203,3 +203,62 @@ def test_cues_of_a_scene_in_its_own_frame_are_warned_about_and_scored_with_align
     assert aligned["per_type"]["PLANE"]["within_1cm"] > 0.99
     assert aligned["coverage"]["ALL"] == pytest.approx(in_frame["coverage"]["ALL"], abs=0.01)
     capsys.readouterr()
+
+
+def _fake_run(run_dir, scene, mesh):
+    """A finished-run folder on ``scene`` with two checkpoint meshes (copies of ``mesh``): Gaussians at the
+    scene's SfM points, report.json, a training log."""
+    import torch
+
+    from geocues.scene import Scene
+    from splat.gaussians import save_ply
+
+    pts = torch.as_tensor(Scene.load(scene, check_priors=False).points.xyz, dtype=torch.float32)
+    n = len(pts)
+    save_ply(run_dir / "point_cloud.ply", {
+        "means": pts, "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), "scales": torch.full((n, 3), -3.0),
+        "opacities": torch.full((n,), 2.0), "sh0": torch.full((n, 1, 3), 0.5), "shN": torch.zeros(n, 0, 3)})
+    (run_dir / "checkpoints").mkdir()
+    points = []
+    for step in (15, 30):
+        shutil.copy(mesh, run_dir / "checkpoints" / f"mesh_{step:06d}.ply")
+        points.append({"step": step, "train_s": step / 10, "psnr": 20.0, "ssim": 0.5, "n_gaussians": n,
+                       "mesh": f"checkpoints/mesh_{step:06d}.ply"})
+    (run_dir / "report.json").write_text(json.dumps({
+        "scene": str(scene), "config": {"iters": 30, "downscale": 1.0, "test_every": 4, "sh_degree": 0,
+                                        "background": [0.0, 0.0, 0.0]},
+        "timings": {"train_s": 3.0}, "test_metrics": {"psnr": 20.0, "ssim": 0.5, "n_views": 2},
+        "gaussians_final": {"SFM": n}, "accuracy_vs_time": points}))
+    (run_dir / "train_log.jsonl").write_text("".join(json.dumps({"step": s, "loss": 1 / (s + 1), "rgb": 0.5, "n": n,
+                                                                 "SFM": n}) + "\n" for s in (0, 15, 30)))
+    return run_dir
+
+
+def test_a_report_of_a_run_in_its_own_frame_leaves_the_mesh_out_or_aligns_it(scenes, tmp_path, caplog, capsys):
+    """Regression: `evaluate report RUN --gt GT` of a run on a photos-only scene exited 1 with advice to
+    pass --align-to, which `evaluate report` did not have, and wrote no report.md. Now the mesh metrics
+    are left out with a warning and a note, the rest is written; --align-to scores them as `evaluate` does."""
+    from cli.evaluate_cli import main
+
+    base, gt_root, pred_root, _ = scenes
+    own = shutil.copytree(pred_root, tmp_path / "own")
+    (own / "scene.json").write_text(json.dumps({"frame": "mapped from images", "scale": "arbitrary"}))
+    run = _fake_run(tmp_path / "run", own, base / "pred_mesh.ply")
+    with caplog.at_level("WARNING", logger="evaluation.run_report"):
+        assert main(["report", str(run), "--gt", str(gt_root / "gt" / "mesh.ply"), "--views", "1"]) == 0
+    said = [r.getMessage() for r in caplog.records if "mapped from images alone" in r.getMessage()]
+    assert len(said) == 1 and "pass --align-to GT_SCENE" in said[0] and "leaves the mesh metrics out" in said[0]
+    for name in ("report.md", "report_losses.png", "report_accuracy.png", "report_views.png", "report_data.json"):
+        assert (run / name).is_file(), name
+    md, data = (run / "report.md").read_text(), json.loads((run / "report_data.json").read_text())
+    assert f"Mesh metrics left out: {own} was mapped from images alone" in md and "Chamfer-L1" not in md
+    assert data["mesh_vs_time"] == [] and "--align-to GT_SCENE" in data["mesh_skipped"]
+
+    assert main(["report", str(run), "--align-to", str(gt_root), "--views", "1", "--overwrite"]) == 0
+    md, data = (run / "report.md").read_text(), json.loads((run / "report_data.json").read_text())
+    assert [p["step"] for p in data["mesh_vs_time"]] == [15, 30] and data["mesh_skipped"] is None
+    assert data["mesh_alignment"]["shared_images"] == 10 and data["mesh_alignment"]["centre_residual_m"]["max"] < 1e-6
+    assert all(p["f_score"] > 0.99 and p["chamfer_l1"] < 0.02 for p in data["mesh_vs_time"]), data["mesh_vs_time"]
+    assert re.search(rf"Final mesh: Chamfer-L1 [\d.]+ cm, F@5cm 1\.000, NC [\d.]+, after aligning the scene to "
+                     rf"`{re.escape(str(gt_root))}` by the camera centres of 10 shared images", md), md
+    capsys.readouterr()

@@ -200,7 +200,7 @@ def test_report_and_cues_take_scene_positionally(tmp_path, monkeypatch, capsys):
 
     seen = {}
     monkeypatch.setattr(evaluation.run_report, "write_run_report",
-                        lambda run, scene, gt, gt_depth, views, overwrite=False: seen.update(
+                        lambda run, scene, gt, gt_depth, views, overwrite=False, align_to=None: seen.update(
                             run=run, scene=scene, views=views, overwrite=overwrite) or run / "report.md")
     assert main(["report", "R", "S", "--views", "2"]) == 0
     assert seen == {"run": Path("R"), "scene": Path("S"), "views": 2, "overwrite": False}
