@@ -68,9 +68,12 @@ def test_console_scripts_exist_and_a_ctrl_c_while_starting_is_one_line(monkeypat
     """pyproject's scripts name callables that exist; a Ctrl-C while a command table imports torch &
     co. (about two seconds) ends with one line and 130, not a traceback of the import."""
     import importlib
+    import signal
     import tomllib
 
     import cli.entry as entry
+
+    monkeypatch.setattr(signal, "signal", lambda *a: None)  # the scripts catch SIGTERM: not in pytest's process
 
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     assert sorted(scripts) == ["evaluate", "geocues", "splat"]
@@ -84,3 +87,12 @@ def test_console_scripts_exist_and_a_ctrl_c_while_starting_is_one_line(monkeypat
     monkeypatch.setattr(entry.importlib, "import_module", interrupted)
     assert entry.splat() == 130
     assert capsys.readouterr().err.strip() == "splat: interrupted while starting"
+
+    class Module:  # imported; the signal comes while the command parses (before its own handling)
+        @staticmethod
+        def main():
+            raise KeyboardInterrupt("SIGTERM")
+
+    monkeypatch.setattr(entry.importlib, "import_module", lambda name: Module)
+    assert entry.geocues() == 143  # a SIGTERM then was a traceback (Ctrl-C) or a silent death
+    assert capsys.readouterr().err.strip() == "geocues: interrupted while starting"
