@@ -387,7 +387,8 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
               "valid_fraction": {"mean": float(np.mean(list(valid.values()))),
                                  "mean_before_consistency": float(np.mean(list(raw_valid.values()))),
                                  "mean_before_planar_fill": float(np.mean(list(swept_valid.values())))},
-              "per_view": {cam.name: {"valid": valid[cam.name], "neighbours": [scene.cameras[j].name for j in neighbours[i]],
+              "per_view": {cam.name: {"valid": valid[cam.name], "valid_before_consistency": raw_valid.get(i),
+                                      "neighbours": [scene.cameras[j].name for j in neighbours[i]],
                                       "bounds_m": list(bounds[i])} for i, cam in enumerate(scene.cameras)}}
     with atomic_path(report_path) as tmp:
         tmp.write_text(json.dumps(report, indent=1))

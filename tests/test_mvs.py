@@ -44,6 +44,10 @@ def test_depth_within_a_stated_error_of_the_exact_depth(mvs_room):
     report = json.loads((out / "mvs_report.json").read_text())
     assert report["valid_fraction"]["mean"] == pytest.approx(np.mean(valid), abs=0.02)
     assert report["valid_fraction"]["mean_before_consistency"] >= report["valid_fraction"]["mean"]
+    per_view = report["per_view"].values()
+    assert all(v["valid_before_consistency"] >= v["valid"] for v in per_view)
+    assert np.mean([v["valid_before_consistency"] for v in per_view]) == \
+        pytest.approx(report["valid_fraction"]["mean_before_consistency"])
     assert (out / "images").resolve() == (root / "images").resolve()  # a scene folder over the same images
     from geocues.mvs import MVS_PRIORS
 
