@@ -399,6 +399,8 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
               "resumed_from_step": step0 if ckpt is not None else None, "guard_events": s.guard.events,
               "camera_refinement": s.refiner.summary() if s.refiner is not None else None, "mesh": mesh,
               "empty_result": empty_result(cfg, s, final)}
+    if cfg.keep_ckpt:  # the final state (a save every --save-every seconds left an older one, or none)
+        checkpoint.save(loop.ckpt_path, loop.snapshot(), asdict(cfg))
     with atomic_path(work / "report.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2, allow_nan=False))
     if not cfg.keep_ckpt:

@@ -117,7 +117,7 @@ class TrainConfig:
     """Write OUT.partial/ckpt/last.pt every this many seconds of training (0: only when stopped by
     SIGINT / SIGTERM); `--resume` continues from it."""
     keep_ckpt: bool = False
-    """Keep OUT/ckpt/last.pt (the final state) after a finished run."""
+    """Write OUT/ckpt/last.pt (the final state) at the end of a finished run and keep it."""
     lr: LearningRates = field(default_factory=LearningRates)
     init: InitConfig = field(default_factory=InitConfig)
     loss: LossConfig = field(default_factory=LossConfig)

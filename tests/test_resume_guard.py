@@ -514,3 +514,15 @@ def test_quiet_silences_bars_that_ask_for_progress(capsys):
         fuse_views(views, progress=True)
     err = capsys.readouterr().err  # (the module's INFO line "TSDF fusion: 3 views ..." may be logged)
     assert "view/s" not in err and "%|" not in err, err
+
+
+def test_keep_ckpt_keeps_the_final_state(scene):
+    """--keep-ckpt kept whatever --save-every had last written: nothing for a run shorter than it
+    (300 s of training), step 181 of 200 for another."""
+    from splat import checkpoint
+    from splat.train import run
+
+    base, root, cues = scene
+    out = run(_cfg(keep_ckpt=True, save_every=0.0), root, cues, base / "kept")
+    saved = checkpoint.load(out / "ckpt" / "last.pt")
+    assert saved["step"] == 80 and saved["config"]["keep_ckpt"] is True
