@@ -5,7 +5,9 @@ floor is the lowest well-filled 2 cm height bin of the horizontal PLANE cues bel
 plane through the median heights of 25 cm cells (:func:`_level_fit`), then refitted through the 3D line
 cues lying on it (:func:`snap_to_lines`, :func:`snap_iterated`; ``--floor.line-snap``: the plane cues'
 floor sat 1 cm high on a benchmark room, which put a far wall's lifted foot 5 cm in front of it). With
-no such cues there is no floor. Used by the floor lines (geocues.floor_lines), the walls and the ceiling.
+no such cues there is no floor; nor when the scene's SfM points and line samples lie under it and form
+no lower layer (a table top: :data:`BELOW_SHARE`), or its cues lie in a strip (:data:`MIN_ACROSS_STD`).
+Used by the floor lines (geocues.floor_lines), the walls and the ceiling.
 """
 
 from __future__ import annotations
@@ -18,13 +20,14 @@ import numpy as np
 if TYPE_CHECKING:
     from geocues.floor_lines import FloorLineConfig
 
+
 @dataclass
 class Floor:
     """The plane n . X = height (n: unit, up)."""
 
     normal: np.ndarray  # [3]
     height: float
-    n_points: int  # horizontal PLANE cues it was fitted to
+    n_points: int  # cues it was fitted to (horizontal PLANE cues; SfM points and line samples under a table)
     cue_cov: np.ndarray | None = None  # [3, 3] covariance of those cues' positions (how far they spread)
 
     def basis(self) -> np.ndarray:

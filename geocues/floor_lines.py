@@ -10,7 +10,8 @@ floor line (within ``angle_deg`` and ``dist``) and one of them sees its midpoint
 ``min_azimuth_deg`` away in azimuth (a horizontal edge above the floor seen by views that move
 along their viewing direction lifts consistently from all of them; from another azimuth it does not).
 Kept segments are sampled every ``step`` metres and join the line anchors of the plane stage (with
-the views that lifted them); they are not written as cue points.
+the views that lifted them; the prior alignment takes them only in a view with too few measured
+anchors, geocues.depth_align); they are not written as cue points.
 
 The floor (geocues.floor): the lowest horizontal surface of the PLANE cues below the cameras, levelled
 by the 3D line cues lying on it (``line_snap``). With no such cues there is no floor and nothing is

@@ -47,7 +47,7 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
     [L, 4]: level planes (n . X + d = 0; `--floor.level-snap`) a region whose prior lies on one is
     cut onto; ``walls`` [K, 4]: wall planes the pixels left by the anchored planes are cut onto
     (`--floor.wall-snap`; geocues.planes), unless the anchors flagged ``wall_veto`` [P] (the
-    measured ones) put the surface elsewhere."""
+    measured ones) put the surface elsewhere; those are also the ones a prior is fitted to."""
     n_img = len(scene.cameras)
     rej_tex: dict[str, int] = {}
     rej_align: dict[str, int] = {}
@@ -86,7 +86,8 @@ def plane_stage(scene: Scene, cfg: "ExtractConfig", kind: str, anchors: Anchors,
         if depth is not None:
             n_prior += 1
             ca = cand if assumed is None else cand[~assumed[cand]]
-            al = align_depth_prior(cam, depth, anchors.xyz[ca], cfg.align, seed=cfg.seed, kind=kind)
+            al = align_depth_prior(cam, depth, anchors.xyz[ca], cfg.align, seed=cfg.seed, kind=kind,
+                                   measured=None if wall_veto is None else wall_veto[ca])
             row["alignment"] = al.to_dict()
             fits.append(al)
             if al.ok:
