@@ -420,8 +420,8 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
     rho = _rank_correlation(d, z) * (-1.0 if kind == "disparity" else 1.0)
     res.rank_correlation = rho
     if not rho >= MIN_RANK_CORRELATION:  # NaN: a constant prior
-        res.reason = (f"the prior does not follow the scene's depth at its {len(d)} anchors (rank correlation "
-                      f"{rho:.2f} < {MIN_RANK_CORRELATION}, their depths spread {100 * spread:.0f} %): another "
+        res.reason = (f"the prior does not follow the scene's depth (rank correlation {rho:.2f} < "
+                      f"{MIN_RANK_CORRELATION} at its {len(d)} anchors, their depths spread {100 * spread:.0f} %): another "
                       f"view's prior, a constant one, {'depth' if kind == 'disparity' else 'disparity'} "
                       "(--prior-kind), or a view too flat to tell")
         return res
