@@ -20,6 +20,8 @@ from typing import Callable
 
 import tyro
 
+from cli._signals import exit_code, sigterm_as_interrupt
+
 
 class _StderrHandler(logging.StreamHandler):
     """Writes to whatever ``sys.stderr`` is at emit time (pytest swaps it between tests)."""
@@ -139,25 +141,6 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
         logger.setLevel(level)
         if not logger.handlers:
             logger.addHandler(handler)
-
-
-def _interrupt(signum, _frame) -> None:
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
-def sigterm_as_interrupt():
-    """SIGTERM (`kill`, a job scheduler) stops a command as Ctrl-C does: one line, outputs kept.
-    pycolmap's glog installs a handler on import that dumps a native stack trace on SIGTERM, and it
-    would replace one installed before it, so pycolmap is imported first (where installed).
-    Returns the handler it replaced (None outside the main thread, where nothing is changed)."""
-    try:
-        import pycolmap  # noqa: F401
-    except ImportError:
-        pass
-    try:
-        return signal.signal(signal.SIGTERM, _interrupt)
-    except ValueError:  # not the main thread (an embedding application): leave its handlers alone
-        return None
 
 
 def summary(doc: str | None, width: int = 100) -> str:
@@ -283,7 +266,7 @@ def _run(fn: Callable, rest: list[str], sub_prog: str, verbose: bool) -> int:
             raise
         print(f"{sub_prog}: interrupted; finished outputs are kept, run the same command again to "
               "redo the rest", file=sys.stderr)
-        return 143 if exc.args and exc.args[0] == "SIGTERM" else 130
+        return exit_code(exc)
     return int(result) if isinstance(result, int) else 0
 
 

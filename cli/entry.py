@@ -1,47 +1,35 @@
 """The console scripts' entry points (pyproject.toml ``[project.scripts]``). A command table imports
 torch, scipy, Open3D and pycolmap before it parses anything (about two seconds): a Ctrl-C or a
 SIGTERM in that time ends with one line and exit code 130 (143 for SIGTERM), as it does once the
-command runs, not with a traceback of an import (nor, for SIGTERM, without a word)."""
+command runs, not with a traceback of an import (nor, for SIGTERM, without a word); with -v the
+traceback is shown."""
 
 from __future__ import annotations
 
 import importlib
-import signal
 import sys
 
-
-def _interrupt(signum, _frame) -> None:
-    raise KeyboardInterrupt(signal.Signals(signum).name)
-
-
-def _catch_sigterm() -> None:
-    try:
-        signal.signal(signal.SIGTERM, _interrupt)
-    except ValueError:  # not the main thread (an embedding application): leave its handlers alone
-        pass
-
-
-def _code(exc: KeyboardInterrupt) -> int:
-    return 143 if exc.args and exc.args[0] == "SIGTERM" else 130
+from cli._signals import exit_code, sigterm_as_interrupt
 
 
 def _run(prog: str, module: str) -> int:
-    _catch_sigterm()
+    verbose = "-v" in sys.argv[1:] or "--verbose" in sys.argv[1:]
     try:
+        sigterm_as_interrupt(import_pycolmap=False)  # before the imports ...
         main = importlib.import_module(module).main
-        try:  # its glog replaces the SIGTERM handler when imported: import it here, then catch again
-            import pycolmap  # noqa: F401
-        except ImportError:
-            pass
-        _catch_sigterm()
+        sigterm_as_interrupt()  # ... and again after pycolmap's glog replaced it
     except KeyboardInterrupt as exc:
+        if verbose:
+            raise
         print(f"{prog}: interrupted while starting", file=sys.stderr)
-        return _code(exc)
+        return exit_code(exc)
     try:
         return main()
     except KeyboardInterrupt as exc:  # before the command's own handling (it parses, sets up logging)
+        if verbose:  # the command's own handling re-raises with -v to show where
+            raise
         print(f"{prog}: interrupted while starting", file=sys.stderr)
-        return _code(exc)
+        return exit_code(exc)
 
 
 def geocues() -> int:

@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 import tyro
 
 from cli._dispatch import dispatch, option_from_argv
+from cli._signals import exit_code
 from splat.ablate import AblateConfig
 from splat.bench import BenchConfig
 from splat.presets import PRESETS, load_config_file, preset_config
@@ -272,7 +273,7 @@ def view(run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")
             server = view_run(cfg, run, block=False)
     except KeyboardInterrupt as exc:  # the second one: view_run stops what it started on the way out
         print("viewer stopped while loading")
-        return 143 if exc.args and exc.args[0] == "SIGTERM" else 130
+        return exit_code(exc)
     if stopped:
         stop(server)
         print("viewer stopped while loading")

@@ -96,3 +96,21 @@ def test_console_scripts_exist_and_a_ctrl_c_while_starting_is_one_line(monkeypat
     monkeypatch.setattr(entry.importlib, "import_module", lambda name: Module)
     assert entry.geocues() == 143  # a SIGTERM then was a traceback (Ctrl-C) or a silent death
     assert capsys.readouterr().err.strip() == "geocues: interrupted while starting"
+
+
+def test_a_sigterm_while_a_command_starts_is_one_line_and_143():
+    """The real process: a SIGTERM while `geocues` imports torch & co. (the first ~2 s) killed it without
+    a word, a Ctrl-C there was a traceback of pycolmap's import; now one line and 143 (130)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = "import sys; from cli.entry import geocues; sys.argv[0] = 'geocues'; sys.exit(geocues())"
+    for sig, rc in ((signal.SIGTERM, 143), (signal.SIGINT, 130)):
+        p = subprocess.Popen([sys.executable, "-c", code, "info", "/nonexistent"], cwd=REPO,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(0.6)  # python is up, the command table is still importing
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == rc and err.strip() == "geocues: interrupted while starting", (sig, p.returncode, err[-500:])
