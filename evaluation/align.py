@@ -174,8 +174,9 @@ def icp_warning(icp: dict, residual_median_m: float, threshold: float) -> str | 
     """A warning when the ICP correction ``icp`` (:func:`icp_refine`'s dict) is large for a refinement:
     rotation > ``ICP_MAX_ROTATION_DEG``, scale change > ``ICP_MAX_SCALE_CHANGE`` or mean surface shift >
     ``ICP_MAX_SHIFT_THRESHOLDS`` x ``threshold``, else None. ICP with scaling can slide a mesh onto another
-    part of the GT and shrink it there (a 7.6 cm camera alignment followed by 24.7 deg, scale 0.72, 1.2 m:
-    precision 0.15 -> 0.91), which flatters accuracy and precision."""
+    part of the GT and shrink it there (a 7.6 cm camera alignment followed by 24.7 deg, scale 0.72, 1.2 m
+    of translation about the origin, 0.35 m of mean surface shift: precision 0.15 -> 0.91), which flatters
+    accuracy and precision."""
     rot, scale, shift = icp["rotation_deg"], icp["scale"], icp["mean_shift_m"]
     max_shift = ICP_MAX_SHIFT_THRESHOLDS * threshold
     if rot <= ICP_MAX_ROTATION_DEG and abs(scale - 1) <= ICP_MAX_SCALE_CHANGE and shift <= max_shift:

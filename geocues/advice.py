@@ -9,7 +9,7 @@ import os
 import shlex
 from pathlib import Path
 
-from geocues.scene import Scene
+from geocues.scene import ARBITRARY_SCALE, Scene
 
 
 FEW_VIEWS = 10  # Gaussian splatting of a room fits each surface to the views that see it
@@ -102,16 +102,17 @@ def photos_only_summary(root: Path) -> list[str] | None:
 def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
     """(command, why) pairs, in the order to run them. ``not_metric``: the scene does not look metric
     (:func:`geocues.rescale.metric_warning` said so)."""
+    from geocues.rescale import priors_in_scene_unit
+
     root = Path(scene.root)
     q = shlex.quote(str(root))
     if scene.distorted_models:
         out = _sibling(root, "pinhole")
         return [(f"geocues undistort {q} -o {out}", "the other commands read pinhole cameras only"),
                 (f"geocues info {out}", "then follow its advice")]
-    if not_metric and "rescaled" not in scene.metadata:  # a rescaled copy: its warning names the original
+    if not_metric and ("rescaled" not in scene.metadata or scene.metadata.get("scale") == ARBITRARY_SCALE):
+        # a rescaled copy's warning names its original (unless it was mapped again since)
         out = _sibling(root, "metric")
-        from geocues.rescale import priors_in_scene_unit
-
         metric_priors = scene.has_depth_priors and scene.depth_kind == "depth" and not priors_in_scene_unit(scene)
         how = "--from-priors" if metric_priors else "--median-depth 2"
         return [(f"geocues rescale {q} -o {out} {how}",
@@ -123,7 +124,7 @@ def next_steps(scene: Scene, not_metric: bool) -> list[tuple[str, str]]:
         return [(f"geocues sfm {q} -o {out}", "the cues start from SfM points"),
                 (f"geocues info {out}", "then follow its advice")]
     cues, run = _sibling(root, "cues"), _sibling(root, "run")
-    if scene.has_depth_priors and (scene.metadata.get("priors") or {}).get("source") == "geocues mvs":
+    if scene.has_depth_priors and priors_in_scene_unit(scene):
         return [(f"geocues extract {q} -o {cues} --preset mvs", "cues for the recipe of `geocues mvs` depth"),
                 (f"splat train {q} -c {cues} -o {run} --preset mvs --iters 3000 --downscale 2", "train, then a mesh"),
                 (f"splat view {run}", "look at it (or splat render)")]

@@ -139,9 +139,11 @@ def _unfinished_sfm_hint(p: Path) -> str:
     if state.get("failed"):
         return f"; the `geocues sfm` run that wrote {p} failed: {state['failed']}"
     scene = shlex.quote(state["scene"]) if state.get("scene") else "SCENE"
-    return (f"; {p} holds an unfinished `geocues sfm {scene} -o {shlex.quote(str(p))}` (stopped before it wrote the "
-            "model): run that command again, " + ("it reuses the features and matches" if state.get("extract") else
-                                                  "it starts again (it was stopped while extracting features)"))
+    flags = "".join(f" {f}" for f in state.get("flags", []))
+    done = ("it reuses the features and matches" if state.get("match") else "it reuses the features"
+            if state.get("extract") else "it starts again (it was stopped while extracting features)")
+    return (f"; {p} holds an unfinished `geocues sfm {scene} -o {shlex.quote(str(p))}{flags}` (stopped before it "
+            f"wrote the model): run that command again, {done}")
 
 
 def _no_model_hint(p: Path) -> str:

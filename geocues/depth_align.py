@@ -380,7 +380,9 @@ def align_depth_prior(cam: Camera, depth: np.ndarray, anchors_xyz: np.ndarray,
         & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     rej["outside_image"] = int(np.sum(front & ~inside))
     uv, z = uv[inside], z[inside]
-    ours = np.ones(len(X), bool) if measured is None else np.asarray(measured, bool).reshape(len(X))
+    if measured is not None and np.shape(measured) != (len(X),):
+        raise ValueError(f"measured must be [P] = [{len(X)}] bools (one per anchor), got shape {np.shape(measured)}")
+    ours = np.ones(len(X), bool) if measured is None else np.asarray(measured, bool)
     ours = ours[inside]
     res.n_candidates = len(z)
     cols = np.minimum(uv[:, 0].astype(np.int64), cam.width - 1)  # COLMAP: pixel j covers [j, j+1)

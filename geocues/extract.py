@@ -381,7 +381,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
     segments, _ = detect_all(scene, cfg.line, cache / "lines")  # the line stage's, cached
     P, L, V, stats = floor_line_anchors(scene.cameras, [s.segs for s in segments], first.xyz, first.normal,
                                         cfg.floor, aligned, lines.segments if lines is not None else None,
-                                        anchors.xyz)
+                                        anchors.xyz[plane_ok])  # SfM points of too narrow an angle left out
     W, WL, cuts, levels = np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros((0, 4))
     snap_walls = np.zeros((0, 4))
     if cfg.floor.walls and len(P):
@@ -418,7 +418,7 @@ def _floor_lines(scene: Scene, cfg: ExtractConfig, kind: str, anchors: Anchors, 
         log.warning("--floor.lines: %s: no floor lines, walls or level planes (the cues are those without them)",
                     stats["note"])
     else:
-        notes.append(f"floor lines: floor found in {stats['floor']['n_points']} plane cues; {stats['kept']} of "
+        notes.append(f"floor lines: floor fitted to {stats['floor']['n_points']} cues; {stats['kept']} of "
                      f"{stats['lifted']} lifted segments kept, {stats['samples']} plane anchors"
                      + (f", {n_wall} raised up to {stats['walls']['top']:.2f} m (--floor.walls)" if n_wall else "")
                      + (f", a ceiling grid of {stats['ceiling']['samples']} at {stats['ceiling']['height']:.3f} m "

@@ -52,10 +52,14 @@ direction) is not found: nothing there fixes its tilt across the patch (two 24-v
 their bare floor only in a strip 0.07 m wide (std 0.02 m): fitted 9 and 15 degrees off level)."""
 BELOW_MARGIN = 0.05
 """3D cues (SfM points, line samples) more than this (metres) below a floor candidate are under it ..."""
+MAX_DROP = 3.0
+"""... down to this far (metres) below it: farther ones are outliers (no room's floor lies so far under
+its lowest horizontal surface)."""
 BELOW_SHARE = 0.05
-"""... and a candidate with this share of the 3D cues below the cameras under it (and at least
-``min_floor_points``) is no floor: a table top whose plane cues are the lowest horizontal ones (a
-textured floor is SfM points, not plane cues)."""
+"""... and a candidate with this share of the 3D cues below the cameras under it and outside its own
+cues' footprint (and at least ``min_floor_points``) is no floor: a table top whose plane cues are the
+lowest horizontal ones (a textured floor is SfM points, not plane cues). Points under the candidate's
+own footprint do not count: reflections in a glossy floor are triangulated below it."""
 
 
 def _lowest_layer(h: np.ndarray, min_points: int) -> float | None:
@@ -74,6 +78,18 @@ def _lowest_layer(h: np.ndarray, min_points: int) -> float | None:
     return float(h.min() + 0.02 * (b + 0.5))
 
 
+def _outside(X: np.ndarray, cues: np.ndarray, basis: np.ndarray, margin: float = 0.1) -> np.ndarray:
+    """[M] bool: the points ``X`` [M, 3] lie outside the convex hull of ``cues`` [N, 3] (in-plane axes
+    ``basis`` [2, 3]) by more than ``margin`` metres (every point, when the cues span no area)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        eq = ConvexHull(cues @ basis.T).equations  # [E, 3]: inside where a . uv + b <= 0 for every edge
+    except (QhullError, ValueError):
+        return np.ones(len(X), bool)
+    return ((X @ basis.T) @ eq[:, :2].T + eq[:, 2]).max(axis=1, initial=-np.inf) > margin
+
+
 def _fit_layer(pts: np.ndarray, up: np.ndarray, h0: float, level: bool = False) -> tuple[Floor, np.ndarray]:
     """The floor through the points ``pts`` [N, 3] within 3 cm of height ``h0`` (:func:`_level_fit`;
     ``level``: normal ``up`` at their median height); (floor, their mask)."""
@@ -82,10 +98,12 @@ def _fit_layer(pts: np.ndarray, up: np.ndarray, h0: float, level: bool = False) 
     return Floor(normal, height, int(near.sum()), np.cov(pts[near].T)), near
 
 
-def _under(floor: Floor, support: np.ndarray, min_points: int) -> int | None:
+def _under(floor: Floor, support: np.ndarray, cues: np.ndarray, min_points: int) -> int | None:
     """How many of the 3D cues ``support`` [M, 3] (already below the cameras) lie more than
-    BELOW_MARGIN under ``floor``, when that many say it is no floor; else None."""
-    n = int(np.sum(support @ floor.normal - floor.height < -BELOW_MARGIN))
+    BELOW_MARGIN under ``floor`` and outside the footprint of its ``cues`` [N, 3], when that many say
+    it is no floor; else None."""
+    under = support @ floor.normal - floor.height < -BELOW_MARGIN
+    n = int(np.sum(_outside(support[under], cues, floor.basis()))) if under.any() else 0
     return n if n >= max(min_points, BELOW_SHARE * len(support)) else None
 
 
@@ -120,19 +138,18 @@ def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfi
         return None, f"{int(near.sum())} plane cues on the lowest horizontal surface (fewer than {cfg.min_floor_points})"
     if support is not None and len(support):
         s = np.asarray(support, np.float64).reshape(-1, 3)
-        s = s[s @ up < lowest_camera]
-        if (under := _under(floor, s, cfg.min_floor_points)) is not None:
+        s = s[(s @ up < lowest_camera) & (s @ up > floor.height - MAX_DROP)]
+        if (under := _under(floor, s, pts[near], cfg.min_floor_points)) is not None:
             n_top = floor.normal  # the lowest horizontal plane cues' fitted plane: the floor is parallel to it
             h0 = _lowest_layer(s[s @ n_top - floor.height < -BELOW_MARGIN] @ n_top, cfg.min_floor_points)
             lower, near = _fit_layer(np.r_[pts, s], n_top, h0, level=True) if h0 is not None else (None, None)
             if lower is None or near.sum() < cfg.min_floor_points \
-                    or _under(lower, s, cfg.min_floor_points) is not None:
+                    or _under(lower, s, np.r_[pts, s][near], cfg.min_floor_points) is not None:
                 return None, (f"{under} of the {len(s)} SfM points and line samples below the cameras lie under the "
                               f"lowest horizontal plane cues ({lowest_camera - floor.height:.2f} m below the lowest "
                               "camera: a table?) and no layer of them is a floor")
-            floor = lower
-    b = floor.basis()
-    across = float(np.sqrt(max(np.linalg.eigvalsh(b @ floor.cue_cov @ b.T)[0], 0.0)))
+            return lower, ""  # its tilt is the plane cues' above it: a strip of it is no matter
+    across = strip_width(floor)
     if across < MIN_ACROSS_STD:
         return None, (f"the floor's {floor.n_points} cues lie in a strip {across * 12 ** 0.5:.2f} m wide (std "
                       f"{across:.3f} m < {MIN_ACROSS_STD}): nothing fixes its tilt across it")

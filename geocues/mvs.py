@@ -22,7 +22,7 @@ of a Delaunay triangulation of each view's consistent depth and kept only where 
 check (geocues/mvs_fill.py, after ACMP's planar prior).
 
 Output: ``OUT`` is a scene folder (images, sparse, gt linked to the source scene) whose
-``priors/depth/<stem>.npy`` are the filtered MVS depths in metres (0 = no depth) at image size and
+``priors/depth/<stem>.npy`` are the filtered MVS depths in the scene's unit (0 = no depth) at image size and
 ``priors/depth_conf/<stem>.npy`` their scores in [0, 1] (a planar fill's: half of ``min_ncc``, under every swept score); ``geocues extract OUT`` then aligns them,
 builds plane cues from them and `splat train` uses them as depth priors.
 """
@@ -371,7 +371,7 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
         conf = {i: np.where(swept[i] > 0, conf[i], max(0.5 * cfg.min_ncc, 1e-3)).astype(np.float32) for i in conf}
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
     meta = json.loads((out_dir / "scene.json").read_text()) if (out_dir / "scene.json").is_file() else {}
-    meta.pop("depth_png_scale", None)  # the MVS priors are .npy in metres
+    meta.pop("depth_png_scale", None)  # the MVS priors are .npy in the scene's unit
     meta["priors"] = MVS_PRIORS  # not the source scene's (its simulated or network priors are not these)
     with atomic_path(out_dir / "scene.json") as tmp:
         tmp.write_text(json.dumps(meta, indent=1))

@@ -91,6 +91,18 @@ def metric_warning(scene: Scene) -> str | None:
     return None
 
 
+def _scaled_depth_priors(scene_dir: Path, out_dir: Path, scale: float) -> None:
+    """OUT/priors as a folder of its own: the depth priors (.npy) times ``scale``, the rest linked."""
+    src = Path(scene_dir).resolve() / "priors"
+    (out_dir / "priors").unlink()  # link_scene's link
+    (out_dir / "priors" / "depth").mkdir(parents=True)
+    for sub in src.iterdir():
+        if sub.name != "depth":
+            (out_dir / "priors" / sub.name).symlink_to(sub)
+    for f in sorted((src / "depth").glob("*.npy")):
+        np.save(out_dir / "priors" / "depth" / f.name, np.load(f) * np.float32(scale))
+
+
 def priors_in_scene_unit(scene: Scene) -> bool:
     """Whether the scene's depth priors are in its own unit (`geocues mvs` wrote them from its photos)
     rather than metres: they say nothing about its scale."""
@@ -149,7 +161,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     """Write ``out_dir``: the scene with camera translations and SfM points multiplied by the factor
     (``cfg.scale``, estimated ``cfg.from_priors``, or guessed from ``cfg.median_depth``), through
     pycolmap so tracks, 2D points and camera models stay whole; images, priors and GT linked (priors
-    and GT are already metric). OUT is built in a temporary sibling and renamed into place. Returns
+    and GT are already metric; `geocues mvs` depth, in the scene's unit, is written scaled). OUT is built in a temporary sibling and renamed into place. Returns
     ``out_dir``."""
     cfg.validate()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
@@ -166,7 +178,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         if priors_in_scene_unit(scene):
             raise ValueError(f"--from-priors: the depth priors of {scene_dir} were written by `geocues mvs` from the "
                              "scene's own photos, in its own unit: they cannot tell its scale; give --scale (metres per "
-                             "unit) or --median-depth (how far the photos were taken), before or after `geocues mvs`")
+                             "unit) or --median-depth (how far the photos were taken): the priors are scaled with it")
         scale, used = scale_from_priors(scene)
         if isinstance(scene.metadata.get("priors"), dict) and scene.metadata["priors"].get("simulated"):
             log.warning("--from-priors: the priors of %s are SIMULATED (a random scale error per image, "
@@ -200,6 +212,8 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         (tmp / "sparse" / "0").mkdir(parents=True)
         (rec.write_binary if binary else rec.write_text)(str(tmp / "sparse" / "0"))
         link_scene(scene_dir, tmp)  # images, priors (metric already), GT
+        if priors_in_scene_unit(scene):  # `geocues mvs` depth is in the scene's unit: it scales with it
+            _scaled_depth_priors(scene_dir, tmp, scale)
         meta = json.loads((tmp / "scene.json").read_text()) if (tmp / "scene.json").is_file() else {}
         meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used,
                             "median_depth": cfg.median_depth}

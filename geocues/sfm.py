@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from geocues import sfm_steps as U
+from geocues.sfm_checks import FEW_POINTS, command_flags, few_points_advice, more_points_advice
 from geocues.atomic import atomic_dir, atomic_path, check_not_input, check_output_dir
 from geocues.colmap_io import find_model_dir, load_reconstruction
 from geocues.nerfstudio_io import find_transforms, transforms_reconstruction, write_colmap_model
@@ -103,37 +104,10 @@ class SfmConfig:
     """When the scene has a GT mesh, report the share of points within 2 cm / 5 cm of it."""
 
     def validate(self) -> None:
-        """Raise ValueError naming the first option out of range (pycolmap's own checks name none)."""
-        import pycolmap
+        """Raise ValueError naming the first option out of range (geocues.sfm_checks)."""
+        from geocues.sfm_checks import check_sfm_options
 
-        from geocues.extract_checks import check_finite
-
-        if self.mode not in ("auto", "triangulate", "map"):
-            raise ValueError(f"--mode must be auto, triangulate or map, got {self.mode!r}")
-        if self.verification not in ("poses", "ransac"):
-            raise ValueError(f"--verification must be poses or ransac, got {self.verification!r}")
-        check_finite(self)
-        models = [m for m in pycolmap.CameraModelId.__members__ if m != "INVALID"]
-        if self.camera_model not in models:
-            near = " (camera model names are upper case)" if self.camera_model.upper() in models else ""
-            raise ValueError(f"--camera-model {self.camera_model!r} is no COLMAP camera model{near}; one of "
-                             + ", ".join(models))
-        for name, least in (("max_num_features", 1), ("num_neighbors", 1), ("pair_stride", 1),
-                            ("exhaustive_below", 0), ("sequential_overlap", 1), ("min_num_inliers", 1),
-                            ("min_track_length", 2), ("max_image_size", 0)):
-            if getattr(self, name) < least:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= {least}, got {getattr(self, name)}")
-        for name in ("num_threads", "mapper_threads"):
-            if getattr(self, name) == 0 or getattr(self, name) < -1:
-                raise ValueError(f"--{name.replace('_', '-')} must be -1 (all cores) or >= 1, got {getattr(self, name)}")
-        for name, hi in (("peak_threshold", None), ("max_ratio", 1.0), ("max_epipolar_error", None),
-                         ("max_reproj_error", None), ("max_pair_angle", 180.0)):
-            v = getattr(self, name)
-            if not v > 0 or (hi is not None and v > hi):
-                raise ValueError(f"--{name.replace('_', '-')} must be in (0, {hi if hi is not None else 'inf'}"
-                                 f"{']' if hi is not None else ')'}, got {v}")
-        if not 0 <= self.min_tri_angle < 90:
-            raise ValueError(f"--min-tri-angle must be in [0, 90) degrees, got {self.min_tri_angle}")
+        check_sfm_options(self)
 
 
 def _key(d: dict) -> str:
@@ -315,6 +289,7 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         db_path.unlink(missing_ok=True)
         state = {}
     state["scene"] = str(scene_dir.resolve())  # for `geocues info OUT`'s advice on an unfinished run
+    state["flags"] = command_flags(cfg)
     state_path.write_text(json.dumps(state))
 
     # ---- features
@@ -411,21 +386,3 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     if report["points"] < FEW_POINTS:
         log.warning("%s", few_points_advice(report["points"], len(names), n_short, cfg))
     return root
-
-
-FEW_POINTS = 100  # the cues start from the SfM points: fewer leaves most of a room without a cue
-
-
-def few_points_advice(n_points: int, n_images: int, n_short: int, cfg: SfmConfig) -> str:
-    """What to do when triangulation left (almost) no points."""
-    return (f"sfm: only {n_points} points from {n_images} images ({n_short} seen in fewer than "
-            f"--min-track-length {cfg.min_track_length} images were dropped): the cues start from these points. "
-            + more_points_advice(cfg))
-
-
-def more_points_advice(cfg: SfmConfig) -> str:
-    """The options and photos that give more points."""
-    two_view = cfg.ignore_two_view_tracks or cfg.min_track_length > 2
-    return (("With few images, `--min-track-length 2 --no-ignore-two-view-tracks` keeps points seen in two; "
-             if two_view else "")
-            + "a room wants dozens of overlapping photos, each wall seen from several places" + U.camera_model_note(cfg))

@@ -234,9 +234,12 @@ def test_no_model_names_what_the_folder_holds_instead(tmp_path):
                                                 r"command again, it starts again \(it was stopped while extracting"):
         find_model_dir(photos)
     state = photos / "cache" / "sfm" / "state.json"
-    state.write_text(json.dumps({"scene": "/data/my room", "extract": "k"}))  # stopped after its features
-    with pytest.raises(FileNotFoundError, match=r"unfinished `geocues sfm '/data/my room' -o .*photos`.*it reuses the "
-                                                r"features and matches"):
+    state.write_text(json.dumps({"scene": "/data/my room", "extract": "k", "flags": ["--max-image-size 800"]}))
+    with pytest.raises(FileNotFoundError, match=r"unfinished `geocues sfm '/data/my room' -o .*photos --max-image-size "
+                                                r"800`.*run that command again, it reuses the features$"):
+        find_model_dir(photos)  # stopped after its features, before its matches
+    state.write_text(json.dumps({"scene": "/data/my room", "extract": "k", "match": "m"}))
+    with pytest.raises(FileNotFoundError, match=r"it reuses the features and matches$"):
         find_model_dir(photos)
     state.write_text(json.dumps({"scene": "/data/my room", "extract": "k", "failed": "incremental mapping found "
                                  "no model for the images in x: no two photos share enough matches"}))

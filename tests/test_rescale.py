@@ -166,3 +166,8 @@ def test_priors_of_geocues_mvs_are_in_the_scene_unit_and_tell_no_scale(rooms, tm
     cmd = next_steps(s, not_metric=metric_warning(s) is not None)[0][0]
     assert cmd.startswith(f"geocues rescale {mvs} -o ") and cmd.endswith("--median-depth 2")
     assert "in the scene's unit" in MVS_PRIORS["method"]
+    # rescaled after `geocues mvs`, its depth scales with the scene (linked as metric, it was 100x off)
+    back = Scene.load(run(RescaleConfig(scale=100.0), mvs, tmp_path / "x100"), check_priors=False)
+    assert not (tmp_path / "x100" / "priors").is_symlink()
+    for i in (0, 3):
+        np.testing.assert_allclose(back.depth_prior(i), 100 * s.depth_prior(i), rtol=1e-6)

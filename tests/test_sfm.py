@@ -427,3 +427,13 @@ def test_the_mapper_runs_on_one_thread_unless_asked(icl_dir: Path, tmp_path: Pat
     run(SfmConfig(check_gt=False, num_threads=2), scene, tmp_path / "one")
     run(SfmConfig(check_gt=False, mapper_threads=-1), scene, tmp_path / "all")
     assert seen == [1, -1]
+
+
+def test_command_flags_repeat_the_options_that_differ():
+    """The hint for a stopped run repeats its command: an option left out is another cache key (the
+    features would be extracted again)."""
+    from geocues.sfm_checks import command_flags
+
+    assert command_flags(SfmConfig()) == []
+    assert command_flags(SfmConfig(max_image_size=800, ignore_two_view_tracks=False, camera_model="PINHOLE")) == \
+        ["--max-image-size 800", "--no-ignore-two-view-tracks", "--camera-model PINHOLE"]
