@@ -79,9 +79,11 @@ def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None,
 
     points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and (run_dir / p["mesh"]).is_file()]
     alignment = None
+    if not points:  # no checkpoint mesh: nothing to align or score
+        return MeshCurve([])
     if align_to is not None:
         alignment = align_scenes(scene, align_to)  # first: too few shared images is named before any scoring
-    elif not points or (gt is None and (scene is None or gt_mesh_file(scene) is None)):
+    elif gt is None and (scene is None or gt_mesh_file(scene) is None):
         return MeshCurve([])
     elif (warning := own_frame_warning(scene, "checkpoint meshes")) is not None:
         log.warning("%s; the report leaves the mesh metrics out", warning)
