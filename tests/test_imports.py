@@ -98,19 +98,22 @@ def test_console_scripts_exist_and_a_ctrl_c_while_starting_is_one_line(monkeypat
     assert capsys.readouterr().err.strip() == "geocues: interrupted while starting"
 
 
-def test_a_sigterm_while_a_command_starts_is_one_line_and_143():
-    """The real process: a SIGTERM while `geocues` imports torch & co. (the first ~2 s) killed it without
-    a word, a Ctrl-C there was a traceback of pycolmap's import; now one line and 143 (130)."""
+def test_a_sigterm_while_a_command_starts_is_one_line_and_143(tmp_path):
+    """The real process: a SIGTERM while a command table imports torch & co. (the first ~2 s) killed it
+    without a word, a Ctrl-C there was a traceback of pycolmap's import; now one line and 143 (130).
+    The command table here sleeps while imported, so the signal lands in the import every time."""
     import signal
     import subprocess
     import sys
     import time
 
-    code = "import sys; from cli.entry import geocues; sys.argv[0] = 'geocues'; sys.exit(geocues())"
+    (tmp_path / "slow_table.py").write_text("import time\ntime.sleep(30)\n\ndef main():\n    return 0\n")
+    code = "import sys; from cli.entry import _run; sys.exit(_run('geocues', 'slow_table'))"
+    env = {**__import__("os").environ, "PYTHONPATH": f"{tmp_path}{__import__('os').pathsep}{REPO}"}
     for sig, rc in ((signal.SIGTERM, 143), (signal.SIGINT, 130)):
-        p = subprocess.Popen([sys.executable, "-c", code, "info", "/nonexistent"], cwd=REPO,
+        p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        time.sleep(0.6)  # python is up, the command table is still importing
+        time.sleep(2.0)  # python is up and importing the (sleeping) command table
         p.send_signal(sig)
         _, err = p.communicate(timeout=60)
         assert p.returncode == rc and err.strip() == "geocues: interrupted while starting", (sig, p.returncode, err[-500:])
