@@ -108,7 +108,8 @@ def test_a_sigterm_while_a_command_starts_is_one_line_and_143(tmp_path):
     import time
 
     (tmp_path / "slow_table.py").write_text("import time\ntime.sleep(30)\n\ndef main():\n    return 0\n")
-    code = "import sys; from cli.entry import _run; sys.exit(_run('geocues', 'slow_table'))"
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)\n"  # as in a terminal: a
+            "from cli.entry import _run; sys.exit(_run('geocues', 'slow_table'))")  # job started with & ignores it
     env = {**__import__("os").environ, "PYTHONPATH": f"{tmp_path}{__import__('os').pathsep}{REPO}"}
     for sig, rc in ((signal.SIGTERM, 143), (signal.SIGINT, 130)):
         p = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env,
