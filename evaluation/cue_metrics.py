@@ -143,7 +143,8 @@ def evaluate_cues_dir(cues_dir: str | Path, scene_dir: str | Path, gt_path: str 
     cues, sfm_xyz, cameras = read_cues_ply(cues_path), scene.points.xyz, scene.cameras
     if alignment is not None:  # into the GT's frame and unit; the shared images' cameras there
         cues.xyz, sfm_xyz = alignment.transform.apply(cues.xyz), alignment.transform.apply(sfm_xyz)
-        cameras = [c for c in gt_scene.cameras if c.name in set(alignment.shared)]
+        shared = set(alignment.shared)
+        cameras = [c for c in gt_scene.cameras if c.name in shared]
     gt = GroundTruth(gt_path, cameras, cfg)
     result = cue_accuracy(cues, gt, cfg)
     sfm_all = gt.distances(sfm_xyz)

@@ -142,9 +142,10 @@ def find_floor(xyz: np.ndarray, normal: np.ndarray, cameras, cfg: FloorLineConfi
         if (under := _under(floor, s, pts[near], cfg.min_floor_points)) is not None:
             n_top = floor.normal  # the lowest horizontal plane cues' fitted plane: the floor is parallel to it
             h0 = _lowest_layer(s[s @ n_top - floor.height < -BELOW_MARGIN] @ n_top, cfg.min_floor_points)
-            lower, near = _fit_layer(np.r_[pts, s], n_top, h0, level=True) if h0 is not None else (None, None)
+            both = np.r_[pts, s]
+            lower, near = _fit_layer(both, n_top, h0, level=True) if h0 is not None else (None, None)
             if lower is None or near.sum() < cfg.min_floor_points \
-                    or _under(lower, s, np.r_[pts, s][near], cfg.min_floor_points) is not None:
+                    or _under(lower, s, both[near], cfg.min_floor_points) is not None:
                 return None, (f"{under} of the {len(s)} SfM points and line samples below the cameras lie under the "
                               f"lowest horizontal plane cues ({lowest_camera - floor.height:.2f} m below the lowest "
                               "camera: a table?) and no layer of them is a floor")

@@ -161,7 +161,8 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
     """Write ``out_dir``: the scene with camera translations and SfM points multiplied by the factor
     (``cfg.scale``, estimated ``cfg.from_priors``, or guessed from ``cfg.median_depth``), through
     pycolmap so tracks, 2D points and camera models stay whole; images, priors and GT linked (priors
-    and GT are already metric; `geocues mvs` depth, in the scene's unit, is written scaled). OUT is built in a temporary sibling and renamed into place. Returns
+    and GT are already metric; `geocues mvs` depth, in the scene's unit, is written scaled). OUT is
+    built in a temporary sibling and renamed into place. Returns
     ``out_dir``."""
     cfg.validate()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
@@ -212,7 +213,7 @@ def run(cfg: RescaleConfig, scene_dir: str | Path, out_dir: str | Path, *, overw
         (tmp / "sparse" / "0").mkdir(parents=True)
         (rec.write_binary if binary else rec.write_text)(str(tmp / "sparse" / "0"))
         link_scene(scene_dir, tmp)  # images, priors (metric already), GT
-        if priors_in_scene_unit(scene):  # `geocues mvs` depth is in the scene's unit: it scales with it
+        if priors_in_scene_unit(scene) and scene.has_depth_priors:  # `geocues mvs` depth: it scales with it
             _scaled_depth_priors(scene_dir, tmp, scale)
         meta = json.loads((tmp / "scene.json").read_text()) if (tmp / "scene.json").is_file() else {}
         meta["rescaled"] = {"from": str(scene_dir.resolve()), "scale": scale, "from_priors_views": used,

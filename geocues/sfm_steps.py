@@ -290,9 +290,10 @@ def triangulate(ref: "pycolmap.Reconstruction", db_path: Path, image_dir: Path, 
 def camera_model_note(cfg: "SfmConfig") -> str:
     """A note on a --camera-model other than the default (every pair can fail verification with one
     that does not fit the lens: OPENCV_FISHEYE on ordinary photos)."""
-    if cfg.camera_model == "SIMPLE_RADIAL":
+    default = type(cfg)().camera_model
+    if cfg.camera_model == default:
         return ""
-    return f"; or --camera-model {cfg.camera_model} does not fit the photos' lens (the default is SIMPLE_RADIAL)"
+    return f"; or --camera-model {cfg.camera_model} does not fit the photos' lens (the default is {default})"
 
 
 def incremental_map(db_path: Path, image_dir: Path, work: Path, cfg: "SfmConfig",
