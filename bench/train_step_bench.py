@@ -178,7 +178,7 @@ def _time_config(width: int, height: int, n: int, cfg: StepBench, variant: str, 
     start["means"] += 0.005 * torch.randn(start["means"].shape, generator=g)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(cfg.device)) for k, v in start.items()})
     optimizers = make_optimizers(params, LearningRates(), 3.0, adam)
-    strategy = IndoorStrategy(IndoorStrategyConfig())  # 30k schedule: steps 1..N are before refining
+    strategy = IndoorStrategy(IndoorStrategyConfig(max_gaussians=0))  # 30k schedule: steps 1..N are before refining
     state = strategy.initialize_state(3.0)
     state["cue_type"] = (torch.arange(n) % 3).to(cfg.device)
     tcfg = TrainConfig(device=cfg.device, backend=cfg.backend, sh_degree=cfg.sh_degree, adam=adam)

@@ -17,10 +17,12 @@ def typed(cls, f: dataclasses.Field, value: Any) -> Any:
     if default is dataclasses.MISSING or default is None or value is None:
         return value
     kinds = {bool: (bool,), int: (numbers.Integral,), float: (numbers.Real,), str: (str,), tuple: (tuple,)}
-    want = kinds.get(type(default))
+    want, kind = kinds.get(type(default)), type(default).__name__
+    if isinstance(default, str) and str(f.type).replace(" ", "").startswith("int|"):  # a count or a word ("auto")
+        want, kind = (numbers.Integral, str), f"int or {default!r}"
     ok = want is not None and isinstance(value, want) and not (isinstance(value, bool) and type(default) is not bool)
     if want is not None and not ok:
-        raise ValueError(f"{cls.__name__}.{f.name} must be {type(default).__name__} (like its default "
+        raise ValueError(f"{cls.__name__}.{f.name} must be {kind} (like its default "
                          f"{default!r}), got {value!r}")
     if isinstance(default, tuple) and default and all(isinstance(d, numbers.Real) and not isinstance(d, bool)
                                                       for d in default):

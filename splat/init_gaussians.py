@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from geocues.cue_io import CueCloud, read_cue_report, read_cues_ply
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat.gaussians import init_from_cues, load_ply
+from splat.strategy import AUTO_BUDGET_PER_PIXEL, resolve_budget
 from splat.train_config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -43,7 +45,7 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
                     "were the cues extracted from another scene (or the model re-posed since)? Run "
                     "`geocues extract %s -o CUES` for this one", 100 * share, cues_ply, scene.root, scene.root)
     cloud = cloud.select(np.isin(cloud.cue_type, [CueType[t].value for t in cfg.cue_types]))
-    budget = cfg.strategy.max_gaussians
+    budget = _budget(with_budget(cfg, scene) if scene is not None else cfg)
     if not cfg.init.plane_share and budget > 0 and len(cloud) >= budget:
         log.warning("the cue cloud (%d points) is already at or over --strategy.max-gaussians %d: training "
                     "starts from all %d and densification adds none; raise the budget, or --init.plane-share "
@@ -54,6 +56,28 @@ def load_init_cloud(cfg: TrainConfig, scene: Scene, cues_ply: Path) -> CueCloud:
                     "--init.plane-share %.1f thins the PLANE seeds to leave some", len(cloud),
                     100 * len(cloud) / budget, budget, FULL_INIT)
     return thin_planes(cloud, cfg.init.plane_share, budget, cfg.seed)
+
+
+def with_budget(cfg: TrainConfig, scene: Scene) -> TrainConfig:
+    """``cfg`` with --strategy.max-gaussians a number: "auto" resolved from the largest training view
+    at the training resolution (splat.strategy.resolve_budget), logged; ``scene`` is loaded at the
+    training --downscale."""
+    if cfg.strategy.max_gaussians != "auto":
+        return cfg
+    cam = max((scene.cameras[i] for i in scene.train_indices or range(len(scene.cameras))),
+              key=lambda c: c.width * c.height)
+    budget = resolve_budget("auto", cam.width * cam.height)
+    log.info("Gaussian budget %d (--strategy.max-gaussians auto: %d x the %dx%d px of a training view; "
+             "0 = no limit)", budget, AUTO_BUDGET_PER_PIXEL, cam.width, cam.height)
+    return replace(cfg, strategy=replace(cfg.strategy, max_gaussians=budget))
+
+
+def _budget(cfg: TrainConfig) -> int:
+    """--strategy.max-gaussians as a number (0: no limit); "auto" is resolved by with_budget."""
+    if cfg.strategy.max_gaussians == "auto":
+        raise ValueError("--strategy.max-gaussians auto is resolved from the training views first "
+                         "(with_budget)")
+    return cfg.strategy.max_gaussians
 
 
 def foreign_cues(cues_ply: Path, scene: Scene) -> str | None:
@@ -142,7 +166,8 @@ def _with_hole_seeds(cfg: TrainConfig, cloud: CueCloud, params: dict[str, Tensor
     if len(extra) == 0:
         log.info("--init.fill-holes: no training view has an L_a anchor, so no hole seeds")
         return params, cue_type
-    budget, room = cfg.strategy.max_gaussians, cfg.strategy.max_gaussians - len(cloud)
+    budget = _budget(cfg)
+    room = budget - len(cloud)
     if budget > 0 and len(extra) > room:  # the budget holds from the first step, as densification keeps it
         keep = np.zeros(len(extra), bool)
         keep[np.random.default_rng(cfg.seed).choice(len(extra), max(room, 0), replace=False)] = True

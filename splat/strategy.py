@@ -43,7 +43,22 @@ REQUIRED_KEYS = ("means", "quats", "scales", "opacities")
 TYPE_NAMES = {int(t): t.name.lower() for t in CueType}  # 0 -> "sfm", 1 -> "line", 2 -> "plane"
 
 
+AUTO_BUDGET_PER_PIXEL = 5
+"""--strategy.max-gaussians auto: Gaussians per pixel of the largest training view. 5 is the benchmark
+protocol's 100k at 160x120 (docs/training.md, "Budget")."""
+
 _HALF_SIZES: dict[tuple, Tensor] = {}
+
+
+def resolve_budget(max_gaussians: int | str, view_pixels: int) -> int:
+    """The Gaussian budget a run trains under: ``max_gaussians`` as given (0 = no limit), or for
+    "auto" AUTO_BUDGET_PER_PIXEL x ``view_pixels`` (the largest training view's W x H at the training
+    resolution), rounded to a thousand."""
+    if max_gaussians != "auto":
+        return int(max_gaussians)
+    if view_pixels <= 0:
+        raise ValueError(f"--strategy.max-gaussians auto needs a training view with pixels, got {view_pixels}")
+    return max(1000, round(AUTO_BUDGET_PER_PIXEL * view_pixels, -3))
 
 
 def _half_size(width: int, height: int, device: torch.device) -> Tensor:
@@ -92,8 +107,10 @@ class IndoorStrategyConfig:
     min_reset_every: int = 1000
     """Opacity resets only when the scaled reset period is at least this long (opacities need
     hundreds of steps to recover at the 3DGS learning rate); shorter runs never reset."""
-    max_gaussians: int = 0
-    """Budget: growth stops at this many Gaussians, highest mean gradients first (0 = no limit)."""
+    max_gaussians: int | Literal["auto"] = "auto"
+    """Budget: growth stops at this many Gaussians, highest mean gradients first. "auto" (default):
+    AUTO_BUDGET_PER_PIXEL x the pixels of the largest training view (100k at 160x120, 384k at 320x240);
+    0 = no limit (3DGS: on a short run growth ran to 1.5 M on a 24-view 160x120 room)."""
     precedence_sigmas: float = 2.0
     """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
     plane_rule: Literal["none", "tangent"] = "none"
@@ -183,7 +200,10 @@ class IndoorStrategy:
     """Per-Gaussian-type adaptive density control of IndoorGS (§4.2). See the module docstring."""
 
     def __init__(self, cfg: IndoorStrategyConfig | None = None) -> None:
-        self.cfg = cfg or IndoorStrategyConfig()
+        self.cfg = cfg or IndoorStrategyConfig(max_gaussians=0)
+        if self.cfg.max_gaussians == "auto":  # the training views' size sets it: splat/train_setup.py
+            raise ValueError("IndoorStrategy needs a number of Gaussians as max_gaussians, not 'auto': "
+                             "resolve it with resolve_budget(max_gaussians, pixels of the largest training view)")
         if self.cfg.total_iters <= 0:
             raise ValueError(f"total_iters must be positive, got {self.cfg.total_iters}")
         bad = [t for t in self.cfg.custom_types if t not in CueType.__members__]

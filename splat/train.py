@@ -394,6 +394,7 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
               "rasterizer": rasterizer,
               "scene_scale": s.scale, "n_train_views": len(s.train_views), "n_test_views": len(s.test_views),
               "gaussians_init": s.init_counts, "gaussians_final": type_counts(s.state["cue_type"]),
+              "gaussian_budget": s.budget,
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
               "test_per_view": final.get("per_view", []), "accuracy_vs_time": loop.curve, "timings": timings,
               "resumed_from_step": step0 if ckpt is not None else None, "guard_events": s.guard.events,

@@ -147,8 +147,9 @@ class TrainConfig:
         if not 0 <= self.loss.lambda_dssim <= 1:  # (1 - l) L1 + l D-SSIM: above 1 the L1 term pushes away
             raise ValueError(f"--loss.lambda-dssim weighs D-SSIM against L1 and must be in [0, 1], "
                              f"got {self.loss.lambda_dssim}")
-        if self.strategy.max_gaussians < 0:
-            raise ValueError(f"--strategy.max-gaussians must be >= 0 (0: no limit), got {self.strategy.max_gaussians}")
+        budget = self.strategy.max_gaussians
+        if budget != "auto" and (isinstance(budget, bool) or not isinstance(budget, int) or budget < 0):
+            raise ValueError(f"--strategy.max-gaussians must be 'auto' or an integer >= 0 (0: no limit), got {budget!r}")
         finite_pos("downscale", self.downscale)
         finite_pos("pose-lr", self.pose_lr)
         finite_pos("focal-lr", self.focal_lr)

@@ -28,7 +28,7 @@ from splat.camera_opt import CameraRefiner
 from splat.checkpoint import staging_dir
 from splat.gaussians import scene_scale
 from splat.guard import NumericsGuard
-from splat.init_gaussians import initial_gaussians
+from splat.init_gaussians import initial_gaussians, with_budget
 from splat.losses import LossConfig, without_priors
 from splat.multiview import training_neighbours
 from splat.strategy import PAPER_ITERS, IndoorStrategy
@@ -168,6 +168,7 @@ class TrainingSetup:
     neighbours: list[list[int]] | None  # L_mv's neighbours of each training view, or None when it is off
     refiner: CameraRefiner | None
     guard: NumericsGuard
+    budget: int  # --strategy.max-gaussians as a number (0: no limit)
 
 
 def _load_views(cfg: TrainConfig, scene: Scene, scene_dir: Path, cues_ply: Path, device: torch.device
@@ -214,6 +215,7 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
     if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
         log.warning("%s", far)
     train_views, test_views = _load_views(cfg, scene, scene_dir, cues_ply, device)
+    cfg = with_budget(cfg, scene)
     init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)
     scale = scene_scale(train_views.camera_centers(), seeds)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in init_params.items()})
@@ -236,4 +238,4 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
                           scale)
     return TrainingSetup(scene, train_views, test_views, params, optimizers, strategy, state, type_counts(cue_type),
                          scale, loss_cfg, without_priors(loss_cfg, cfg.priors_kept), round(cfg.priors_until * cfg.iters),
-                         neighbours, refiner, guard)
+                         neighbours, refiner, guard, cfg.strategy.max_gaussians)

@@ -419,7 +419,7 @@ def test_train_step_keeps_parameters_and_adam_moments_finite(cam, gs, backend, s
         backend = "torch"
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v) for k, v in gs.build(cam).items()})
     optimizers = make_optimizers(params, LearningRates(), 1.0)
-    strategy = IndoorStrategy(IndoorStrategyConfig())  # the paper's 30k schedule: step picks the phase
+    strategy = IndoorStrategy(IndoorStrategyConfig(max_gaussians=0))  # the paper's 30k schedule: step picks the phase
     state = strategy.initialize_state(1.0)
     g = gen(seed)
     state["cue_type"] = torch.randint(0, 3, (gs.n,), generator=g)

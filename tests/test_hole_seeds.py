@@ -133,7 +133,7 @@ def test_seeds_stay_within_the_gaussian_budget(sparse_room, caplog):
     views = ViewSet(scene, scene.train_indices,
                     alignments={scene.cameras[i].name: ExactAlignment() for i in scene.train_indices})
     n_seeds = len(hole_seeds(params, views))
-    free = TrainConfig(init=InitConfig(fill_holes=True))
+    free = TrainConfig(init=InitConfig(fill_holes=True), strategy=IndoorStrategyConfig(max_gaussians=0))
     p_free, _ = _with_hole_seeds(free, cloud, params, torch.zeros(len(cloud)), views)
     assert len(p_free["means"]) == len(cloud) + n_seeds
     cap = len(cloud) + n_seeds // 3

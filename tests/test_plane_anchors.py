@@ -156,7 +156,7 @@ def _train(start: dict, views: list, loss_cfg, iters: int = 80) -> tuple[torch.n
 
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(t) for k, t in start.items()})
     optimizers = make_optimizers(params, LearningRates(), 3.0)
-    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0))
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=iters, refine_stop=0, max_gaussians=0))
     state = strategy.initialize_state(3.0)
     state["cue_type"] = torch.full((len(params["means"]),), 2)
     cfg, g, terms = TrainConfig(iters=iters, sh_degree=0), torch.Generator().manual_seed(0), []

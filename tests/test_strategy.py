@@ -231,7 +231,7 @@ def fake_step(strategy, params, optimizers, state, step, grad2d=0.01, grad3d=(1e
 
 def setup(types, scale=0.005, **cfg):
     """Strategy (scene scale 10 m), typed_scene(types, scale), optimizers and state with cue_type."""
-    strategy = IndoorStrategy(IndoorStrategyConfig(**cfg))
+    strategy = IndoorStrategy(IndoorStrategyConfig(**{"max_gaussians": 0, **cfg}))
     params, optimizers = typed_scene(list(types), scale)
     strategy.check_sanity(params, optimizers)
     state = strategy.initialize_state(10.0)
@@ -276,7 +276,7 @@ class TestSchedule:
         s = Schedule.from_config(IndoorStrategyConfig(total_iters=3000))
         assert (s.every, s.reset_every, s.big_prune_from) == (20, 0, 300)
         assert not any(s.is_reset(k) for k in range(3000)) and s.is_refine(60) and not s.is_refine(70)
-        s = Schedule.from_config(IndoorStrategyConfig())
+        s = Schedule.from_config(IndoorStrategyConfig(max_gaussians=0))
         assert (s.every, s.reset_every, s.big_prune_from) == (100, 3000, 3000)
 
     def test_large_gaussians_split_in_their_plane(self):
@@ -311,7 +311,7 @@ class TestSchedule:
         n = flat_normal(params["quats"].detach(), params["scales"].detach())
         assert (offsets * n).sum(-1).abs().max() < 1e-5 and offsets.norm(dim=-1).max() > 1e-4
         with pytest.raises(ValueError, match="plane_rule"):
-            IndoorStrategy(IndoorStrategyConfig(plane_rule="free"))
+            IndoorStrategy(IndoorStrategyConfig(plane_rule="free", max_gaussians=0))
 
     def test_line_takes_precedence_over_nearby_sfm(self):
         strategy, params, optimizers, state = setup((SFM, LINE, SFM))
@@ -402,7 +402,7 @@ def test_render_backward_refine_smoke():
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v) for k, v in init.items()})
     optimizers = make_optimizers(params)
     # these Gaussians are 0.3-1.9 m wide: with precedence on, LINE ones would defer every SFM one
-    strategy = IndoorStrategy(IndoorStrategyConfig(grow_grad2d=1e-9, total_iters=3000, precedence_sigmas=0.0))
+    strategy = IndoorStrategy(IndoorStrategyConfig(grow_grad2d=1e-9, total_iters=3000, precedence_sigmas=0.0, max_gaussians=0))
     strategy.check_sanity(params, optimizers)
     state = strategy.initialize_state(5.0)
     state["cue_type"] = torch.arange(150) % 3
@@ -444,7 +444,7 @@ def test_density_control_leaves_no_non_finite_gaussian(key, index, value):
         params[key][index] = value
     opts = make_optimizers(params)
     adam_step(params, opts, 0.0)
-    strategy = IndoorStrategy(IndoorStrategyConfig())
+    strategy = IndoorStrategy(IndoorStrategyConfig(max_gaussians=0))
     state = strategy.initialize_state(1.0)
     state["cue_type"] = torch.tensor(types)
     n = len(types)
@@ -464,7 +464,7 @@ def test_density_control_of_an_empty_model_is_a_no_op():
     raised (review finding); it returns its counts."""
     params = make_params(0)
     opts = make_optimizers(params)
-    strategy = IndoorStrategy(IndoorStrategyConfig())
+    strategy = IndoorStrategy(IndoorStrategyConfig(max_gaussians=0))
     state = strategy.initialize_state(1.0)
     state["cue_type"] = torch.zeros(0, dtype=torch.long)
     means2d = torch.zeros(0, 2, requires_grad=True)
@@ -474,3 +474,17 @@ def test_density_control_of_an_empty_model_is_a_no_op():
             "camera_center": torch.zeros(3)}
     counts = strategy.step_post_backward(params, opts, state, 600, info)
     assert counts["n"] == 0 and len(params["means"]) == 0
+
+
+def test_resolve_budget():
+    """"auto" is AUTO_BUDGET_PER_PIXEL x the view's pixels, to a thousand, at least 1000; a number stays."""
+    from splat.strategy import AUTO_BUDGET_PER_PIXEL, resolve_budget
+
+    assert AUTO_BUDGET_PER_PIXEL == 5
+    assert resolve_budget("auto", 160 * 120) == 96_000 and resolve_budget("auto", 320 * 240) == 384_000
+    assert resolve_budget("auto", 10) == 1000
+    assert resolve_budget(0, 160 * 120) == 0 and resolve_budget(150_000, 1) == 150_000
+    with pytest.raises(ValueError, match="auto needs a training view"):
+        resolve_budget("auto", 0)
+    with pytest.raises(ValueError, match="not 'auto'"):  # the strategy counts against a number
+        IndoorStrategy(IndoorStrategyConfig())

@@ -66,7 +66,7 @@ def test_train_writes_every_output(trained):
     assert np.isfinite(params["means"].numpy()).all()
     # G_S (plane) Gaussians are never cloned or split: only pruning changes their number
     assert report["gaussians_final"]["PLANE"] <= report["gaussians_init"]["PLANE"]
-    assert len(cue_type) <= 20_000  # the budget holds
+    assert len(cue_type) <= 20_000 == report["gaussian_budget"]  # the budget holds and is recorded
     assert set(report["timings"]) >= {"load_and_init_s", "train_s", "mesh_s", "total_s"}
     import torch
 

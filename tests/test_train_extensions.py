@@ -174,12 +174,15 @@ def _cfg(**top):
     (dict(iters=10.5), "TrainConfig.iters must be int (like its default 30000), got 10.5"),
     (dict(sh_degree=True), "TrainConfig.sh_degree must be int"),
     (dict(background=(0.0, 0.0)), "--background must be three finite numbers"),
-    (dict(strategy={"max_gaussians": -1}), "--strategy.max-gaussians must be >= 0"),
+    (dict(strategy={"max_gaussians": -1}), "--strategy.max-gaussians must be 'auto' or an integer >= 0"),
+    (dict(strategy={"max_gaussians": "lots"}), "--strategy.max-gaussians must be 'auto' or an integer >= 0"),
+    (dict(strategy={"max_gaussians": 1.5e5}), "IndoorStrategyConfig.max_gaussians must be int or 'auto'"),
     (dict(loss={"lambda_depth": "0.1"}), "LossConfig.lambda_depth must be float"),
     (dict(background=("a", "b", "c")), "TrainConfig.background must hold numbers"),
     (dict(checkpoints=[0.5, "x"]), "TrainConfig.checkpoints must hold numbers"),
     (dict(loss=None), "TrainConfig.loss must be a LossConfig section, got None"),
-], ids=["str iters", "fractional iters", "bool sh degree", "two-number background", "negative budget", "str weight",
+], ids=["str iters", "fractional iters", "bool sh degree", "two-number background", "negative budget",
+        "word budget", "float budget", "str weight",
         "str background", "str checkpoint", "null section"])
 def test_a_config_from_python_is_type_checked_before_any_work(change, message):
     """From Python, TrainConfig(iters="abc") failed deep in a run with a TypeError, 10.5 iterations

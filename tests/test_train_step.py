@@ -47,7 +47,7 @@ def test_train_steps_fit_targets_and_keep_state_aligned(device):
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in start.items()})
     scale = 3.0
     optimizers = make_optimizers(params, LearningRates(), scale)
-    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS))
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS, max_gaussians=0))
     state = strategy.initialize_state(scale)
     state["cue_type"] = (torch.arange(len(params["means"])) % 3).to(device)  # SFM, LINE, PLANE in turn
     cfg = TrainConfig(iters=ITERS, device=device, sh_degree=1)
@@ -125,7 +125,7 @@ def _short_run(adam: str, iters: int, kernels: str = "fused", device: str = "cpu
     start["means"] += 0.01 * torch.randn(start["means"].shape, generator=g)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to(device)) for k, v in start.items()})
     optimizers = make_optimizers(params, LearningRates(), 3.0, adam)
-    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS))
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS, max_gaussians=0))
     state = strategy.initialize_state(3.0)
     state["cue_type"] = (torch.arange(len(params["means"])) % 3).to(device)
     cfg = TrainConfig(iters=ITERS, device=device, sh_degree=1, adam=adam)
@@ -205,7 +205,7 @@ def test_a_cuda_step_waits_for_the_gpu_at_most_three_times():
     views = target_views(truth, W, H, "cuda", sh_degree=1)
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.to("cuda")) for k, v in truth.items()})
     optimizers = make_optimizers(params, LearningRates(), 3.0)
-    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS))
+    strategy = IndoorStrategy(IndoorStrategyConfig(total_iters=ITERS, max_gaussians=0))
     state = strategy.initialize_state(3.0)
     state["cue_type"] = (torch.arange(len(params["means"])) % 3).to("cuda")
     cfg = TrainConfig(iters=ITERS, device="cuda", sh_degree=1)
