@@ -348,7 +348,7 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
         raise TypeError(f"cfg must be a TrainConfig (or None for the defaults; splat.presets.preset_config "
                         f"for a preset), got {type(cfg).__name__}")
     out_dir = Path(out_dir)
-    work, cues_ply, ckpt = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
+    work, cues_ply, ckpt, cfg = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
     device = resolve_device(cfg.device)
     rasterizer = describe_backend(cfg.backend, device)  # builds the kernels now, with a message, not in the first step
     torch.manual_seed(cfg.seed)

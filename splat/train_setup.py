@@ -39,11 +39,30 @@ from splat.views import ViewSet, warn_large_images
 log = logging.getLogger(__name__)
 
 
+CHANGED_DEFAULTS = {("strategy", "max_gaussians"): (0, "auto")}
+"""Options whose default changed (old, new). A checkpoint written under the old default resumes with it
+while the option is left at the new one: an upgrade between a kill and the resume keeps the run's training."""
+
+
+def _as_started(cfg: TrainConfig, saved: dict) -> TrainConfig:
+    """``cfg`` with the old default of each CHANGED_DEFAULTS option the checkpoint config ``saved``
+    holds and ``cfg`` leaves at the new default."""
+    for (section, name), (old, new) in CHANGED_DEFAULTS.items():
+        part = getattr(cfg, section)
+        if saved.get(section, {}).get(name) == old and getattr(part, name) == new:
+            log.warning("--resume: the run started when --%s.%s defaulted to %r; it goes on with %r", section,
+                        name.replace("_", "-"), old, old)
+            cfg = replace(cfg, **{section: replace(part, **{name: old})})
+    return cfg
+
+
 def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resume: bool,
-             scene_dir: Path | None = None) -> tuple[Path, Path, dict | None]:
+             scene_dir: Path | None = None) -> tuple[Path, Path, dict | None, TrainConfig]:
     """Check the inputs and the output folder before any work; return (the staging folder
-    ``OUT.partial`` the run works in, the cue cloud's path, the checkpoint to resume from or None).
-    Without ``resume`` an unfinished staging folder is removed."""
+    ``OUT.partial`` the run works in, the cue cloud's path, the checkpoint to resume from or None,
+    the config to train with: ``cfg``, or for a resume the checkpoint's value of an option whose
+    default changed since, see CHANGED_DEFAULTS). Without ``resume`` an unfinished staging folder is
+    removed."""
     cues_ply = cues / "cues.ply" if cues.is_dir() else cues
     if not cues_ply.is_file():
         raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
@@ -62,11 +81,13 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
+        cfg = _as_started(cfg, ckpt["config"])
         diff = [k for k in checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
                 if k not in RESUME_FREE]
         if diff:
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
-                             f"({work / checkpoint.CKPT_NAME}); resume with the same options")
+                             f"({work / checkpoint.CKPT_NAME}; it has {_values(ckpt['config'], diff)}, "
+                             f"this command {_values(asdict(cfg), diff)}); resume with the same options")
         _check_resumed_inputs(work, {"scene": scene_dir, "cues": cues_ply})
     elif work.exists():
         if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked
@@ -74,7 +95,17 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
                              "(same options), or --overwrite to start again")
         log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
         shutil.rmtree(work)
-    return work, cues_ply, ckpt
+    return work, cues_ply, ckpt, cfg
+
+
+def _values(config: dict, dotted: list[str]) -> str:
+    """``config``'s values of the ``dotted`` options ("strategy.max_gaussians"), as "name=value, ..."."""
+    def get(key: str):
+        node = config
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        return node
+    return ", ".join(f"{k}={get(k)!r}" for k in dotted)
 
 
 RESUME_FREE = {"save_every", "log_every", "keep_ckpt"}

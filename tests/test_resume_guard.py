@@ -94,6 +94,41 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, uninterrupted, 
     assert not (base / "killed.partial").exists()
 
 
+def test_a_run_started_under_the_old_default_budget_resumes_with_it(scene, monkeypatch, caplog):
+    """--strategy.max-gaussians defaulted to 0 (no limit) before "auto": a run killed before the
+    upgrade and resumed with the same command (the option left out) goes on without a limit, as it
+    started, instead of being refused; a budget given differently is refused with both values."""
+    import logging
+
+    import splat.train as train
+    from splat.checkpoint import TrainingInterrupted
+    from splat.strategy import IndoorStrategyConfig
+
+    base, root, cues = scene
+    real = train.train_step
+
+    def step_then_kill(*args, **kw):
+        out = real(*args, **kw)
+        if args[5] == 20:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(train, "train_step", step_then_kill)
+    with pytest.raises(TrainingInterrupted, match="--resume"):
+        train.run(_cfg(strategy=IndoorStrategyConfig(max_gaussians=0)), root, cues, base / "old_default")
+    monkeypatch.setattr(train, "train_step", real)
+    with pytest.raises(ValueError, match=r"strategy\.max_gaussians.*it has strategy\.max_gaussians=0, this command "
+                                         r"strategy\.max_gaussians=5000"):
+        train.run(_cfg(strategy=IndoorStrategyConfig(max_gaussians=5000)), root, cues, base / "old_default",
+                  resume=True)
+    with caplog.at_level(logging.WARNING, logger="splat"):
+        out = train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "old_default", resume=True)
+    assert "defaulted to 0; it goes on with 0" in caplog.text
+    report = json.loads((out / "report.json").read_text())
+    assert report["resumed_from_step"] == 21 and report["gaussian_budget"] == 0
+    assert report["config"]["strategy"]["max_gaussians"] == 0
+
+
 def test_a_kill_while_writing_the_outputs_keeps_the_trained_model(scene, uninterrupted, monkeypatch):
     """Ctrl-C after the last step (held-out renders, the mesh) used to lose the whole run: no
     checkpoint, and the next command trained from step 0. Now the trained state is saved and
