@@ -59,6 +59,10 @@ def row_keys(spec: dict) -> list[str]:
     if tc["loss"].get("kernels") == "fused":  # the same: the fused loss kernels are torch's up to rounding
         tc["loss"] = {k: v for k, v in tc["loss"].items() if k != "kernels"}
     tc["tsdf"] = {**tc["tsdf"], "device": open3d_device(tc["tsdf"]["device"])}  # one spelling
+    if tc["strategy"].get("max_gaussians") == "auto":  # the rule it stands for: a new rule is a new row
+        from splat.strategy import AUTO_BUDGET_MIN, AUTO_BUDGET_PER_PIXEL
+
+        tc["strategy"] = {**tc["strategy"], "max_gaussians": f"auto:{AUTO_BUDGET_PER_PIXEL}xpx,min{AUTO_BUDGET_MIN}"}
     for section, is_field, is_off in _ADDED_LATER:  # off: rows run before the option keep their key
         part = tc[section] if section else tc
         if is_off(part):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
+import re
 from typing import Any
 
 
@@ -18,7 +19,7 @@ def typed(cls, f: dataclasses.Field, value: Any) -> Any:
         return value
     kinds = {bool: (bool,), int: (numbers.Integral,), float: (numbers.Real,), str: (str,), tuple: (tuple,)}
     want, kind = kinds.get(type(default)), type(default).__name__
-    if isinstance(default, str) and str(f.type).replace(" ", "").startswith("int|"):  # a count or a word ("auto")
+    if isinstance(default, str) and {"int", "Literal"} <= set(re.findall(r"\w+", str(f.type))):  # a count or a word
         want, kind = (numbers.Integral, str), f"int or {default!r}"
     ok = want is not None and isinstance(value, want) and not (isinstance(value, bool) and type(default) is not bool)
     if want is not None and not ok:

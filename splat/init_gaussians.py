@@ -16,7 +16,7 @@ from geocues.cue_io import CueCloud, read_cue_report, read_cues_ply
 from geocues.scene import Scene
 from geocues.types import CueType
 from splat.gaussians import init_from_cues, load_ply
-from splat.strategy import AUTO_BUDGET_PER_PIXEL, resolve_budget
+from splat.strategy import AUTO_BUDGET_MIN, AUTO_BUDGET_PER_PIXEL, resolve_budget
 from splat.train_config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -67,8 +67,8 @@ def with_budget(cfg: TrainConfig, scene: Scene) -> TrainConfig:
     cam = max((scene.cameras[i] for i in scene.train_indices or range(len(scene.cameras))),
               key=lambda c: c.width * c.height)
     budget = resolve_budget("auto", cam.width * cam.height)
-    log.info("Gaussian budget %d (--strategy.max-gaussians auto: %d x the %dx%d px of a training view; "
-             "0 = no limit)", budget, AUTO_BUDGET_PER_PIXEL, cam.width, cam.height)
+    log.info("Gaussian budget %d (--strategy.max-gaussians auto: %d x the %dx%d px of a training view, at least "
+             "%d; 0 = no limit)", budget, AUTO_BUDGET_PER_PIXEL, cam.width, cam.height, AUTO_BUDGET_MIN)
     return replace(cfg, strategy=replace(cfg.strategy, max_gaussians=budget))
 
 
@@ -129,6 +129,7 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path, views=None
     Gaussians initialised from :func:`load_init_cloud` (paper §4.2), with ``--init.fill-holes`` also
     from the hole seeds of the training ``views`` (a :class:`splat.views.ViewSet`; splat/hole_seeds.py).
     The seed points are the cloud's (without the hole seeds: they set the scene scale)."""
+    cfg = with_budget(cfg, scene)
     if cfg.init_ply is None:
         cloud = load_init_cloud(cfg, scene, cues_ply)
         params, cue_type = init_from_cues(cloud, cfg.sh_degree, cfg.init)
@@ -153,6 +154,9 @@ def initial_gaussians(cfg: TrainConfig, scene: Scene, cues_ply: Path, views=None
         log.info("--init-ply %s has no cue types (no cue_type.npy beside it): all %d Gaussians are SFM", cfg.init_ply, n)
         cue_type = torch.full((n,), CueType.SFM.value, dtype=torch.int64)
     log.info("starting from the %d Gaussians of %s", n, cfg.init_ply)
+    if 0 < (budget := _budget(cfg)) <= n:
+        log.warning("--init-ply %s: its %d Gaussians are at or over --strategy.max-gaussians %d, so densification "
+                    "adds none; raise the budget (0: no limit) to let them grow", cfg.init_ply, n, budget)
     return params, cue_type, params["means"].numpy().astype(np.float64)
 
 

@@ -43,9 +43,11 @@ REQUIRED_KEYS = ("means", "quats", "scales", "opacities")
 TYPE_NAMES = {int(t): t.name.lower() for t in CueType}  # 0 -> "sfm", 1 -> "line", 2 -> "plane"
 
 
-AUTO_BUDGET_PER_PIXEL = 5
-"""--strategy.max-gaussians auto: Gaussians per pixel of the largest training view. 5 is the benchmark
-protocol's 100k at 160x120 (docs/training.md, "Budget")."""
+AUTO_BUDGET_PER_PIXEL = 2
+AUTO_BUDGET_MIN = 100_000
+"""--strategy.max-gaussians auto: AUTO_BUDGET_PER_PIXEL Gaussians per pixel of the largest training view,
+at least AUTO_BUDGET_MIN: the benchmark protocols' budgets (100k for rooms at 160x120, 150k for ICL at
+320x240), which were as good as larger ones (docs/training.md, "Budget")."""
 
 _HALF_SIZES: dict[tuple, Tensor] = {}
 
@@ -53,12 +55,12 @@ _HALF_SIZES: dict[tuple, Tensor] = {}
 def resolve_budget(max_gaussians: int | str, view_pixels: int) -> int:
     """The Gaussian budget a run trains under: ``max_gaussians`` as given (0 = no limit), or for
     "auto" AUTO_BUDGET_PER_PIXEL x ``view_pixels`` (the largest training view's W x H at the training
-    resolution), rounded to a thousand."""
+    resolution) rounded to a thousand, at least AUTO_BUDGET_MIN."""
     if max_gaussians != "auto":
         return int(max_gaussians)
     if view_pixels <= 0:
         raise ValueError(f"--strategy.max-gaussians auto needs a training view with pixels, got {view_pixels}")
-    return max(1000, round(AUTO_BUDGET_PER_PIXEL * view_pixels, -3))
+    return max(AUTO_BUDGET_MIN, round(AUTO_BUDGET_PER_PIXEL * view_pixels, -3))
 
 
 def _half_size(width: int, height: int, device: torch.device) -> Tensor:
@@ -109,8 +111,8 @@ class IndoorStrategyConfig:
     hundreds of steps to recover at the 3DGS learning rate); shorter runs never reset."""
     max_gaussians: int | Literal["auto"] = "auto"
     """Budget: growth stops at this many Gaussians, highest mean gradients first. "auto" (default):
-    AUTO_BUDGET_PER_PIXEL x the pixels of the largest training view (100k at 160x120, 384k at 320x240);
-    0 = no limit (3DGS: on a short run growth ran to 1.5 M on a 24-view 160x120 room)."""
+    2 x the pixels of the largest training view, at least 100k (154k at 320x240, 614k at 640x480);
+    0 = no limit (3DGS; on a short run growth reached 2.5 M on a 24-view room at 160x120)."""
     precedence_sigmas: float = 2.0
     """SFM candidates within this many largest-scales of a LINE candidate are not densified (0 = off)."""
     plane_rule: Literal["none", "tangent"] = "none"

@@ -187,7 +187,7 @@ class _Loop:
             "train_s": self.train_s, "log_bytes": self.log_bytes, "lr_mult": s.guard.lr_mult,
             "guard_events": s.guard.events, "guard_level": [s.guard.loss_mean, s.guard.n_good],
             "camera_refiner": s.refiner.state_dict() if s.refiner is not None else None,
-            "checkpoint_s": self.checkpoint_s, "wall_s": self.wall_s()})
+            "checkpoint_s": self.checkpoint_s, "wall_s": self.wall_s(), "gaussian_budget": s.budget})
 
     def wall_s(self) -> float:
         """Wall seconds of the run so far, earlier sessions included."""

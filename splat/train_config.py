@@ -7,6 +7,7 @@ trainer both import it without importing each other.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, field
 
 from geocues.types import CueType
@@ -148,7 +149,7 @@ class TrainConfig:
             raise ValueError(f"--loss.lambda-dssim weighs D-SSIM against L1 and must be in [0, 1], "
                              f"got {self.loss.lambda_dssim}")
         budget = self.strategy.max_gaussians
-        if budget != "auto" and (isinstance(budget, bool) or not isinstance(budget, int) or budget < 0):
+        if budget != "auto" and (isinstance(budget, bool) or not isinstance(budget, numbers.Integral) or budget < 0):
             raise ValueError(f"--strategy.max-gaussians must be 'auto' or an integer >= 0 (0: no limit), got {budget!r}")
         finite_pos("downscale", self.downscale)
         finite_pos("pose-lr", self.pose_lr)

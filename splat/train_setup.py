@@ -44,24 +44,34 @@ CHANGED_DEFAULTS = {("strategy", "max_gaussians"): (0, "auto")}
 while the option is left at the new one: an upgrade between a kill and the resume keeps the run's training."""
 
 
-def _as_started(cfg: TrainConfig, saved: dict) -> TrainConfig:
-    """``cfg`` with the old default of each CHANGED_DEFAULTS option the checkpoint config ``saved``
-    holds and ``cfg`` leaves at the new default."""
+def _as_started(cfg: TrainConfig, ckpt: dict) -> TrainConfig:
+    """``cfg`` as the checkpoint ``ckpt``'s run started: the old default of each CHANGED_DEFAULTS
+    option it holds where ``cfg`` has the new one, and for --strategy.max-gaussians auto the number
+    it was resolved to then (the rule may have changed since; its "gaussian_budget")."""
+    saved = ckpt["config"]
     for (section, name), (old, new) in CHANGED_DEFAULTS.items():
         part = getattr(cfg, section)
         if saved.get(section, {}).get(name) == old and getattr(part, name) == new:
-            log.warning("--resume: the run started when --%s.%s defaulted to %r; it goes on with %r", section,
-                        name.replace("_", "-"), old, old)
+            log.warning("--resume: the run started with --%s.%s %r, the default then (now %r); it goes on with %r",
+                        section, name.replace("_", "-"), old, new, old)
             cfg = replace(cfg, **{section: replace(part, **{name: old})})
     return cfg
+
+
+def _started_budget(cfg: TrainConfig, ckpt: dict) -> TrainConfig:
+    """``cfg`` with --strategy.max-gaussians auto replaced by the budget the checkpoint's run resolved
+    it to (kept in the checkpoint), so a resume trains under the budget the run started with."""
+    if cfg.strategy.max_gaussians != "auto" or ckpt.get("gaussian_budget") is None:
+        return cfg
+    return replace(cfg, strategy=replace(cfg.strategy, max_gaussians=int(ckpt["gaussian_budget"])))
 
 
 def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resume: bool,
              scene_dir: Path | None = None) -> tuple[Path, Path, dict | None, TrainConfig]:
     """Check the inputs and the output folder before any work; return (the staging folder
     ``OUT.partial`` the run works in, the cue cloud's path, the checkpoint to resume from or None,
-    the config to train with: ``cfg``, or for a resume the checkpoint's value of an option whose
-    default changed since, see CHANGED_DEFAULTS). Without ``resume`` an unfinished staging folder is
+    the config to train with: ``cfg``, or for a resume ``cfg`` as the checkpoint's run started, see
+    _as_started and _started_budget). Without ``resume`` an unfinished staging folder is
     removed."""
     cues_ply = cues / "cues.ply" if cues.is_dir() else cues
     if not cues_ply.is_file():
@@ -81,13 +91,14 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     ckpt = None
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
-        cfg = _as_started(cfg, ckpt["config"])
+        cfg = _as_started(cfg, ckpt)
         diff = [k for k in checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
                 if k not in RESUME_FREE]
         if diff:
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}; it has {_values(ckpt['config'], diff)}, "
                              f"this command {_values(asdict(cfg), diff)}); resume with the same options")
+        cfg = _started_budget(cfg, ckpt)
         _check_resumed_inputs(work, {"scene": scene_dir, "cues": cues_ply})
     elif work.exists():
         if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked

@@ -607,6 +607,24 @@ def test_plane_rule_left_at_the_paper_keeps_finished_rows_keys(tiny, tmp_path):
     assert specs[1]["train_config"]["strategy"]["plane_rule"] == "tangent" and specs[1]["key"] != specs[0]["key"]
 
 
+def test_an_auto_budget_row_is_keyed_by_its_rule(tiny, tmp_path, monkeypatch):
+    """--strategy.max-gaussians auto (the default) keys a row by the rule it stands for: a toolkit whose
+    rule changed trains the row again instead of reporting the old number as today's default; rows
+    keyed with no limit (0, the default before auto) are other rows."""
+    import splat.strategy as strategy
+    from splat.ablate import AblateConfig, plan, row_keys
+
+    base, root, cues = tiny
+    args = [a for a in TRAIN_ARGS if a not in ("--strategy.max-gaussians", "8000")]  # the default budget
+    specs, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path, args)
+    assert specs[0]["train_config"]["strategy"]["max_gaussians"] == "auto"
+    unlimited, _ = plan(AblateConfig(rows=("full",), iters=30), root, cues, tmp_path,
+                        [*args, "--strategy.max-gaussians", "0"])
+    assert unlimited[0]["key"] != specs[0]["key"]
+    monkeypatch.setattr(strategy, "AUTO_BUDGET_MIN", 1)
+    assert row_keys(specs[0])[-1] != specs[0]["key"]
+
+
 @pytest.mark.parametrize("field", ["geometry_until", "priors_until"])
 def test_fractions_left_at_the_end_keep_finished_rows_keys(tiny, tmp_path, field):
     """Rows planned before --geometry-until / --priors-until existed keep their key; a run that

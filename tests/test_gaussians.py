@@ -256,33 +256,55 @@ def test_init_cloud_over_the_budget_warns_unless_thinned(tmp_path, caplog):
 
 def test_auto_budget_follows_the_training_views(tmp_path, caplog):
     """--strategy.max-gaussians auto (the default; it was no limit, and a short run grew 6k cue
-    Gaussians to 1.5 M on a 24-view 160x120 room) is 5 x the pixels of the largest training view
-    at the training resolution; a number, 0 included, is kept as given."""
+    Gaussians to 2.5 M on a 24-view room at 160x120) is 2 x the pixels of the largest training view
+    at the training resolution, at least 100k; a number, 0 included, is kept as given."""
     from cues_synth import make_room_scene
     from geocues.cue_io import write_cues_ply
     from geocues.scene import Scene
     from splat.init_gaussians import load_init_cloud, with_budget
-    from splat.strategy import AUTO_BUDGET_PER_PIXEL, IndoorStrategyConfig
+    from splat.strategy import IndoorStrategyConfig
     from splat.train_config import TrainConfig
 
-    root = make_room_scene(tmp_path / "room", n_views=4, w=80, h=60)
+    root = make_room_scene(tmp_path / "room", n_views=2, w=400, h=300)
     with caplog.at_level(logging.INFO, logger="splat"):
-        assert with_budget(TrainConfig(), Scene.load(root)).strategy.max_gaussians == AUTO_BUDGET_PER_PIXEL * 80 * 60
-    assert "Gaussian budget 24000 (--strategy.max-gaussians auto" in caplog.text and "80x60 px" in caplog.text
-    assert with_budget(TrainConfig(), Scene.load(root, downscale=2)).strategy.max_gaussians == 6000  # 40x30 px
+        assert with_budget(TrainConfig(), Scene.load(root)).strategy.max_gaussians == 240_000  # 2 x 400 x 300
+    assert "Gaussian budget 240000 (--strategy.max-gaussians auto" in caplog.text and "400x300 px" in caplog.text
+    assert with_budget(TrainConfig(), Scene.load(root, downscale=1.25)).strategy.max_gaussians == 154_000  # 320x240
+    assert with_budget(TrainConfig(), Scene.load(root, downscale=4)).strategy.max_gaussians == 100_000  # the floor
     for given in (0, 123):
         cfg = TrainConfig(strategy=IndoorStrategyConfig(max_gaussians=given))
         assert with_budget(cfg, Scene.load(root)) is cfg
-    # the cue cloud is held to the resolved budget: at downscale 8 (10x8 px) it is over 1000
+    # the cue cloud is held to the resolved budget
     rng = np.random.default_rng(0)
-    write_cues_ply(tmp_path / "cues.ply", CueCloud.make(rng.uniform(0, 1, (1500, 3)), np.zeros((1500, 3), np.uint8),
+    n = 100_500
+    write_cues_ply(tmp_path / "cues.ply", CueCloud.make(rng.uniform(0, 1, (n, 3)), np.zeros((n, 3), np.uint8),
                                                         CueType.LINE))
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="splat"):
-        load_init_cloud(TrainConfig(), Scene.load(root, downscale=8), tmp_path / "cues.ply")
-    assert "over --strategy.max-gaussians 1000" in caplog.text
+        load_init_cloud(TrainConfig(), Scene.load(root, downscale=4), tmp_path / "cues.ply")
+    assert "over --strategy.max-gaussians 100000" in caplog.text
     with pytest.raises(ValueError, match="resolved from the training views"):
         load_init_cloud(TrainConfig(), None, tmp_path / "cues.ply")  # no scene to size it by
+
+
+def test_init_ply_over_the_budget_warns(tmp_path, caplog):
+    """--init-ply with more Gaussians than the budget (a 3DGS export of millions against the default)
+    started and never grew, in silence; now it says so."""
+    from splat.init_gaussians import initial_gaussians
+    from splat.strategy import IndoorStrategyConfig
+    from splat.train_config import TrainConfig
+
+    rng = np.random.default_rng(0)
+    params, cue_type = init_from_cues(CueCloud.make(rng.uniform(0, 1, (50, 3)), np.zeros((50, 3), np.uint8),
+                                                    CueType.SFM), sh_degree=0)
+    save_ply(tmp_path / "start.ply", params, cue_type)
+    for budget, warned in ((40, True), (50, True), (51, False), (0, False)):
+        caplog.clear()
+        cfg = TrainConfig(init_ply=str(tmp_path / "start.ply"), sh_degree=0,
+                          strategy=IndoorStrategyConfig(max_gaussians=budget))
+        with caplog.at_level(logging.WARNING, logger="splat"):
+            assert len(initial_gaussians(cfg, None, tmp_path / "unused.ply")[1]) == 50
+        assert ("at or over --strategy.max-gaussians" in caplog.text) == warned, (budget, caplog.text)
 
 
 def test_cues_of_another_scene_are_named(tmp_path, caplog):

@@ -123,10 +123,38 @@ def test_a_run_started_under_the_old_default_budget_resumes_with_it(scene, monke
                   resume=True)
     with caplog.at_level(logging.WARNING, logger="splat"):
         out = train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "old_default", resume=True)
-    assert "defaulted to 0; it goes on with 0" in caplog.text
+    assert "the default then (now 'auto'); it goes on with 0" in caplog.text
     report = json.loads((out / "report.json").read_text())
     assert report["resumed_from_step"] == 21 and report["gaussian_budget"] == 0
     assert report["config"]["strategy"]["max_gaussians"] == 0
+
+
+def test_an_auto_budget_resumes_with_the_number_it_started_with(scene, monkeypatch):
+    """"auto" is a rule that may change between a kill and the resume: the resumed run keeps the budget
+    its first session resolved (kept in the checkpoint), not today's rule's."""
+    import splat.strategy as strategy
+    import splat.train as train
+    from splat.checkpoint import TrainingInterrupted
+    from splat.strategy import IndoorStrategyConfig
+
+    base, root, cues = scene
+    real = train.train_step
+
+    def step_then_kill(*args, **kw):
+        out = real(*args, **kw)
+        if args[5] == 20:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(strategy, "AUTO_BUDGET_MIN", 7000)  # 64x48 views: the floor sets it
+    monkeypatch.setattr(train, "train_step", step_then_kill)
+    with pytest.raises(TrainingInterrupted, match="--resume"):
+        train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change")
+    monkeypatch.setattr(train, "train_step", real)
+    monkeypatch.setattr(strategy, "AUTO_BUDGET_MIN", 9000)  # the rule changed meanwhile
+    out = train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change", resume=True)
+    report = json.loads((out / "report.json").read_text())
+    assert report["resumed_from_step"] == 21 and report["gaussian_budget"] == 7000
 
 
 def test_a_kill_while_writing_the_outputs_keeps_the_trained_model(scene, uninterrupted, monkeypatch):

@@ -477,12 +477,12 @@ def test_density_control_of_an_empty_model_is_a_no_op():
 
 
 def test_resolve_budget():
-    """"auto" is AUTO_BUDGET_PER_PIXEL x the view's pixels, to a thousand, at least 1000; a number stays."""
-    from splat.strategy import AUTO_BUDGET_PER_PIXEL, resolve_budget
+    """"auto" is AUTO_BUDGET_PER_PIXEL x the view's pixels, to a thousand, at least AUTO_BUDGET_MIN; a number stays."""
+    from splat.strategy import AUTO_BUDGET_MIN, AUTO_BUDGET_PER_PIXEL, resolve_budget
 
-    assert AUTO_BUDGET_PER_PIXEL == 5
-    assert resolve_budget("auto", 160 * 120) == 96_000 and resolve_budget("auto", 320 * 240) == 384_000
-    assert resolve_budget("auto", 10) == 1000
+    assert (AUTO_BUDGET_PER_PIXEL, AUTO_BUDGET_MIN) == (2, 100_000)
+    assert resolve_budget("auto", 160 * 120) == 100_000 and resolve_budget("auto", 320 * 240) == 154_000
+    assert resolve_budget("auto", 640 * 480) == 614_000 and resolve_budget("auto", 1) == 100_000
     assert resolve_budget(0, 160 * 120) == 0 and resolve_budget(150_000, 1) == 150_000
     with pytest.raises(ValueError, match="auto needs a training view"):
         resolve_budget("auto", 0)

@@ -189,4 +189,5 @@ def test_a_config_from_python_is_type_checked_before_any_work(change, message):
     trained 11, a two-number background failed nine frames deep after loading the scene."""
     with pytest.raises(ValueError, match=re.escape(message)):
         _cfg(**change).validate()
-    _cfg(iters=np.int64(100), downscale=np.float32(2.0), loss={"flat_types": [1, 2]}).validate()  # numpy, a list
+    _cfg(iters=np.int64(100), downscale=np.float32(2.0), loss={"flat_types": [1, 2]},  # numpy, a list
+         strategy={"max_gaussians": np.int64(100_000)}).validate()
