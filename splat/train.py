@@ -48,7 +48,7 @@ from splat.init_gaussians import initial_gaussians, load_init_cloud  # noqa: F40
 from splat.mesh_post import ply_element_counts
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.train_setup import (TrainingSetup, cue_report_priors, make_optimizers,  # noqa: F401  (re-exported)
-                               open_run, setup_training, type_counts)
+                               open_run, setup_training, started_budget, type_counts)
 from splat.train_outputs import (empty_result, evaluate_views, final_warnings, fuse_mesh,  # noqa: F401  (re-exported)
                                  render_view)
 from splat.train_outputs import write_outputs as _write_outputs
@@ -355,7 +355,7 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)  # CPU: the loss patches are drawn on the CPU
     t_start = time.perf_counter()
-    s = setup_training(cfg, Path(scene_dir), cues_ply, device)
+    s = setup_training(started_budget(cfg, ckpt), Path(scene_dir), cues_ply, device)
     timings = {"load_and_init_s": time.perf_counter() - t_start}
     log.info("training %d iterations on %d views (%d test), %d Gaussians %s, scene scale %.2f m, rasterizer %s",
              cfg.iters, len(s.train_views), len(s.test_views), len(s.state["cue_type"]), s.init_counts, s.scale,

@@ -46,8 +46,7 @@ while the option is left at the new one: an upgrade between a kill and the resum
 
 def _as_started(cfg: TrainConfig, ckpt: dict) -> TrainConfig:
     """``cfg`` as the checkpoint ``ckpt``'s run started: the old default of each CHANGED_DEFAULTS
-    option it holds where ``cfg`` has the new one, and for --strategy.max-gaussians auto the number
-    it was resolved to then (the rule may have changed since; its "gaussian_budget")."""
+    option its config holds where ``cfg`` has the new one."""
     saved = ckpt["config"]
     for (section, name), (old, new) in CHANGED_DEFAULTS.items():
         part = getattr(cfg, section)
@@ -58,9 +57,12 @@ def _as_started(cfg: TrainConfig, ckpt: dict) -> TrainConfig:
     return cfg
 
 
-def _started_budget(cfg: TrainConfig, ckpt: dict) -> TrainConfig:
+def started_budget(cfg: TrainConfig, ckpt: dict | None) -> TrainConfig:
     """``cfg`` with --strategy.max-gaussians auto replaced by the budget the checkpoint's run resolved
-    it to (kept in the checkpoint), so a resume trains under the budget the run started with."""
+    it to (kept in the checkpoint), so a resume trains under the budget the run started with even if
+    the rule changed since. For setup_training only: the run's config and its checkpoints keep "auto"."""
+    if ckpt is None:
+        return cfg
     if cfg.strategy.max_gaussians != "auto" or ckpt.get("gaussian_budget") is None:
         return cfg
     return replace(cfg, strategy=replace(cfg.strategy, max_gaussians=int(ckpt["gaussian_budget"])))
@@ -71,7 +73,7 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     """Check the inputs and the output folder before any work; return (the staging folder
     ``OUT.partial`` the run works in, the cue cloud's path, the checkpoint to resume from or None,
     the config to train with: ``cfg``, or for a resume ``cfg`` as the checkpoint's run started, see
-    _as_started and _started_budget). Without ``resume`` an unfinished staging folder is
+    _as_started). Without ``resume`` an unfinished staging folder is
     removed."""
     cues_ply = cues / "cues.ply" if cues.is_dir() else cues
     if not cues_ply.is_file():
@@ -98,7 +100,6 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}; it has {_values(ckpt['config'], diff)}, "
                              f"this command {_values(asdict(cfg), diff)}); resume with the same options")
-        cfg = _started_budget(cfg, ckpt)
         _check_resumed_inputs(work, {"scene": scene_dir, "cues": cues_ply})
     elif work.exists():
         if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked

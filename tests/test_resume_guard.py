@@ -150,11 +150,22 @@ def test_an_auto_budget_resumes_with_the_number_it_started_with(scene, monkeypat
     monkeypatch.setattr(train, "train_step", step_then_kill)
     with pytest.raises(TrainingInterrupted, match="--resume"):
         train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change")
-    monkeypatch.setattr(train, "train_step", real)
     monkeypatch.setattr(strategy, "AUTO_BUDGET_MIN", 9000)  # the rule changed meanwhile
+
+    def step_then_kill_again(*args, **kw):
+        out = real(*args, **kw)
+        if args[5] == 40:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(train, "train_step", step_then_kill_again)
+    with pytest.raises(TrainingInterrupted, match="--resume"):  # killed again: its checkpoint still says "auto"
+        train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change", resume=True)
+    monkeypatch.setattr(train, "train_step", real)
     out = train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change", resume=True)
     report = json.loads((out / "report.json").read_text())
-    assert report["resumed_from_step"] == 21 and report["gaussian_budget"] == 7000
+    assert report["resumed_from_step"] == 41 and report["gaussian_budget"] == 7000
+    assert report["config"]["strategy"]["max_gaussians"] == "auto"
 
 
 def test_a_kill_while_writing_the_outputs_keeps_the_trained_model(scene, uninterrupted, monkeypatch):
