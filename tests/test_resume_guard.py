@@ -59,20 +59,30 @@ def uninterrupted(scene):
     return run(_cfg(), root, cues, base / "full")
 
 
+def _kill_during(monkeypatch, step: int):
+    """Make train_step send this process SIGTERM during ``step`` (as a kill would); returns the real
+    train_step, for monkeypatch.setattr to put back."""
+    import splat.train as train
+
+    real = getattr(train.train_step, "__wrapped__", train.train_step)
+
+    def step_then_kill(*args, **kw):
+        out = real(*args, **kw)
+        if args[5] == step:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    step_then_kill.__wrapped__ = real
+    monkeypatch.setattr(train, "train_step", step_then_kill)
+    return real
+
+
 def test_a_killed_run_resumes_to_the_uninterrupted_result(scene, uninterrupted, monkeypatch):
     import splat.train as train
     from splat.checkpoint import TrainingInterrupted
 
     base, root, cues = scene
-    real = train.train_step
-
-    def step_then_kill(*args, **kw):
-        out = real(*args, **kw)
-        if args[5] == 37:  # SIGTERM arrives during step 37
-            os.kill(os.getpid(), signal.SIGTERM)
-        return out
-
-    monkeypatch.setattr(train, "train_step", step_then_kill)
+    real = _kill_during(monkeypatch, 37)  # SIGTERM arrives during step 37
     with pytest.raises(TrainingInterrupted, match="--resume"):
         train.run(_cfg(), root, cues, base / "killed")
     assert (base / "killed.partial" / "ckpt" / "last.pt").is_file()
@@ -105,15 +115,7 @@ def test_a_run_started_under_the_old_default_budget_resumes_with_it(scene, monke
     from splat.strategy import IndoorStrategyConfig
 
     base, root, cues = scene
-    real = train.train_step
-
-    def step_then_kill(*args, **kw):
-        out = real(*args, **kw)
-        if args[5] == 20:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return out
-
-    monkeypatch.setattr(train, "train_step", step_then_kill)
+    real = _kill_during(monkeypatch, 20)
     with pytest.raises(TrainingInterrupted, match="--resume"):
         train.run(_cfg(strategy=IndoorStrategyConfig(max_gaussians=0)), root, cues, base / "old_default")
     monkeypatch.setattr(train, "train_step", real)
@@ -138,27 +140,12 @@ def test_an_auto_budget_resumes_with_the_number_it_started_with(scene, monkeypat
     from splat.strategy import IndoorStrategyConfig
 
     base, root, cues = scene
-    real = train.train_step
-
-    def step_then_kill(*args, **kw):
-        out = real(*args, **kw)
-        if args[5] == 20:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return out
-
     monkeypatch.setattr(strategy, "AUTO_BUDGET_MIN", 7000)  # 64x48 views: the floor sets it
-    monkeypatch.setattr(train, "train_step", step_then_kill)
+    real = _kill_during(monkeypatch, 20)
     with pytest.raises(TrainingInterrupted, match="--resume"):
         train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change")
     monkeypatch.setattr(strategy, "AUTO_BUDGET_MIN", 9000)  # the rule changed meanwhile
-
-    def step_then_kill_again(*args, **kw):
-        out = real(*args, **kw)
-        if args[5] == 40:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return out
-
-    monkeypatch.setattr(train, "train_step", step_then_kill_again)
+    _kill_during(monkeypatch, 40)
     with pytest.raises(TrainingInterrupted, match="--resume"):  # killed again: its checkpoint still says "auto"
         train.run(_cfg(strategy=IndoorStrategyConfig()), root, cues, base / "rule_change", resume=True)
     monkeypatch.setattr(train, "train_step", real)
@@ -531,15 +518,7 @@ def test_resume_refuses_other_inputs_and_allows_bookkeeping_options(scene, monke
     root, cues = proj / "room", proj / "cues"
     shutil.copytree(root0, root, symlinks=True)
     shutil.copytree(cues0, cues)
-    real = train.train_step
-
-    def step_then_kill(*args, **kw):
-        out = real(*args, **kw)
-        if args[5] == 9:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return out
-
-    monkeypatch.setattr(train, "train_step", step_then_kill)
+    real = _kill_during(monkeypatch, 9)
     with pytest.raises(TrainingInterrupted):
         train.run(_cfg(iters=20), root, cues, proj / "run")
     monkeypatch.setattr(train, "train_step", real)
