@@ -274,6 +274,11 @@ def test_auto_budget_follows_the_training_views(tmp_path, caplog):
     for given in (0, 123):
         cfg = TrainConfig(strategy=IndoorStrategyConfig(max_gaussians=given))
         assert with_budget(cfg, Scene.load(root)) is cfg
+    from types import SimpleNamespace as NS  # views of several sizes: the largest training view sets it
+
+    mixed = NS(cameras=[NS(width=640, height=480), NS(width=400, height=300), NS(width=320, height=240)],
+               train_indices=[1, 2])  # the 640x480 view is held out
+    assert with_budget(TrainConfig(), mixed).strategy.max_gaussians == 240_000
     # the cue cloud is held to the resolved budget
     rng = np.random.default_rng(0)
     n = 100_500
