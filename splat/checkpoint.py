@@ -83,6 +83,14 @@ def load(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def config_value(config: dict, dotted: str) -> Any:
+    """The value at the dotted path ``dotted`` ("strategy.max_gaussians") of a nested config dict, or None."""
+    node: Any = config
+    for part in dotted.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    return node
+
+
 def config_diff(cfg_dict: dict, saved: dict, defaults: dict | None = None) -> list[str]:
     """Options (dotted paths) whose values differ between a config (``asdict(cfg)``) and the one a
     checkpoint was written with (compared as JSON, so tuples and lists agree); [] when equal. With

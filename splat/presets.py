@@ -261,6 +261,7 @@ def cue_preset_mismatch(train_preset: str, cues: str | Path) -> str | None:
     else None (also when the cues record no config)."""
     from geocues.cue_io import read_cue_report
     from geocues.presets import EXTRACT_PRESETS
+    from splat.checkpoint import config_value
 
     want = CUE_PRESETS.get(train_preset)
     config = read_cue_report(cues).get("config") if want is not None else None
@@ -268,9 +269,7 @@ def cue_preset_mismatch(train_preset: str, cues: str | Path) -> str | None:
         return None
     differ = []
     for path, value in EXTRACT_PRESETS[want].items():
-        got: Any = config
-        for part in path.split("."):
-            got = got.get(part) if isinstance(got, dict) else None
+        got = config_value(config, path)
         if got is not None and got != value:
             differ.append(f"{path} {got}")
     if not differ:

@@ -187,7 +187,7 @@ class _Loop:
             "train_s": self.train_s, "log_bytes": self.log_bytes, "lr_mult": s.guard.lr_mult,
             "guard_events": s.guard.events, "guard_level": [s.guard.loss_mean, s.guard.n_good],
             "camera_refiner": s.refiner.state_dict() if s.refiner is not None else None,
-            "checkpoint_s": self.checkpoint_s, "wall_s": self.wall_s(), "gaussian_budget": s.budget})
+            "checkpoint_s": self.checkpoint_s, "wall_s": self.wall_s(), "gaussian_budget": s.strategy.cfg.max_gaussians})
 
     def wall_s(self) -> float:
         """Wall seconds of the run so far, earlier sessions included."""
@@ -394,7 +394,7 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
               "rasterizer": rasterizer,
               "scene_scale": s.scale, "n_train_views": len(s.train_views), "n_test_views": len(s.test_views),
               "gaussians_init": s.init_counts, "gaussians_final": type_counts(s.state["cue_type"]),
-              "gaussian_budget": s.budget,
+              "gaussian_budget": s.strategy.cfg.max_gaussians,
               "test_metrics": {k: v for k, v in final.items() if k != "per_view"},
               "test_per_view": final.get("per_view", []), "accuracy_vs_time": loop.curve, "timings": timings,
               "resumed_from_step": step0 if ckpt is not None else None, "guard_events": s.guard.events,

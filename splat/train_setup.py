@@ -112,12 +112,7 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
 
 def _values(config: dict, dotted: list[str]) -> str:
     """``config``'s values of the ``dotted`` options ("strategy.max_gaussians"), as "name=value, ..."."""
-    def get(key: str):
-        node = config
-        for part in key.split("."):
-            node = node.get(part) if isinstance(node, dict) else None
-        return node
-    return ", ".join(f"{k}={get(k)!r}" for k in dotted)
+    return ", ".join(f"{k}={checkpoint.config_value(config, k)!r}" for k in dotted)
 
 
 RESUME_FREE = {"save_every", "log_every", "keep_ckpt"}
@@ -211,7 +206,6 @@ class TrainingSetup:
     neighbours: list[list[int]] | None  # L_mv's neighbours of each training view, or None when it is off
     refiner: CameraRefiner | None
     guard: NumericsGuard
-    budget: int  # --strategy.max-gaussians as a number (0: no limit)
 
 
 def _load_views(cfg: TrainConfig, scene: Scene, scene_dir: Path, cues_ply: Path, device: torch.device
@@ -281,4 +275,4 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
                           scale)
     return TrainingSetup(scene, train_views, test_views, params, optimizers, strategy, state, type_counts(cue_type),
                          scale, loss_cfg, without_priors(loss_cfg, cfg.priors_kept), round(cfg.priors_until * cfg.iters),
-                         neighbours, refiner, guard, cfg.strategy.max_gaussians)
+                         neighbours, refiner, guard)
