@@ -53,6 +53,7 @@ def merge_summaries(old: dict, new: dict) -> dict:
     old_floor, new_floor = old.get("floor") or {}, new.get("floor") or {}
     if old_floor.get("key") and new_floor.get("key") and old_floor["key"] != new_floor["key"]:
         differ.append("floor (other training views or TSDF settings)")
+    differ += _training_differs(old, new)
     if differ:
         raise ValueError(f"the two ablations differ in {', '.join(differ)}: their rows do not share a table")
     old_rows = {r["row"]: r for r in old["rows"]}
@@ -69,6 +70,32 @@ def merge_summaries(old: dict, new: dict) -> dict:
     rows.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
     floor = new_floor if new_floor.get("status") == "done" else old.get("floor")
     return new | {"rows": rows, "floor": floor, "floors": (old.get("floors") or {}) | (new.get("floors") or {})}
+
+
+def _budget(summary: dict) -> str:
+    """The Gaussian budget an ablation's rows trained with: the ``--strategy.max-gaussians`` of its
+    train options, else the default of the version that wrote it ("auto" since summaries carry
+    ``train_keys``, no limit before)."""
+    value = "auto" if summary.get("train_keys") else "0"
+    args = list(summary.get("train_args") or [])
+    for i, arg in enumerate(args):
+        name, eq, given = arg.partition("=")
+        if name.replace("_", "-") == "--strategy.max-gaussians":
+            value = given if eq else (args[i + 1] if i + 1 < len(args) else value)
+    return value.strip()
+
+
+def _training_differs(old: dict, new: dict) -> list[str]:
+    """What differs in how two ablations' rows trained beyond their train options: the defaults of
+    `splat train` (``train_keys``: the `full` row's configuration keys without scene and cue paths,
+    splat/ablate_keys.py); for a summary written before those were kept, the Gaussian budget (the
+    default that changed: no limit, then "auto")."""
+    a, b = old.get("train_keys"), new.get("train_keys")
+    if a and b:
+        return [] if set(a) & set(b) else ["training defaults (`splat train` of another version: rerun the rows)"]
+    if _budget(old) != _budget(new):
+        return [f"Gaussian budget ({_budget(old)} vs {_budget(new)}; 0: no limit, the default before 'auto')"]
+    return []
 
 
 def _fmt(value, scale: float = 1.0, digits: int = 3) -> str:

@@ -33,7 +33,7 @@ from evaluation.mesh_metrics import MeshMetricsConfig
 from geocues.atomic import atomic_path, check_output_dir
 from splat import ablate_rows
 from splat.ablate_exec import execute
-from splat.ablate_keys import config_key, row_keys
+from splat.ablate_keys import config_key, row_keys, training_keys
 from splat.checkpoint import TrainingInterrupted
 from splat.guard import TrainingDiverged
 from splat.presets import (DEFAULT_ROWS, PRESETS, config_from_dict, get_preset, missing_needs, needs_facts,
@@ -294,12 +294,13 @@ def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str
     shown = [r for r in PRESETS if r in cfg.rows or any(row == r for row, _ in results)]
     floor, floors = run_floors(cfg, scene_dir, out_dir, train_args, shown)
     diverged: dict[tuple[str, int], str] = {}
+    train_keys = training_keys(train_config("full", train_args, cfg.iters, 0, cfg.checkpoints))
 
     def summary() -> dict:
         return {"scene": str(scene_dir), "scene_label": cfg.scene_label or scene_dir.name, "cues": str(cues),
                 "config": asdict(cfg) | {"gt": str(cfg.gt) if cfg.gt else None,
                                          "gt_depth": str(cfg.gt_depth) if cfg.gt_depth else None},
-                "train_args": train_args, "floor": floor, "floors": floors,
+                "train_args": train_args, "train_keys": train_keys, "floor": floor, "floors": floors,
                 "rows": [_row_summary(r, [results[k] for k in sorted(results) if k[0] == r], na,
                                       {k[1]: m for k, m in diverged.items() if k[0] == r}) for r in shown]}
 

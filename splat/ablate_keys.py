@@ -75,4 +75,13 @@ def row_keys(spec: dict) -> list[str]:
     return keys + [config_key(payload | {"train_config": tc})]  # rows of the days between: depth kept
 
 
-__all__ = ["OPERATIONAL_FIELDS", "config_key", "row_keys"]
+def training_keys(train_config) -> list[str]:
+    """The keys of a TrainConfig alone (no scene, cues or scoring): what two ablations run apart (other
+    folders, machines) compare before their rows share a table (evaluation/ablation_report.py
+    merge_summaries); a default of `splat train` changed between them changes these."""
+    from dataclasses import asdict
+
+    return row_keys({"scene": None, "cues": None, "gt": None, "metrics": None, "train_config": asdict(train_config)})
+
+
+__all__ = ["OPERATIONAL_FIELDS", "config_key", "row_keys", "training_keys"]

@@ -79,7 +79,13 @@ def test_every_file_with_its_keys(ablation):
     for name in ("ablation.json", "report.md", "accuracy_vs_time.png"):
         assert (out / name).is_file(), name
     data = json.loads((out / "ablation.json").read_text())
-    assert set(data) >= {"scene", "cues", "config", "train_args", "floor", "rows"}
+    assert set(data) >= {"scene", "cues", "config", "train_args", "train_keys", "floor", "rows"}
+    from splat.ablate import train_config, training_keys
+
+    # what another ablation's rows must share to merge with these: the `full` row's training, no paths
+    assert data["train_keys"] == training_keys(train_config("full", TRAIN_ARGS, 30, 0, (0.5, 1.0)))
+    assert data["train_keys"] != training_keys(train_config("full", [*TRAIN_ARGS, "--sh-degree", "1"], 30, 0,
+                                                            (0.5, 1.0)))
     rows = {r["row"]: r for r in data["rows"]}
     assert list(rows) == ["full", "no-cues", "no-ln"]
     for name in ("full", "no-cues"):

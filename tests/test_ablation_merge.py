@@ -60,6 +60,53 @@ def test_ablations_of_another_setup_are_refused(change, named):
         merge_summaries(old, new)
 
 
+@pytest.mark.parametrize("old_keys, new_keys, merges", [
+    (["a"], ["a"], True),
+    (["b", "a"], ["a"], True),  # a key of an earlier key rule shared: the same training
+    (["a"], ["c"], False),      # a default of `splat train` changed between the two
+])
+def test_ablations_trained_with_other_defaults_are_refused(old_keys, new_keys, merges):
+    old = _summary([("full", [_run(0, 0.05)])]) | {"train_keys": old_keys}
+    new = copy.deepcopy(old) | {"train_keys": new_keys}
+    if merges:
+        assert merge_summaries(old, new)["rows"][0]["n_seeds"] == 1
+    else:
+        with pytest.raises(ValueError, match="training defaults"):
+            merge_summaries(old, new)
+
+
+@pytest.mark.parametrize("args, old_has_keys, merges", [
+    ([], False, False),  # written before train_keys: no limit by default; today's default is "auto"
+    ([], True, True),
+    (["--strategy.max-gaussians", "100000"], False, True),
+    (["--strategy.max-gaussians=0"], False, True),
+])
+def test_a_summary_from_before_train_keys_is_compared_by_its_budget(args, old_has_keys, merges):
+    """The Gaussian budget's default went from no limit to "auto": an ablation written before summaries
+    kept ``train_keys`` that set no budget trained without a limit, and does not share a table with
+    today's rows of the default."""
+    old = _summary([("full", [_run(0, 0.05)])]) | {"train_args": args}
+    new = copy.deepcopy(old) | {"train_keys": ["a"]}
+    if old_has_keys:
+        old["train_keys"] = ["a"]
+    if merges:
+        assert merge_summaries(old, new)["rows"][0]["n_seeds"] == 1
+    else:
+        with pytest.raises(ValueError, match=r"Gaussian budget \(0 vs auto"):
+            merge_summaries(old, new)
+
+
+@pytest.mark.parametrize("args, budget", [
+    ([], "0"), (["--strategy.max-gaussians", "5000"], "5000"), (["--strategy.max_gaussians=7"], "7"),
+    (["--strategy.max-gaussians", "1", "--downscale", "2", "--strategy.max-gaussians", "auto"], "auto"),
+])
+def test_the_budget_is_read_from_the_train_options(args, budget):
+    from evaluation.ablation_report import _budget
+
+    assert _budget({"train_args": args}) == budget
+    assert _budget({"train_args": args, "train_keys": ["a"]}) == (budget if args else "auto")
+
+
 def test_the_report_names_what_the_figure_draws_and_only_rows_it_holds(tmp_path):
     """report.md: the floor is the dotted line (the figure draws it so; `no-cues` rows are the dashed
     ones), the paper's C-L1 in cm as ours, no note on rows the table lacks, and no figure of empty
