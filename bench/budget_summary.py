@@ -1,5 +1,5 @@
-"""What the Gaussian budget (--strategy.max-gaussians) costs and buys: one row per run, from
-`splat ablate --rows full` folders (their `full` row and the floor) or `splat train` folders
+"""What the Gaussian budget (--strategy.max-gaussians) costs and buys: one row per budget, from
+`splat ablate --rows full` folders (their `full` row, mean ± spread over its seeds, and the floor) or `splat train` folders
 scored by `evaluate ... -o RUN/metrics.json`. Writes bench/results/budget_<name>.json and prints
 the markdown table docs/training.md ("Budget") shows.
 
@@ -21,30 +21,56 @@ from splat.strategy import resolve_budget
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def _row(folder: Path) -> dict:
-    """One run's budget, Gaussians, training seconds, held-out PSNR and mesh figures."""
-    if (folder / "ablation.json").is_file():
-        abl = json.loads((folder / "ablation.json").read_text())
-        full = next(r for r in abl["rows"] if r["row"] == "full")
-        train = folder / "rows" / f"full_s{full['runs'][0]['seed']}" / "train"
-        mesh, floor = full["mean"], abl["floor"]["final"] if abl.get("floor") else None
-    else:
-        train, floor = folder, None
-        mesh = json.loads((folder / "metrics.json").read_text())
+_FIGURES = ("gaussians_final", "train_s", "psnr", "chamfer_l1_cm", "f_score", "normal_consistency")
+
+
+def _run(train: Path, mesh: dict) -> dict:
+    """One training's figures: Gaussians at the end, training seconds, held-out PSNR, the mesh's."""
     report = json.loads((train / "report.json").read_text())
     curve = {c["step"]: c for c in report["accuracy_vs_time"]}
     last = curve[max(curve)]
     mesh = mesh.get("mesh", mesh)  # evaluate's metrics.json nests the mesh figures
-    pixels = max(c["width"] * c["height"] for c in json.loads((train / "cameras.json").read_text()))
-    return {"run": str(folder), "budget": report["gaussian_budget"], "budget_option": report["config"]["strategy"]["max_gaussians"],
-            "is_default": report["gaussian_budget"] == resolve_budget("auto", pixels), "view_pixels": pixels,
-            "note": ("'auto' under an earlier rule" if report["config"]["strategy"]["max_gaussians"] == "auto"
-                     and report["gaussian_budget"] != resolve_budget("auto", pixels) else None),
-            "gaussians_final": sum(report["gaussians_final"].values()), "train_s": last["train_s"], "psnr": last["psnr"],
-            "chamfer_l1_cm": 100 * mesh["chamfer_l1"], "f_score": mesh["f_score"],
-            "normal_consistency": mesh["normal_consistency"],
+    return {"seed": report["config"]["seed"], "gaussians_final": sum(report["gaussians_final"].values()),
+            "train_s": last["train_s"], "psnr": last["psnr"], "chamfer_l1_cm": 100 * mesh["chamfer_l1"],
+            "f_score": mesh["f_score"], "normal_consistency": mesh["normal_consistency"], "report": report}
+
+
+def _row(folder: Path) -> dict:
+    """One budget: its runs (an ablation's `full` row, one per training seed, or one `splat train`
+    folder), their mean and spread (population std), the floor where the ablation fused one."""
+    import numpy as np
+
+    if (folder / "ablation.json").is_file():
+        abl = json.loads((folder / "ablation.json").read_text())
+        full = next(r for r in abl["rows"] if r["row"] == "full")
+        trains = [(folder / "rows" / f"full_s{r['seed']}" / "train", r["final"]) for r in full["runs"]]
+        floor = abl["floor"]["final"] if abl.get("floor") else None
+    else:
+        trains, floor = [(folder, json.loads((folder / "metrics.json").read_text()))], None
+    runs = [_run(train, mesh) for train, mesh in trains]
+    report = runs[0]["report"]
+    budgets = {r["report"].get("gaussian_budget", r["report"]["config"]["strategy"]["max_gaussians"]) for r in runs}
+    if len(budgets) != 1:
+        raise SystemExit(f"{folder}: its runs trained with other budgets {sorted(budgets)}")
+    pixels = max(c["width"] * c["height"] for c in json.loads((trains[0][0] / "cameras.json").read_text()))
+    option = report["config"]["strategy"]["max_gaussians"]
+    budget = budgets.pop()  # runs from before report.json kept it: the number they were given
+    return {"run": str(folder), "budget": budget, "budget_option": option,
+            "is_default": budget == resolve_budget("auto", pixels), "view_pixels": pixels,
+            "note": ("'auto' under an earlier rule" if option == "auto" and budget != resolve_budget("auto", pixels)
+                     else None),
+            "n_seeds": len(runs), "seeds": [r["seed"] for r in runs],
+            **{k: float(np.mean([r[k] for r in runs])) for k in _FIGURES},
+            "std": {k: float(np.std([r[k] for r in runs])) for k in _FIGURES},
+            "runs": [{k: r[k] for k in ("seed", *_FIGURES)} for r in runs],
             "floor": None if floor is None else {"chamfer_l1_cm": 100 * floor["chamfer_l1"], "f_score": floor["f_score"],
                                                  "normal_consistency": floor["normal_consistency"]}}
+
+
+def _cell(row: dict, key: str, digits: int, scale: float = 1.0) -> str:
+    """Mean, and ± the spread over seeds where the row has more than one."""
+    text = f"{row[key] * scale:.{digits}f}"
+    return text + (f" ± {row['std'][key] * scale:.{digits}f}" if row.get("n_seeds", 1) > 1 else "")
 
 
 def main() -> None:
@@ -59,10 +85,11 @@ def main() -> None:
     for r in rows:
         label = "auto, " if r["is_default"] else ""  # today's rule (a run may predate it)
         budget = f"{r['budget'] // 1000}k" if r["budget"] else "no limit"
-        print(f"| {a.scene} | {label}{budget} | {r['gaussians_final'] / 1000:.0f}k | {r['train_s']:.0f} | "
-              f"{r['chamfer_l1_cm']:.2f} | {r['f_score']:.3f} | {r['normal_consistency']:.3f} | {r['psnr']:.2f} |")
+        print(f"| {a.scene} | {label}{budget} | {r.get('n_seeds', 1)} | {r['gaussians_final'] / 1000:.0f}k | "
+              f"{r['train_s']:.0f} | {_cell(r, 'chamfer_l1_cm', 2)} | {_cell(r, 'f_score', 3)} | "
+              f"{_cell(r, 'normal_consistency', 3)} | {_cell(r, 'psnr', 2)} |")
     if floor := rows[0]["floor"]:
-        print(f"| {a.scene} | floor (exact GT depth) | | | {floor['chamfer_l1_cm']:.2f} | {floor['f_score']:.3f} | "
+        print(f"| {a.scene} | floor (exact GT depth) | | | | {floor['chamfer_l1_cm']:.2f} | {floor['f_score']:.3f} | "
               f"{floor['normal_consistency']:.3f} | |")
     print(f"wrote {out}")
 

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # What the Gaussian budget costs and buys (docs/training.md, "Budget"): the `full` row of `splat ablate`
 # on a room, 3000 iterations at --downscale 2, once per budget ("auto" = the default, 0 = no limit), then
-# bench/budget_summary.py writes bench/results/budget_NAME.json and prints the table.
+# bench/budget_summary.py writes bench/results/budget_NAME.json and prints the table. SEEDS=K (default 1)
+# trains each budget with seeds 0..K-1 (the table gives mean ± spread).
 #
-#   bash bench/budget_sweep.sh ROOM CUES OUT NAME "LABEL" auto 50000 200000
+#   SEEDS=3 bash bench/budget_sweep.sh ROOM CUES OUT NAME "LABEL" auto 50000 200000
 #
 # For ICL (no gt/ folder for the floor) the rows were `splat train` + `evaluate -o RUN/metrics.json`:
 #   splat train SFM -c CUES -o RUN --iters 3000 --downscale 2 [--strategy.max-gaussians N]
@@ -19,7 +20,7 @@ runs=()
 for b in "$@"; do
     flag=()
     [ "$b" != auto ] && flag=(--strategy.max-gaussians "$b")
-    $bin/splat ablate "$room" -c "$cues" -o "$out/b_$b" --rows full --iters 3000 --downscale 2 "${flag[@]}" \
+    $bin/splat ablate "$room" -c "$cues" -o "$out/b_$b" --rows full --seeds "${SEEDS:-1}" --iters 3000 --downscale 2 "${flag[@]}" \
         2> "$out/b_$b.log"
     runs+=("$out/b_$b")
 done
