@@ -217,7 +217,7 @@ def mvs(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCEN
         cfg: tyro.conf.OmitArgPrefixes[MvsConfig] = MvsConfig()) -> int:
     """Weight-free dense depth priors from the posed images (plane-sweep NCC stereo, forward-backward
     consistency, textureless holes completed from the planes of the consistent depth): OUT becomes a scene folder (images, model, GT linked) with priors/depth/*.npy in
-    metres and priors/depth_conf/*.npy; run `geocues extract OUT` next. An extension (docs/geocues.md).
+    the scene's unit (metres once the scene is metric: `geocues rescale`) and priors/depth_conf/*.npy; run `geocues extract OUT` next. An extension (docs/geocues.md).
 
     Args:
         scene: scene folder with images/ and a posed COLMAP model (SfM points set the depth range).

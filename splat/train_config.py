@@ -82,10 +82,11 @@ class TrainConfig:
     focal_lr: float = 5e-4
     """Learning rate of the log focal factor."""
     compile: bool = False
-    """On a GPU, compile the loss terms and the render's per-pixel maps with torch.compile (fused
-    Triton kernels, splat/compiled.py): the same loss up to float rounding (tests/test_compiled.py).
-    Measured on an H100: 10-33 % less time per step, after about 90 s of compiling on a machine
-    without torch's kernel cache (docs/rasterizer.md). No effect on the CPU."""
+    """On a GPU, compile the render's per-pixel maps with torch.compile (fused Triton kernels,
+    splat/compiled.py), and the loss terms where the CUDA loss kernels (--loss.kernels fused, the
+    default) did not build: the same loss up to float rounding (tests/test_compiled.py). About 90 s of
+    compiling on a machine without torch's kernel cache; what it saves next to the CUDA kernels is in
+    docs/rasterizer.md. No effect on the CPU."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Background colour behind the Gaussians."""
     checkpoints: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
