@@ -1,10 +1,12 @@
 """What the Gaussian budget (--strategy.max-gaussians) costs and buys: one row per budget, from
 `splat ablate --rows full` folders (their `full` row, mean ± spread over its seeds, and the floor) or `splat train` folders
 scored by `evaluate ... -o RUN/metrics.json`. Writes bench/results/budget_<name>.json and prints
-the markdown table docs/training.md ("Budget") shows.
+its rows of the markdown table docs/training.md ("Budget") shows; without run folders it prints the
+whole table from the results files (--write: into docs/training.md between its budget-table markers).
 
     python bench/budget_summary.py --name textured_s21_heldout24 --scene "textured s21" \
         OUT/b_50000 OUT/b_auto OUT/b_200000
+    python bench/budget_summary.py --write
 
 bench/budget_sweep.sh makes the runs. A row is marked "auto" when its budget is what today's default
 (splat.strategy.resolve_budget) gives its training views.
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from splat.strategy import resolve_budget
@@ -73,25 +76,58 @@ def _cell(row: dict, key: str, digits: int, scale: float = 1.0) -> str:
     return text + (f" ± {row['std'][key] * scale:.{digits}f}" if row.get("n_seeds", 1) > 1 else "")
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", nargs="+", type=Path, help="ablation or train folders, one per budget")
-    p.add_argument("--name", required=True, help="results file bench/results/budget_NAME.json")
-    p.add_argument("--scene", required=True, help="the scene's label in the table")
-    a = p.parse_args()
-    rows = sorted((_row(r) for r in a.runs), key=lambda r: r["budget"] or float("inf"))
-    out = RESULTS / f"budget_{a.name}.json"
-    out.write_text(json.dumps({"scene": a.scene, "rows": rows}, indent=1) + "\n")
+# The results files of docs/training.md's "Budget" table, in its order.
+TABLE = ("textured_s21_heldout24", "textured_s24_heldout24", "icl_livingroom1")
+
+
+def table_lines(scene: str, rows: list[dict]) -> list[str]:
+    """One scene's rows of the table (budgets in increasing order, no limit last), then its floor."""
+    lines = []
     for r in rows:
         label = "auto, " if r["is_default"] else ""  # today's rule (a run may predate it)
         budget = f"{r['budget'] // 1000}k" if r["budget"] else "no limit"
-        print(f"| {a.scene} | {label}{budget} | {r.get('n_seeds', 1)} | {r['gaussians_final'] / 1000:.0f}k | "
-              f"{r['train_s']:.0f} | {_cell(r, 'chamfer_l1_cm', 2)} | {_cell(r, 'f_score', 3)} | "
-              f"{_cell(r, 'normal_consistency', 3)} | {_cell(r, 'psnr', 2)} |")
+        lines.append(f"| {scene} | {label}{budget} | {r.get('n_seeds', 1)} | {r['gaussians_final'] / 1000:.0f}k | "
+                     f"{r['train_s']:.0f} | {_cell(r, 'chamfer_l1_cm', 2)} | {_cell(r, 'f_score', 3)} | "
+                     f"{_cell(r, 'normal_consistency', 3)} | {_cell(r, 'psnr', 2)} |")
     if floor := rows[0]["floor"]:
-        print(f"| {a.scene} | floor (exact GT depth) | | | | {floor['chamfer_l1_cm']:.2f} | {floor['f_score']:.3f} | "
-              f"{floor['normal_consistency']:.3f} | |")
-    print(f"wrote {out}")
+        lines.append(f"| {scene} | floor (exact GT depth) | | | | {floor['chamfer_l1_cm']:.2f} | {floor['f_score']:.3f} | "
+                     f"{floor['normal_consistency']:.3f} | |")
+    return lines
+
+
+def table() -> str:
+    """docs/training.md's "Budget" table from bench/results/budget_<name>.json of :data:`TABLE`."""
+    lines = ["| scene | budget | seeds | Gaussians at the end | train s | C-L1 (cm) | F@5cm | NC | test PSNR |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for name in TABLE:
+        data = json.loads((RESULTS / f"budget_{name}.json").read_text())
+        lines += table_lines(data["scene"], data["rows"])
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("runs", nargs="*", type=Path, help="ablation or train folders, one per budget")
+    p.add_argument("--name", help="results file bench/results/budget_NAME.json")
+    p.add_argument("--scene", help="the scene's label in the table")
+    p.add_argument("--write", action="store_true",
+                   help="write the table of every results file into docs/training.md (its budget-table markers)")
+    a = p.parse_args()
+    if a.runs:
+        if not (a.name and a.scene):
+            p.error("run folders need --name and --scene")
+        rows = sorted((_row(r) for r in a.runs), key=lambda r: r["budget"] or float("inf"))
+        out = RESULTS / f"budget_{a.name}.json"
+        out.write_text(json.dumps({"scene": a.scene, "rows": rows}, indent=1) + "\n")
+        print("\n".join(table_lines(a.scene, rows)))
+        print(f"wrote {out}")
+    elif a.write:
+        sys.path.insert(0, str(RESULTS.parents[1]))
+        from bench.doc_markers import replace_block
+
+        replace_block(RESULTS.parents[1] / "docs" / "training.md", "budget-table", table())
+    else:
+        print(table())
 
 
 if __name__ == "__main__":

@@ -269,3 +269,33 @@ def test_demo_time_line_names_each_step():
     for part in ("the room 36 s to render", "cues 25 s", "scoring 4 s", "the reports 219 s", "final scoring 4 s"):
         assert part in line, part
     assert "the room already made (0 s)" in mod.demo_time_line(t | {"room_made": False, "steps_s": t["steps_s"] | {"room": 0.2}})
+
+
+def test_budget_table_in_the_docs_is_generated_from_the_committed_results():
+    """docs/training.md's "Budget" table is what bench/budget_summary.py makes of bench/results/budget_*.json."""
+    mod = _bench_script("budget_summary")
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "training.md").read_text()
+    assert f"<!-- budget-table -->\n{mod.table()}\n<!-- /budget-table -->" in doc
+
+
+def test_budget_rows_give_mean_and_spread_over_seeds(tmp_path):
+    """bench/budget_summary.py: an ablation's `full` row of two seeds is one budget, mean ± population std."""
+    mod = _bench_script("budget_summary")
+    runs = []
+    for seed, cl1, psnr in ((0, 0.10, 20.0), (1, 0.12, 22.0)):
+        train = tmp_path / "rows" / f"full_s{seed}" / "train"
+        train.mkdir(parents=True)
+        (train / "report.json").write_text(json.dumps({
+            "config": {"seed": seed, "strategy": {"max_gaussians": "auto"}}, "gaussian_budget": 100_000,
+            "gaussians_final": {"SFM": 60_000, "PLANE": 39_000}, "accuracy_vs_time": [{"step": 30, "train_s": 50.0 + seed, "psnr": psnr}]}))
+        (train / "cameras.json").write_text(json.dumps([{"width": 160, "height": 120}]))
+        runs.append({"seed": seed, "final": {"chamfer_l1": cl1, "f_score": 0.5, "normal_consistency": 0.8}})
+    (tmp_path / "ablation.json").write_text(json.dumps({
+        "rows": [{"row": "full", "runs": runs}],
+        "floor": {"final": {"chamfer_l1": 0.05, "f_score": 0.7, "normal_consistency": 0.9}}}))
+    row = mod._row(tmp_path)
+    assert row["n_seeds"] == 2 and row["is_default"] and row["budget"] == 100_000
+    assert row["chamfer_l1_cm"] == pytest.approx(11.0) and row["std"]["chamfer_l1_cm"] == pytest.approx(1.0)
+    lines = mod.table_lines("room", [row])
+    assert lines[0] == "| room | auto, 100k | 2 | 99k | 50 | 11.00 ± 1.00 | 0.500 ± 0.000 | 0.800 ± 0.000 | 21.00 ± 1.00 |"
+    assert lines[1] == "| room | floor (exact GT depth) | | | | 5.00 | 0.700 | 0.900 | |"
