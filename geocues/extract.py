@@ -44,7 +44,7 @@ from geocues.lines import LineConfig, LineCues
 from geocues.plane_anchors import write_plane_anchors
 from geocues.plane_stage import plane_stage
 from geocues.planes import PlaneConfig
-from geocues.scene import Scene
+from geocues.scene import Scene, upsampling_warning
 from geocues.sfm_cues import SfmCueConfig, SfmCues, extract_sfm_cues
 from geocues.texture import TextureConfig, config_key, file_stamp, tree_stamp
 from geocues.types import CueType
@@ -210,6 +210,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     check_not_input(out_dir, {"scene": scene_dir})  # cues.ply and report.json written into a scene mix with it
     check_output_dir(out_dir)
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=0)
+    if up := upsampling_warning(cfg.downscale, "work per image", "extracts at the photos' own size"):
+        log.warning("%s", up)
     far = metric_warning(scene)
     if far:
         log.warning("%s", far)

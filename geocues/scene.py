@@ -156,6 +156,15 @@ def held_out(index: int, test_every: int) -> bool:
     return test_every > 0 and index % test_every == 0
 
 
+def upsampling_warning(downscale: float, work: str, own_size: str) -> str | None:
+    """The sentence for a ``downscale`` below 1 (the photos upsampled: interpolated pixels, no detail,
+    more ``work``), None otherwise; ``own_size`` names what --downscale 1 does instead."""
+    if not downscale < 1:
+        return None
+    return (f"--downscale {downscale:g} is below 1: the photos are UPSAMPLED {1 / downscale:g}x (interpolated "
+            f"pixels, no detail gained, {1 / downscale ** 2:.3g}x the {work}); --downscale 1 {own_size}")
+
+
 def downscaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     """The image size a ``downscale`` gives (each side rounded on its own, at least 1 px)."""
     return max(1, int(round(width / downscale))), max(1, int(round(height / downscale)))

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from geocues.depth_align import DepthAlignment
 from geocues.plane_anchors import PlaneAnchors, anchor_depth, anchor_normals
-from geocues.scene import Scene
+from geocues.scene import Scene, upsampling_warning
 from splat.camera import Camera
 
 log = logging.getLogger(__name__)
@@ -173,10 +173,8 @@ def warn_large_images(scene: Scene, downscale: float, limit: int = 1600) -> None
     """One warning when the training images are over ``limit`` px on their longer side: a step renders
     every pixel (a 4032x3024 phone photo is 40x a 640x480 view), and 3DGS trains at most 1600 px wide.
     A ``downscale`` below 1 gets one too: it upsamples the photos (interpolated pixels, no detail)."""
-    if downscale < 1:
-        log.warning("--downscale %g is below 1: the photos are UPSAMPLED %gx (interpolated pixels, no detail "
-                    "gained, %.3gx the work per step); --downscale 1 trains at the photos' own size",
-                    downscale, 1 / downscale, 1 / downscale ** 2)
+    if up := upsampling_warning(downscale, "work per step", "trains at the photos' own size"):
+        log.warning("%s", up)
     cam = max(scene.cameras, key=lambda c: max(c.width, c.height))
     side = max(cam.width, cam.height)
     if side > limit:

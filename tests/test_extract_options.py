@@ -65,6 +65,20 @@ def test_lines_leave_out_the_held_out_views_when_asked(tmp_path, monkeypatch):
     assert used == [list(range(10)), [1, 2, 3, 4, 5, 6, 7, 9], [1, 2, 4, 5, 7, 8]]
 
 
+def test_upsampling_is_named_as_in_training(tmp_path, caplog):
+    """--downscale below 1 upsampled the photos for the extraction (4x the work at 0.5) without a word;
+    `splat train` already said so: one sentence, geocues.scene.upsampling_warning, for both."""
+    import geocues.extract as ex
+    from cues_synth import make_room_scene
+    from geocues.scene import upsampling_warning
+
+    assert upsampling_warning(1.0, "x", "y") is None and upsampling_warning(2.0, "x", "y") is None
+    root = make_room_scene(tmp_path / "room", n_views=4, w=48, h=36, priors="none")
+    ex.run(apply_overrides(ExtractConfig(), {"planes": False, "lines": False, "downscale": 0.5}), root, tmp_path / "c")
+    assert "--downscale 0.5 is below 1: the photos are UPSAMPLED 2x" in caplog.text
+    assert "4x the work per image); --downscale 1 extracts at the photos' own size" in caplog.text
+
+
 def test_a_kill_among_the_writes_of_an_overwrite_leaves_no_finished_mix(tmp_path, monkeypatch):
     """A kill right after cues.ply of an --overwrite run was renamed into place left the old report.json
     (the finished marker) beside the new cues: the rerun with the first options skipped, 'already holds
