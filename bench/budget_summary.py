@@ -19,9 +19,14 @@ import json
 import sys
 from pathlib import Path
 
-from splat.strategy import resolve_budget
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from bench.doc_markers import replace_block  # noqa: E402
+from geocues.atomic import atomic_path  # noqa: E402
+from splat.strategy import resolve_budget  # noqa: E402
+
+RESULTS = REPO / "bench" / "results"
 
 
 _FIGURES = ("gaussians_final", "train_s", "psnr", "chamfer_l1_cm", "f_score", "normal_consistency")
@@ -85,11 +90,11 @@ def table_lines(scene: str, rows: list[dict]) -> list[str]:
     lines = []
     for r in rows:
         label = "auto, " if r["is_default"] else ""  # today's rule (a run may predate it)
-        budget = f"{r['budget'] // 1000}k" if r["budget"] else "no limit"
+        budget = f"{r['budget'] / 1000:.0f}k" if r["budget"] else "no limit"  # rounded as the Gaussians
         lines.append(f"| {scene} | {label}{budget} | {r.get('n_seeds', 1)} | {r['gaussians_final'] / 1000:.0f}k | "
                      f"{r['train_s']:.0f} | {_cell(r, 'chamfer_l1_cm', 2)} | {_cell(r, 'f_score', 3)} | "
                      f"{_cell(r, 'normal_consistency', 3)} | {_cell(r, 'psnr', 2)} |")
-    if floor := rows[0]["floor"]:
+    if floor := next((r["floor"] for r in rows if r["floor"]), None):  # the ablations' (a train folder has none)
         lines.append(f"| {scene} | floor (exact GT depth) | | | | {floor['chamfer_l1_cm']:.2f} | {floor['f_score']:.3f} | "
                      f"{floor['normal_consistency']:.3f} | |")
     return lines
@@ -118,14 +123,12 @@ def main() -> None:
             p.error("run folders need --name and --scene")
         rows = sorted((_row(r) for r in a.runs), key=lambda r: r["budget"] or float("inf"))
         out = RESULTS / f"budget_{a.name}.json"
-        out.write_text(json.dumps({"scene": a.scene, "rows": rows}, indent=1) + "\n")
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps({"scene": a.scene, "rows": rows}, indent=1) + "\n")
         print("\n".join(table_lines(a.scene, rows)))
         print(f"wrote {out}")
     elif a.write:
-        sys.path.insert(0, str(RESULTS.parents[1]))
-        from bench.doc_markers import replace_block
-
-        replace_block(RESULTS.parents[1] / "docs" / "training.md", "budget-table", table())
+        replace_block(REPO / "docs" / "training.md", "budget-table", table())
     else:
         print(table())
 

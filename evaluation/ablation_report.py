@@ -46,12 +46,14 @@ def row_floor(summary: dict, row: str) -> dict | None:
 def merge_summaries(old: dict, new: dict) -> dict:
     """``new`` with the finished runs of ``old`` it lacks: the same ablation continued in another
     OUT (a fresh checkout, another machine). Both must have the same scene label, training options,
-    iterations, scoring and floor; a row's run (row, seed) finished in both is taken from ``new``.
-    Raises ValueError naming what differs."""
+    iterations, scoring, floor and `splat train` defaults (``train_keys``; see
+    :func:`_training_differs` for a summary written before those were kept); a row's run (row,
+    seed) finished in both is taken from ``new``. Raises ValueError naming what differs."""
     differ = [k for k in ("scene_label", "train_args") if old.get(k) != new.get(k)]
     differ += [f"config.{k}" for k in _SAME_SETUP if old["config"].get(k) != new["config"].get(k)]
     old_floor, new_floor = old.get("floor") or {}, new.get("floor") or {}
-    if old_floor.get("key") and new_floor.get("key") and old_floor["key"] != new_floor["key"]:
+    same = "setup" if old_floor.get("setup") and new_floor.get("setup") else "key"  # setup: without paths
+    if old_floor.get(same) and new_floor.get(same) and old_floor[same] != new_floor[same]:
         differ.append("floor (other training views or TSDF settings)")
     differ += _training_differs(old, new)
     if differ:
@@ -69,32 +71,30 @@ def merge_summaries(old: dict, new: dict) -> dict:
     rows += [r for r in old_rows.values()]  # rows only the earlier ablation ran, in its order
     rows.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
     floor = new_floor if new_floor.get("status") == "done" else old.get("floor")
-    return new | {"rows": rows, "floor": floor, "floors": (old.get("floors") or {}) | (new.get("floors") or {})}
+    merged = new | {"rows": rows, "floor": floor, "floors": (old.get("floors") or {}) | (new.get("floors") or {})}
+    merged.pop("train_keys", None)  # the keys stand for every row only when both sides had them
+    if old.get("train_keys") and new.get("train_keys"):
+        merged["train_keys"] = sorted(set(old["train_keys"]) | set(new["train_keys"]))
+    return merged
 
 
-def _budget(summary: dict) -> str:
-    """The Gaussian budget an ablation's rows trained with: the ``--strategy.max-gaussians`` of its
-    train options, else the default of the version that wrote it ("auto" since summaries carry
-    ``train_keys``, no limit before)."""
-    value = "auto" if summary.get("train_keys") else "0"
-    args = list(summary.get("train_args") or [])
-    for i, arg in enumerate(args):
-        name, eq, given = arg.partition("=")
-        if name.replace("_", "-") == "--strategy.max-gaussians":
-            value = given if eq else (args[i + 1] if i + 1 < len(args) else value)
-    return value.strip()
+def _sets_budget(train_args: list[str]) -> bool:
+    """Whether `splat train` options set the Gaussian budget (``--strategy.max-gaussians``, any spelling)."""
+    return any(a.partition("=")[0].replace("_", "-") == "--strategy.max-gaussians" for a in train_args or [])
 
 
 def _training_differs(old: dict, new: dict) -> list[str]:
-    """What differs in how two ablations' rows trained beyond their train options: the defaults of
-    `splat train` (``train_keys``: the `full` row's configuration keys without scene and cue paths,
-    splat/ablate_keys.py); for a summary written before those were kept, the Gaussian budget (the
-    default that changed: no limit, then "auto")."""
+    """What may differ in how two ablations' rows trained beyond their (equal) train options: the
+    defaults of `splat train` (``train_keys``: the `full` row's configuration keys without scene and
+    cue paths, splat/ablate_keys.py). A summary written before those were kept beside one with them:
+    only a budget set in the options is known to be shared (its default changed from no limit to
+    "auto" on 2026-11-29); other defaults are taken as the same."""
     a, b = old.get("train_keys"), new.get("train_keys")
     if a and b:
         return [] if set(a) & set(b) else ["training defaults (`splat train` of another version: rerun the rows)"]
-    if _budget(old) != _budget(new):
-        return [f"Gaussian budget ({_budget(old)} vs {_budget(new)}; 0: no limit, the default before 'auto')"]
+    if bool(a) != bool(b) and not _sets_budget(new.get("train_args")):
+        return ["Gaussian budget (the one written before ablations kept `train_keys` set none, and the default "
+                "changed from no limit to 'auto' then: it is not known)"]
     return []
 
 

@@ -169,13 +169,22 @@ def _run_row(spec: dict) -> dict:
     return result
 
 
+def _floor_setup(cfg: AblateConfig, example, png: float | None) -> dict:
+    tsdf = {k: v for k, v in asdict(example.tsdf).items() if k != "smooth_iters" or v}
+    return {"views": [example.downscale, example.test_every, example.mesh_every], "tsdf": tsdf,
+            "png": cfg.gt_depth_png_scale if png is None else png, "metrics": asdict(cfg.metrics)}
+
+
 def floor_key(cfg: AblateConfig, example, folder: Path, png: float | None = None) -> str:
     """The floor's key: the views, TSDF settings, exact depth and scoring it was fused and scored with
     (``tsdf.smooth_iters`` left out while unset, so floors fused before the option keep their key)."""
-    tsdf = {k: v for k, v in asdict(example.tsdf).items() if k != "smooth_iters" or v}
-    return config_key({"views": [example.downscale, example.test_every, example.mesh_every],
-                       "tsdf": tsdf, "depth": str(folder), "png": cfg.gt_depth_png_scale if png is None else png,
-                       "metrics": asdict(cfg.metrics), "gt": str(cfg.gt)})
+    return config_key(_floor_setup(cfg, example, png) | {"depth": str(folder), "gt": str(cfg.gt)})
+
+
+def floor_setup_key(cfg: AblateConfig, example, png: float | None = None) -> str:
+    """The floor's key without its paths (exact depth folder, GT mesh): what two ablations of one scene
+    in other folders or on other machines compare before sharing a table (merge_summaries)."""
+    return config_key(_floor_setup(cfg, example, png))
 
 
 def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example, name: str = "floor") -> dict | None:
@@ -190,16 +199,16 @@ def _run_floor(cfg: AblateConfig, scene_dir: Path, out_dir: Path, example, name:
     if folder is None:
         log.warning("floor: %s has no gt/depth and no --gt-depth was given: the table has no floor row", scene_dir)
         return {"status": "n/a", "reason": "no GT depth"}
-    key = floor_key(cfg, example, folder, png)
+    key, setup = floor_key(cfg, example, folder, png), floor_setup_key(cfg, example, png)
     out = out_dir / name
     done = ablate_rows.done(out, [key])
     if done is not None:
-        return done
+        return done | {"setup": setup}  # fused before floors kept it: the same settings (the key matched)
     t0 = time.perf_counter()
     mesh = fuse_floor(scene_dir, out / "mesh.ply", gt_depth=folder, png_scale=png,
                       downscale=example.downscale, test_every=example.test_every,
                       mesh_every=example.mesh_every, tsdf=example.tsdf)
-    result = {"row": name, "status": "done", "key": key, "depth_dir": str(folder), "png_scale": png,
+    result = {"row": name, "status": "done", "key": key, "setup": setup, "depth_dir": str(folder), "png_scale": png,
               "final": score_mesh(mesh, cfg.gt, scene_dir, cfg.metrics), "wall_s": time.perf_counter() - t0}
     with atomic_path(out / "score.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2))

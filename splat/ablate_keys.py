@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import asdict
 
 
 # TrainConfig fields that never change what a run computes (when and whether it checkpoints; the
@@ -79,8 +80,6 @@ def training_keys(train_config) -> list[str]:
     """The keys of a TrainConfig alone (no scene, cues or scoring): what two ablations run apart (other
     folders, machines) compare before their rows share a table (evaluation/ablation_report.py
     merge_summaries); a default of `splat train` changed between them changes these."""
-    from dataclasses import asdict
-
     return row_keys({"scene": None, "cues": None, "gt": None, "metrics": None, "train_config": asdict(train_config)})
 
 

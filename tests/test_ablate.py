@@ -80,12 +80,6 @@ def test_every_file_with_its_keys(ablation):
         assert (out / name).is_file(), name
     data = json.loads((out / "ablation.json").read_text())
     assert set(data) >= {"scene", "cues", "config", "train_args", "train_keys", "floor", "rows"}
-    from splat.ablate import train_config, training_keys
-
-    # what another ablation's rows must share to merge with these: the `full` row's training, no paths
-    assert data["train_keys"] == training_keys(train_config("full", TRAIN_ARGS, 30, 0, (0.5, 1.0)))
-    assert data["train_keys"] != training_keys(train_config("full", [*TRAIN_ARGS, "--sh-degree", "1"], 30, 0,
-                                                            (0.5, 1.0)))
     rows = {r["row"]: r for r in data["rows"]}
     assert list(rows) == ["full", "no-cues", "no-ln"]
     for name in ("full", "no-cues"):
@@ -103,6 +97,28 @@ def test_every_file_with_its_keys(ablation):
     assert "n/a (no normal priors)" in md and "**floor**" in md
     assert "4.0 / 0.776 / 0.877" in md  # the paper's full row beside ours (its C-L1 in cm, as ours)
     assert png_size(out / "accuracy_vs_time.png") == (1080, 720)
+
+
+def test_the_same_ablation_elsewhere_merges_and_another_training_does_not(tiny, ablation, tmp_path):
+    """``train_keys`` hold the training, not where it ran: the room copied to another folder, its cues
+    elsewhere, another OUT give the same keys, and the two summaries merge (an ablation finished on two
+    machines); another train option gives other keys."""
+    from evaluation.ablation_report import merge_summaries
+    from evaluation.mesh_metrics import MeshMetricsConfig
+    from splat.ablate import AblateConfig, run, train_config
+    from splat.ablate_keys import training_keys
+
+    base, root, cues = tiny
+    room, elsewhere = shutil.copytree(root, tmp_path / root.name), shutil.copytree(cues, tmp_path / "c2")
+    cfg = AblateConfig(rows=("no-cues",), iters=30, checkpoints=(0.5, 1.0), metrics=MeshMetricsConfig(n_samples=20_000),
+                       num_threads=1)
+    there = json.loads((run(cfg, room, elsewhere, tmp_path / "out", train_args=TRAIN_ARGS) / "ablation.json").read_text())
+    here = json.loads((ablation / "ablation.json").read_text())
+    assert there["train_keys"] == here["train_keys"] and there["scene"] != here["scene"]
+    merged = merge_summaries(here, there)
+    assert [r["row"] for r in merged["rows"] if r["status"] == "done"] == ["full", "no-cues"]
+    other = training_keys(train_config("full", [*TRAIN_ARGS, "--sh-degree", "1"], 30, 0, (0.5, 1.0)))
+    assert not set(other) & set(here["train_keys"])
 
 
 def test_no_cues_row_is_the_baseline(ablation):

@@ -60,51 +60,58 @@ def test_ablations_of_another_setup_are_refused(change, named):
         merge_summaries(old, new)
 
 
-@pytest.mark.parametrize("old_keys, new_keys, merges", [
-    (["a"], ["a"], True),
-    (["b", "a"], ["a"], True),  # a key of an earlier key rule shared: the same training
-    (["a"], ["c"], False),      # a default of `splat train` changed between the two
+def test_floors_fused_from_other_paths_with_the_same_settings_share_a_table():
+    """The floor's key holds its exact-depth folder (another machine: another path); its ``setup`` does not."""
+    old = _summary([("full", [_run(0, 0.05)])])
+    new = copy.deepcopy(old)
+    old["floor"].update(key="on-machine-a", setup="s1")
+    new["floor"].update(key="on-machine-b", setup="s1")
+    assert merge_summaries(old, new)["floor"]["key"] == "on-machine-b"
+    new["floor"]["setup"] = "s2"
+    with pytest.raises(ValueError, match="floor"):
+        merge_summaries(old, new)
+
+
+@pytest.mark.parametrize("old_keys, new_keys, kept", [
+    (["a"], ["a"], ["a"]),
+    (["b", "a"], ["a"], ["a", "b"]),  # a key of an earlier key rule shared: the same training
+    (["a"], ["c"], None),             # a default of `splat train` changed between the two: refused
 ])
-def test_ablations_trained_with_other_defaults_are_refused(old_keys, new_keys, merges):
+def test_ablations_trained_with_other_defaults_are_refused(old_keys, new_keys, kept):
     old = _summary([("full", [_run(0, 0.05)])]) | {"train_keys": old_keys}
-    new = copy.deepcopy(old) | {"train_keys": new_keys}
-    if merges:
-        assert merge_summaries(old, new)["rows"][0]["n_seeds"] == 1
-    else:
+    new = _summary([("full", [_run(1, 0.07)])]) | {"train_keys": new_keys}
+    if kept is None:
         with pytest.raises(ValueError, match="training defaults"):
             merge_summaries(old, new)
-
-
-@pytest.mark.parametrize("args, old_has_keys, merges", [
-    ([], False, False),  # written before train_keys: no limit by default; today's default is "auto"
-    ([], True, True),
-    (["--strategy.max-gaussians", "100000"], False, True),
-    (["--strategy.max-gaussians=0"], False, True),
-])
-def test_a_summary_from_before_train_keys_is_compared_by_its_budget(args, old_has_keys, merges):
-    """The Gaussian budget's default went from no limit to "auto": an ablation written before summaries
-    kept ``train_keys`` that set no budget trained without a limit, and does not share a table with
-    today's rows of the default."""
-    old = _summary([("full", [_run(0, 0.05)])]) | {"train_args": args}
-    new = copy.deepcopy(old) | {"train_keys": ["a"]}
-    if old_has_keys:
-        old["train_keys"] = ["a"]
-    if merges:
-        assert merge_summaries(old, new)["rows"][0]["n_seeds"] == 1
     else:
-        with pytest.raises(ValueError, match=r"Gaussian budget \(0 vs auto"):
+        merged = merge_summaries(old, new)
+        assert merged["rows"][0]["n_seeds"] == 2 and merged["train_keys"] == kept
+
+
+@pytest.mark.parametrize("args, merges", [
+    ([], False),  # neither says the budget: before train_keys the default was no limit, now "auto"
+    (["--strategy.max-gaussians", "100000"], True),
+    (["--strategy.max_gaussians=0"], True),
+])
+@pytest.mark.parametrize("keys_on", ["old", "new"])
+def test_a_summary_from_before_train_keys_shares_a_table_only_with_a_budget_set(args, merges, keys_on):
+    """An ablation written before summaries kept ``train_keys``: a budget set in the shared options is
+    known to be the same; with none set the default it trained under is not known. The merged summary
+    keeps no keys (they would claim the other side's rows)."""
+    old = _summary([("full", [_run(0, 0.05)])]) | {"train_args": args}
+    new = _summary([("full", [_run(1, 0.07)])]) | {"train_args": args}
+    (old if keys_on == "old" else new)["train_keys"] = ["a"]
+    if merges:
+        merged = merge_summaries(old, new)
+        assert merged["rows"][0]["n_seeds"] == 2 and "train_keys" not in merged
+    else:
+        with pytest.raises(ValueError, match="Gaussian budget"):
             merge_summaries(old, new)
 
 
-@pytest.mark.parametrize("args, budget", [
-    ([], "0"), (["--strategy.max-gaussians", "5000"], "5000"), (["--strategy.max_gaussians=7"], "7"),
-    (["--strategy.max-gaussians", "1", "--downscale", "2", "--strategy.max-gaussians", "auto"], "auto"),
-])
-def test_the_budget_is_read_from_the_train_options(args, budget):
-    from evaluation.ablation_report import _budget
-
-    assert _budget({"train_args": args}) == budget
-    assert _budget({"train_args": args, "train_keys": ["a"]}) == (budget if args else "auto")
+def test_summaries_both_without_train_keys_compare_their_options_only():
+    old, new = _summary([("full", [_run(0, 0.05)])]), _summary([("full", [_run(1, 0.07)])])
+    assert merge_summaries(old, new)["rows"][0]["n_seeds"] == 2
 
 
 def test_the_report_names_what_the_figure_draws_and_only_rows_it_holds(tmp_path):
