@@ -49,6 +49,18 @@ class ScenePriors:
     """Prior access of :class:`geocues.scene.Scene` (a mixin: the scene provides root, metadata,
     depth_files, cameras and camera(i))."""
 
+    def _say_non_finite(self, kind: str, path: Path, count: int) -> None:
+        """A prior file's non-finite pixels, said once per file; a warning for the scene's first file of
+        each kind, debug lines for the rest (priors that mark what a network did not see with NaN have
+        it in every file: hundreds of warnings said nothing more than the first)."""
+        said = self.__dict__.setdefault("_non_finite_said", {})
+        if path in said.setdefault(kind, set()):
+            return
+        first = not said[kind]
+        said[kind].add(path)
+        log.log(logging.WARNING if first else logging.DEBUG, "%s prior %s: %d non-finite pixels set invalid (0)%s",
+                kind, path, count, f"; the other {kind} priors' are logged at debug level (-v)" if first else "")
+
     def _prior_path(self, kind: str, i: int) -> Path | None:
         if kind == "depth" and i in self.depth_files:  # named by transforms.json (depth_file_path)
             return self.depth_files[i]
@@ -99,8 +111,8 @@ class ScenePriors:
         if d.ndim != 2:
             raise ValueError(f"the depth prior {path} has shape {d.shape}; expected [H, W]")
         bad = ~np.isfinite(d)
-        if bad.any():  # NaN / Inf are invalid pixels (0), counted once per file
-            log.warning("depth prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
+        if bad.any():  # NaN / Inf are invalid pixels (0), counted
+            self._say_non_finite("depth", path, int(bad.sum()))
             d[bad] = 0.0
         cam = self.camera(i)
         if d.shape != (cam.height, cam.width):  # nearest keeps 0 = invalid intact
@@ -129,7 +141,7 @@ class ScenePriors:
             n = n * np.array([1.0, -1.0, -1.0], np.float32)
         bad = ~np.isfinite(n).all(-1)
         if bad.any():
-            log.warning("normal prior %s: %d non-finite pixels set invalid (0)", path, int(bad.sum()))
+            self._say_non_finite("normal", path, int(bad.sum()))
             n[bad] = 0.0
         cam = self.camera(i)
         if n.shape[:2] != (cam.height, cam.width):

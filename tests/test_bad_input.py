@@ -124,9 +124,17 @@ def test_nan_prior_pixels_are_dropped_and_counted(room, caplog):
     d[:5] = np.nan
     d[5, :7] = np.inf
     np.save(root / "priors" / "depth" / "00002.npy", d)
-    prior = Scene.load(root).depth_prior(2)
+    np.save(root / "priors" / "depth" / "00003.npy", d)
+    scene = Scene.load(root)
+    prior = scene.depth_prior(2)
     assert np.isfinite(prior).all() and (prior[:5] == 0).all() and (prior[5, :7] == 0).all()
     assert "327 non-finite pixels set invalid" in caplog.text  # 5 rows x 64 + 7, counted exactly
+    # one warning for the scene, not one per file and read: the next file's and a re-read's at debug level
+    caplog.clear()
+    with caplog.at_level("DEBUG", logger="geocues.scene"):
+        scene.depth_prior(3)
+        scene.depth_prior(2)
+    assert [r.levelname for r in caplog.records if "non-finite" in r.getMessage()] == ["DEBUG"]
 
 def test_truncated_mesh_ply(room, capsys):
     import open3d as o3d
