@@ -95,8 +95,10 @@ def _train_command(preset_name: str = "full", config_file: Path | None = None, i
         """
         from splat.presets import cue_preset_mismatch, get_preset, unmet_needs
         from splat.train import run
+        from splat.train_setup import cue_cloud_path
 
         log = logging.getLogger("splat")
+        cue_cloud_path(cues)  # a missing cue cloud first, before notes on the preset that read the cue folder
         if mismatch := cue_preset_mismatch(preset, cues):
             log.warning("%s", mismatch)
         if why := unmet_needs(preset, scene, cues):

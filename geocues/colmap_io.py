@@ -157,6 +157,12 @@ def _no_model_hint(p: Path) -> str:
         return _unfinished_sfm_hint(p)
     if p.name == "images" and any(is_image(f) for f in p.iterdir()):
         return f"; {p} looks like a scene's images folder: pass the scene folder above it, {p.parent}"
+    if (p / "cues.ply").is_file():
+        return (f"; {p} is a cue folder (cues.ply from `geocues extract`): a command takes it with -c/--cues, "
+                "and the scene folder (images/ and its COLMAP model) as SCENE")
+    if (p / "cfg_args").is_file() or (p / "point_cloud").is_dir():
+        return (f"; {p} is a training run (`splat train -o`): `splat render`, `splat view`, `splat mesh` and "
+                "`evaluate report` take it as RUN; SCENE is the folder it was trained on")
     if (p / "images").is_dir() and list_images(p / "images"):
         return (f"; {p / 'images'} holds photos without a model: `geocues sfm {shlex.quote(str(p))} -o MAP` makes one from the "
                 "images alone (README, \"Your own photos\")")

@@ -68,6 +68,14 @@ def started_budget(cfg: TrainConfig, ckpt: dict | None) -> TrainConfig:
     return replace(cfg, strategy=replace(cfg.strategy, max_gaussians=int(ckpt["gaussian_budget"])))
 
 
+def cue_cloud_path(cues: Path) -> Path:
+    """CUES/cues.ply (or CUES itself, a cues.ply given directly); FileNotFoundError naming it when absent."""
+    cues_ply = cues / "cues.ply" if cues.is_dir() else cues
+    if not cues_ply.is_file():
+        raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
+    return cues_ply
+
+
 def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resume: bool,
              scene_dir: Path | None = None) -> tuple[Path, Path, dict | None, TrainConfig]:
     """Check the inputs and the output folder before any work; return (the staging folder
@@ -75,9 +83,7 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     the config to train with: ``cfg``, or for a resume ``cfg`` as the checkpoint's run started, see
     _as_started). Without ``resume`` an unfinished staging folder is
     removed."""
-    cues_ply = cues / "cues.ply" if cues.is_dir() else cues
-    if not cues_ply.is_file():
-        raise FileNotFoundError(f"no cue cloud at {cues_ply} (run `geocues extract SCENE -o CUES` first)")
+    cues_ply = cue_cloud_path(cues)
     cfg.validate()
     if cfg.mesh:  # found after the training, it lost the run
         check_tsdf_resources(cfg.tsdf)

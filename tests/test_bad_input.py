@@ -163,6 +163,18 @@ def test_output_path_is_a_file(room, capsys):
     assert f.read_text() == "keep me"
 
 
+def test_swapped_scene_and_cues_are_named(room, capsys, caplog):
+    """The scene given as the cue folder: the missing cue cloud is the one line (a note on the preset that
+    read the scene as cues came first); the cue folder given as the scene says what it is."""
+    base, root = room
+    _fails(capsys, splat, ["train", str(root), "-c", str(root), "-o", str(base / "sw1"), "--preset", "mvs"],
+           "no cue cloud at")
+    assert "trains as another row" not in caplog.text
+    _fails(capsys, splat, ["train", str(base / "cues"), "-c", str(base / "cues"), "-o", str(base / "sw2")],
+           "is a cue folder (cues.ply from `geocues extract`): a command takes it with -c/--cues")
+    assert not (base / "sw1").exists() and not (base / "sw2").exists()
+
+
 def test_resume_without_a_checkpoint(room, capsys):
     base, root = room
     _fails(capsys, splat, ["train", str(root), "-c", str(base / "cues"), "-o", str(base / "fresh"), "--resume"],

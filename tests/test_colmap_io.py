@@ -229,6 +229,15 @@ def test_no_model_names_what_the_folder_holds_instead(tmp_path):
     (photos / "images" / "a.png").write_bytes((photos / "images" / "seq1" / "0000.JPG").read_bytes())
     with pytest.raises(FileNotFoundError, match=r"looks like a scene's images folder: pass the scene folder above it"):
         find_model_dir(photos / "images")
+    cues = tmp_path / "cues"  # the cue folder or a run given as the scene (`splat train cues -c cues`)
+    cues.mkdir()
+    (cues / "cues.ply").write_text("ply")
+    with pytest.raises(FileNotFoundError, match=r"is a cue folder \(cues.ply from `geocues extract`\): a command takes "
+                                                r"it with -c/--cues"):
+        find_model_dir(cues)
+    (tmp_path / "run" / "point_cloud").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match=r"is a training run \(`splat train -o`\)"):
+        find_model_dir(tmp_path / "run")
     (photos / "cache" / "sfm").mkdir(parents=True)  # a `geocues sfm -o photos` stopped before its model
     with pytest.raises(FileNotFoundError, match=r"holds an unfinished `geocues sfm SCENE -o .*photos`.*run that "
                                                 r"command again, it starts again \(it was stopped while extracting"):
