@@ -80,6 +80,12 @@ def mesh_curve(run_dir: Path, report: dict, gt: Path | None, scene: Path | None,
     points = [p for p in report.get("accuracy_vs_time", []) if p.get("mesh") and (run_dir / p["mesh"]).is_file()]
     alignment = None
     if not points:  # no checkpoint mesh: nothing to align or score
+        if align_to is not None or gt is not None:  # asked for, and it would pass without a word
+            why = (f"{run_dir} kept no checkpoint meshes (`splat train --mesh-at-checkpoints` keeps one per "
+                   f"checkpoint): no mesh metrics; `evaluate RUN/mesh.ply SCENE` (with the same --gt / --align-to) "
+                   "scores the final mesh")
+            log.warning("%s", why)
+            return MeshCurve([], skipped=why)
         return MeshCurve([])
     if align_to is not None:
         alignment = align_scenes(scene, align_to)  # first: too few shared images is named before any scoring

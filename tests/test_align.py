@@ -262,3 +262,19 @@ def test_a_report_of_a_run_in_its_own_frame_leaves_the_mesh_out_or_aligns_it(sce
     assert re.search(rf"Final mesh: Chamfer-L1 [\d.]+ cm, F@5cm 1\.000, NC [\d.]+, after aligning the scene to "
                      rf"`{re.escape(str(gt_root))}` by the camera centres of 10 shared images", md), md
     capsys.readouterr()
+
+
+def test_a_report_asked_to_align_a_run_without_checkpoint_meshes_says_so(scenes, tmp_path, caplog, capsys):
+    """`evaluate report RUN --align-to GT_SCENE` of a run that kept no checkpoint meshes (trained without
+    --mesh-at-checkpoints) wrote a report without mesh metrics and without a word about the option."""
+    from cli.evaluate_cli import main
+
+    base, gt_root, pred_root, _ = scenes
+    run = _fake_run(tmp_path / "run", pred_root, base / "pred_mesh.ply")
+    shutil.rmtree(run / "checkpoints")
+    with caplog.at_level("WARNING", logger="evaluation.run_report"):
+        assert main(["report", str(run), "--align-to", str(gt_root), "--views", "1"]) == 0
+    assert "kept no checkpoint meshes (`splat train --mesh-at-checkpoints`" in caplog.text
+    md, data = (run / "report.md").read_text(), json.loads((run / "report_data.json").read_text())
+    assert "Mesh metrics left out:" in md and "kept no checkpoint meshes" in data["mesh_skipped"]
+    capsys.readouterr()
