@@ -81,6 +81,7 @@ def mesh(pred_mesh: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar=
         _warn_own_frame(scene, "mesh")
         result = evaluate_with_scene(pred_mesh, gt, scene, cfg)
     print(format_table(result))
+    _warn_registered(scene)
     if images is not None:
         lp = f", LPIPS {images['lpips']:.4f}" if images["lpips"] is not None else ""
         print(f"held-out views: {images['n_images']}, PSNR {images['psnr']:.2f} dB, SSIM {images['ssim']:.4f}{lp}")
@@ -110,6 +111,20 @@ def _check_arguments(pred_mesh: Path, scene: Path | None, gt: Path | None) -> No
         raise ValueError(f"--gt {gt} is a folder; --gt takes the GT mesh file"
                          + (f" ({inside}?)" if inside else "") + (f", a scene folder goes after the mesh" if inside is None
                                                                   and (gt / "sparse").is_dir() else ""))
+
+
+def _warn_registered(scene: Path | None) -> None:
+    """One warning when `geocues sfm` left many of SCENE's photos out (geocues.advice.registration_warning)."""
+    import json
+
+    from geocues.advice import registration_warning
+
+    try:
+        meta = json.loads((scene / "scene.json").read_text()) if scene is not None and (scene / "scene.json").is_file() else {}
+    except ValueError:  # a damaged scene.json is the scene loader's to name
+        meta = {}
+    if (warning := registration_warning(meta)) is not None:
+        print(f"warning: {warning}", file=sys.stderr)
 
 
 def _warn_own_frame(scene: Path | None, what: str) -> None:

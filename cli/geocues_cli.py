@@ -134,9 +134,11 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
     if warn:
         print(f"warning    {warn}")
     print(f"split      {len(s.train_indices)} train / {len(s.test_indices)} test (every {test_every})")
-    from geocues.advice import few_views_warning
+    from geocues.advice import few_views_warning, registration_warning
 
     if few := few_views_warning(len(s)):
+        print(f"warning    {few}")
+    if few := registration_warning(s.metadata):
         print(f"warning    {few}")
     print(f"gt mesh    {s.gt_mesh_path or 'none'}")
     if s.metadata:

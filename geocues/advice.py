@@ -24,6 +24,25 @@ def few_views_warning(n_views: int, what: str = "images") -> str | None:
             "a room wants dozens of overlapping photos")
 
 
+REGISTERED_SHARE = 0.8  # under this share of the photos in the model, every later step says so
+
+
+def registration_warning(metadata: dict) -> str | None:
+    """A sentence when `geocues sfm` put under :data:`REGISTERED_SHARE` of the photos it was given into the
+    model (a scene's scene.json ``metadata["sfm_registered"]``, kept by undistort, rescale and mvs), else None: the scene holds
+    only those photos, so the reconstruction covers what they see, and a GT of the whole room counts
+    the rest as missing."""
+    reg = metadata.get("sfm_registered") if isinstance(metadata, dict) else None
+    if not (isinstance(reg, dict) and isinstance(reg.get("images"), int) and isinstance(reg.get("photos"), int)):
+        return None
+    if reg["photos"] <= 0 or reg["images"] >= REGISTERED_SHARE * reg["photos"]:
+        return None
+    return (f"`geocues sfm` put only {reg['images']} of the {reg['photos']} photos into the model (scene.json "
+            f"sfm_registered): the scene holds those, the reconstruction covers what they see, and scored against a "
+            "GT of the whole room the rest counts as missing; more overlap between neighbouring photos (or texture "
+            "in the room) brings more in")
+
+
 FOV_RANGE_DEG = (10.0, 150.0)  # horizontal fields of view a room's photos can have (phones ~65, fisheye ~120)
 
 

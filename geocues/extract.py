@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 
-from geocues.advice import normal_axes_warning
+from geocues.advice import normal_axes_warning, registration_warning
 from geocues.anchors import Anchors
 from geocues.atomic import atomic_path, check_not_input, check_output_dir
 from geocues.camera_signature import camera_signature
@@ -232,6 +232,8 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
              json.dumps(asdict(cfg), indent=1, default=_json_default))
     t_all = time.perf_counter()
     cache = Path(cache_dir) if cache_dir is not None else out_dir / "cache"
+    if few := registration_warning(scene.metadata):
+        log.warning("%s", few)
     if away := normal_axes_warning(scene):
         log.warning("%s", away)
     n_img = len(scene.cameras)

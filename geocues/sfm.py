@@ -149,7 +149,8 @@ def _warn_unregistered(names: list[str], rec: "pycolmap.Reconstruction") -> None
     missing = [n for n in names if n not in reg]
     if missing:
         log.warning("sfm: %d of %d images are not in the model (%s%s): the scene leaves them out; more overlap "
-                    "between neighbouring photos, or --max-num-features / a lower --peak-threshold, may bring them in",
+                    "between neighbouring photos or texture in the room brings them in (--max-num-features or a "
+                    "lower --peak-threshold sometimes does)",
                     len(missing), len(names), ", ".join(missing[:5]), ", ..." if len(missing) > 5 else "")
 
 
@@ -163,6 +164,15 @@ def _mark_arbitrary_scale(scene_json: Path) -> None:
         tmp.write_text(json.dumps(meta, indent=1))
     log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold of "
                 "geocues and splat is in metres: %s", rescale_hint(scene_json.parent))
+
+
+def _mark_registered(scene_json: Path, n_images: int, n_photos: int) -> None:
+    """Record in scene.json how many of the photos the model holds (read by
+    :func:`geocues.advice.registration_warning`; the later steps copy scene.json)."""
+    meta = json.loads(scene_json.read_text()) if scene_json.is_file() else {}
+    meta["sfm_registered"] = {"images": int(n_images), "photos": int(n_photos)}
+    with atomic_path(scene_json) as tmp:
+        tmp.write_text(json.dumps(meta, indent=1))
 
 
 def points_xyz(rec: "pycolmap.Reconstruction") -> np.ndarray:
@@ -375,6 +385,8 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
         report["gt_check"] = distance_to_mesh_stats(points_xyz(rec), gt)
     if mode == "map" and ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit
         _mark_arbitrary_scale(root / "scene.json")  # before the report that marks the run finished
+    if mode == "map":  # a posed model's images are its own; mapping may leave photos out
+        _mark_registered(root / "scene.json", report["registered_images"], len(names))
     with atomic_path(root / "sfm_report.json") as tmp_report:
         tmp_report.write_text(json.dumps(report, indent=2))
     _warn_unregistered(names, rec)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from geocues.advice import few_views_warning, fov_warning, normal_axes_warning
+from geocues.advice import few_views_warning, fov_warning, normal_axes_warning, registration_warning
 from geocues.atomic import check_output_dir, check_replaceable
 from geocues.cue_io import read_cue_report
 from geocues.depth_align import load_alignments, load_prior_kind
@@ -253,6 +253,8 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
     warn_large_images(scene, cfg.downscale)
     if odd := fov_warning(scene):
         log.warning("%s", odd)
+    if few := registration_warning(scene.metadata):
+        log.warning("%s", few)
     if cfg.loss.use_normal and (away := normal_axes_warning(scene)):  # L_n would pull towards them as they are
         log.warning("%s", away)
     if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres

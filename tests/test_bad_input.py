@@ -372,3 +372,31 @@ def test_a_mistyped_command_is_named_not_taken_for_a_path(tmp_path, capsys, monk
         assert capsys.readouterr().out == f"scored {word}\n"
     assert dispatch("tool", {"mesh": _mesh_command}, argv=["mseh"]) == 2  # no default: the nearest command too
     assert "unknown command 'mseh' (did you mean 'mesh'?)" in capsys.readouterr().err
+
+
+def test_a_scene_sfm_left_most_photos_out_of_is_named_at_every_step(room, capsys, caplog):
+    """`geocues sfm` put 15 of 40 photos of a bare room into the model: it warned once, and undistort,
+    rescale, mvs, extract, train and evaluate went on without a word to a mesh scoring 1 m (new-user
+    audit). scene.json keeps the counts; info, extract, train and evaluate name them."""
+    import json
+
+    from geocues.advice import registration_warning
+
+    assert registration_warning({}) is None and registration_warning({"sfm_registered": "x"}) is None
+    assert registration_warning({"sfm_registered": {"images": 36, "photos": 40}}) is None  # 90 %: no word
+    few = registration_warning({"sfm_registered": {"images": 15, "photos": 40}})
+    assert "only 15 of the 40 photos" in few
+    base, _ = room
+    root = _copy(room, "few_registered")
+    (root / "scene.json").write_text(json.dumps({"sfm_registered": {"images": 15, "photos": 40}}))
+    assert geocues(["info", str(root)]) == 0
+    assert "warning    `geocues sfm` put only 15 of the 40 photos" in capsys.readouterr().out
+    with caplog.at_level("WARNING"):
+        assert geocues(["extract", str(root), "-o", str(base / "few_cues"), "--no-lines", "--no-planes"]) == 0
+    assert "only 15 of the 40 photos" in caplog.text
+    import open3d as o3d
+
+    o3d.io.write_triangle_mesh(str(base / "few.ply"), o3d.geometry.TriangleMesh.create_box())
+    capsys.readouterr()
+    assert evaluate([str(base / "few.ply"), str(root), "--gt", str(base / "few.ply")]) == 0
+    assert "warning: `geocues sfm` put only 15 of the 40 photos" in capsys.readouterr().err

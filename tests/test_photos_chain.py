@@ -34,7 +34,10 @@ def test_a_folder_of_photos_to_a_scored_mesh(icl_dir: Path, tmp_path: Path, caps
     cues, run = tmp_path / "cues", tmp_path / "run"
 
     assert geocues(["sfm", str(photos), "-o", str(m)]) == 0
-    assert json.loads((m / "scene.json").read_text())["scale"] == "arbitrary"
+    mark = json.loads((m / "scene.json").read_text())
+    assert mark["scale"] == "arbitrary"
+    registered = json.loads((m / "sfm_report.json").read_text())["registered_images"]
+    assert mark["sfm_registered"] == {"images": registered, "photos": len(FRAMES)}  # travels to the scene below
     capsys.readouterr()
     assert geocues(["info", str(m)]) == 0  # distorted and not metric: summarised, both named
     out = capsys.readouterr().out
@@ -45,6 +48,7 @@ def test_a_folder_of_photos_to_a_scored_mesh(icl_dir: Path, tmp_path: Path, caps
     assert median_view_depth(s) == pytest.approx(2.0, rel=1e-6) and "scale" not in s.metadata
     assert s.metadata["frame"] == "mapped from images" and (s.points.track_length >= 2).all()
     assert geocues(["mvs", str(metric), "-o", str(scene)]) == 0
+    assert Scene.load(scene).metadata["sfm_registered"] == mark["sfm_registered"]
     assert geocues(["extract", str(scene), "-o", str(cues), "--preset", "mvs"]) == 0
     assert splat(["train", str(scene), "-c", str(cues), "-o", str(run), "--preset", "mvs", "--iters", "150",
                   "--tsdf.weight-threshold", "0"]) == 0
