@@ -99,9 +99,12 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
     print(f"cameras    {len(s)}  sizes {', '.join(f'{w}x{h}' for w, h in sizes)}  "
           f"(first: fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f})")
     if unposed := _photos_not_in_model(s):
+        reg = s.metadata.get("sfm_registered")
+        unmapped = isinstance(reg, dict) and len(unposed) <= reg.get("photos", 0) - reg.get("images", 0)
         print(f"photos     {len(unposed)} in {s.root / 'images'} are not in the model and are not used "
-              f"({', '.join(unposed[:3])}{', ...' if len(unposed) > 3 else ''}): photos added after SfM need "
-              "`geocues sfm` again")
+              f"({', '.join(unposed[:3])}{', ...' if len(unposed) > 3 else ''}): "
+              + ("`geocues sfm` could not register them (its warning said so)" if unmapped
+                 else "photos added after SfM need `geocues sfm` again"))
     if len(pts) and not pts.track_length.any():  # a nerfstudio ply_file_path: positions alone
         print(f"points     {len(pts)}  (without tracks: their visibility is tested by projection)")
     elif len(pts):

@@ -141,4 +141,10 @@ def test_info_counts_photos_the_model_does_not_use(tmp_path, capsys):
     first = sorted((root / "images").iterdir())[0]
     shutil.copy(first, root / "images" / f"zz_added{first.suffix}")
     assert main(["info", str(root)]) == 0
-    assert f"photos     1 in {root / 'images'} are not in the model and are not used (zz_added" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"photos     1 in {root / 'images'} are not in the model and are not used (zz_added" in out
+    assert "photos added after SfM need `geocues sfm` again" in out
+    (root / "scene.json").write_text('{"sfm_registered": {"images": 4, "photos": 5}}')  # sfm's own model
+    assert main(["info", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "`geocues sfm` could not register them" in out and "added after SfM" not in out
