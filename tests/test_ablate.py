@@ -366,10 +366,12 @@ def test_preset_overrides_and_cli_options():
 
 def test_splat_train_preset_flag_and_later_options_win(tmp_path, monkeypatch):
     import splat.train
+    import splat.train_setup
     from cli.splat_cli import main
 
     seen = {}
     monkeypatch.setattr(splat.train, "run", lambda cfg, *a, **kw: seen.setdefault("cfg", cfg))
+    monkeypatch.setattr(splat.train_setup, "cue_cloud_path", lambda cues: cues)  # no cue folder: the options only
     assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "no-cues", "--loss.no-use-nc"]) == 0
     cfg = seen["cfg"]
     assert cfg.init_from == "sfm" and cfg.strategy.custom_types == () and not cfg.loss.use_nc
@@ -383,6 +385,7 @@ def test_room_preset_is_the_measured_recipe(tmp_path, monkeypatch):
     import dataclasses
 
     import splat.train
+    import splat.train_setup
     from cli.splat_cli import main
     from splat.presets import PRESETS, preset_config
 
@@ -395,6 +398,7 @@ def test_room_preset_is_the_measured_recipe(tmp_path, monkeypatch):
     assert dataclasses.replace(mesh, geometry_until=1.0) == cfg
     seen = []
     monkeypatch.setattr(splat.train, "run", lambda cfg, *a, **kw: seen.append(cfg))
+    monkeypatch.setattr(splat.train_setup, "cue_cloud_path", lambda cues: cues)  # no cue folder: the options only
     assert main(["train", "S", "-c", "C", "-o", str(tmp_path), "--preset", "room", "--init.plane-share", "0.8"]) == 0
     assert seen[0].loss.plane_first and seen[0].init.plane_share == 0.8  # later options win
 
