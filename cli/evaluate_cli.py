@@ -115,15 +115,10 @@ def _check_arguments(pred_mesh: Path, scene: Path | None, gt: Path | None) -> No
 
 def _warn_registered(scene: Path | None) -> None:
     """One warning when `geocues sfm` left many of SCENE's photos out (geocues.advice.registration_warning)."""
-    import json
-
+    from evaluation.align import scene_metadata
     from geocues.advice import registration_warning
 
-    try:
-        meta = json.loads((scene / "scene.json").read_text()) if scene is not None and (scene / "scene.json").is_file() else {}
-    except ValueError:  # a damaged scene.json is the scene loader's to name
-        meta = {}
-    if (warning := registration_warning(meta)) is not None:
+    if (warning := registration_warning(scene_metadata(scene))) is not None:
         print(f"warning: {warning}", file=sys.stderr)
 
 

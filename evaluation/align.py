@@ -18,20 +18,26 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
+def scene_metadata(scene: str | Path | None) -> dict:
+    """SCENE/scene.json without loading the scene; {} when there is none (or a damaged one: the scene
+    loader names that)."""
+    import json
+
+    meta = Path(scene) / "scene.json" if scene is not None else None
+    try:
+        data = json.loads(meta.read_text()) if meta is not None and meta.is_file() else {}
+    except ValueError:
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
 def own_frame_warning(scene: str | Path | None, what: str = "mesh") -> str | None:
     """The warning for a SCENE mapped from images alone (`geocues sfm --mode map` marks scene.json,
     `rescale`, `undistort` and `mvs` keep the mark): its frame is its own, so scoring its ``what``
     (mesh, cues, ...) against a GT needs --align-to. None for any other scene."""
-    import json
-
     from geocues.scene import OWN_FRAME
 
-    meta = Path(scene) / "scene.json" if scene is not None else None
-    try:
-        own = meta is not None and meta.is_file() and json.loads(meta.read_text()).get("frame") == OWN_FRAME
-    except (ValueError, AttributeError):  # a damaged scene.json is the scene loader's to name
-        own = False
-    if not own:
+    if scene_metadata(scene).get("frame") != OWN_FRAME:
         return None
     return (f"{scene} was mapped from images alone, so its frame (origin, axes, unit) is its own, not the ground "
             "truth's: pass --align-to GT_SCENE (a scene in the GT's frame with the same image names) to score its "

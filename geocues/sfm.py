@@ -154,25 +154,13 @@ def _warn_unregistered(names: list[str], rec: "pycolmap.Reconstruction") -> None
                     len(missing), len(names), ", ".join(missing[:5]), ", ..." if len(missing) > 5 else "")
 
 
-def _mark_arbitrary_scale(scene_json: Path) -> None:
-    """Record in scene.json that the model's unit is arbitrary (read by ``geocues.rescale.metric_warning``;
-    `geocues rescale` removes the mark) and its frame its own (read by `evaluate`), and say so once."""
+def _mark_scene(scene_json: Path, marks: dict) -> None:
+    """Add ``marks`` to scene.json, atomically (the later steps copy it): ``scale`` arbitrary (read by
+    ``geocues.rescale.metric_warning``; `geocues rescale` removes it), ``frame`` its own (read by
+    `evaluate`), ``sfm_registered`` (read by :func:`geocues.advice.registration_warning`)."""
     meta = json.loads(scene_json.read_text()) if scene_json.is_file() else {}
-    meta["scale"] = ARBITRARY_SCALE
-    meta["frame"] = OWN_FRAME  # kept by rescale: `evaluate` needs --align-to for such a scene
     with atomic_path(scene_json) as tmp:
-        tmp.write_text(json.dumps(meta, indent=1))
-    log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold of "
-                "geocues and splat is in metres: %s", rescale_hint(scene_json.parent))
-
-
-def _mark_registered(scene_json: Path, n_images: int, n_photos: int) -> None:
-    """Record in scene.json how many of the photos the model holds (read by
-    :func:`geocues.advice.registration_warning`; the later steps copy scene.json)."""
-    meta = json.loads(scene_json.read_text()) if scene_json.is_file() else {}
-    meta["sfm_registered"] = {"images": int(n_images), "photos": int(n_photos)}
-    with atomic_path(scene_json) as tmp:
-        tmp.write_text(json.dumps(meta, indent=1))
+        tmp.write_text(json.dumps(meta | marks, indent=1))
 
 
 def points_xyz(rec: "pycolmap.Reconstruction") -> np.ndarray:
@@ -383,10 +371,14 @@ def run(cfg: SfmConfig, scene_dir: str | Path, out_dir: str | Path | None = None
     gt = root / "gt" / "mesh.ply"
     if cfg.check_gt and gt.is_file() and report["points"] > 0:
         report["gt_check"] = distance_to_mesh_stats(points_xyz(rec), gt)
-    if mode == "map" and ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit
-        _mark_arbitrary_scale(root / "scene.json")  # before the report that marks the run finished
-    if mode == "map":  # a posed model's images are its own; mapping may leave photos out
-        _mark_registered(root / "scene.json", report["registered_images"], len(names))
+    if mode == "map":  # before the report that marks the run finished
+        # a posed model's images are its own; mapping may leave photos out
+        marks = {"sfm_registered": {"images": report["registered_images"], "photos": len(names)}}
+        if ref is None:  # no poses to align to: COLMAP's normalised, arbitrary unit, its own frame (rescale keeps it)
+            marks |= {"scale": ARBITRARY_SCALE, "frame": OWN_FRAME}
+            log.warning("sfm: the model was mapped from images alone, so its unit is arbitrary while every threshold "
+                        "of geocues and splat is in metres: %s", rescale_hint(root))
+        _mark_scene(root / "scene.json", marks)
     with atomic_path(root / "sfm_report.json") as tmp_report:
         tmp_report.write_text(json.dumps(report, indent=2))
     _warn_unregistered(names, rec)
