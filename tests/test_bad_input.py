@@ -394,6 +394,15 @@ def test_a_scene_sfm_left_most_photos_out_of_is_named_at_every_step(room, capsys
     with caplog.at_level("WARNING"):
         assert geocues(["extract", str(root), "-o", str(base / "few_cues"), "--no-lines", "--no-planes"]) == 0
     assert "only 15 of the 40 photos" in caplog.text
+    import torch
+
+    from splat.train_config import TrainConfig
+    from splat.train_setup import setup_training
+
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        setup_training(TrainConfig(iters=10), root, base / "cues" / "cues.ply", torch.device("cpu"))
+    assert "only 15 of the 40 photos" in caplog.text  # what `splat train` meets before its first step
     import open3d as o3d
 
     o3d.io.write_triangle_mesh(str(base / "few.ply"), o3d.geometry.TriangleMesh.create_box())
