@@ -250,7 +250,12 @@ def load_reconstruction(model_dir: Path):
             log.info("%s has no points3D file: read as a model without points", model_dir)
             return pycolmap.Reconstruction(tmp)
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on broken files
-        raise ValueError(f"could not read COLMAP model in {model_dir}: {exc}") from exc
+        hint = ""
+        if "frame" in str(exc).lower() and any((model_dir / f"{n}.{e}").is_file()
+                                                for n in ("rigs", "frames") for e in ("txt", "bin")):
+            hint = ("; its rigs and frames files disagree with its images file (an image's camera or id edited "
+                    "by hand?): edit them alike, or remove both and COLMAP reads one rig per camera")
+        raise ValueError(f"could not read COLMAP model in {model_dir}: {exc}{hint}") from exc
 
 
 def read_model(model_dir: Path) -> tuple[list[RawImage], RawPoints]:

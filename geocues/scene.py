@@ -27,6 +27,7 @@ import logging
 import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -185,22 +186,32 @@ class Points3D:
         return len(self.ids)
 
 
-def _warn_transparency(path: Path) -> None:
-    """One warning when the scene's first photo has transparent pixels: images are read as RGB (as COLMAP
-    reads them), so those pixels train as whatever colour they store."""
+def _transparent_fraction(path: Path) -> float:
+    """The fraction of a photo's pixels that are transparent or partly so (0 without an alpha channel;
+    only a photo with one is decoded)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
             if "A" not in im.getbands() and "transparency" not in im.info:
-                return
+                return 0.0
             alpha = np.asarray(im.convert("RGBA"))[..., 3]
     except OSError:
-        return  # unreadable: the loader's own error names it
-    if (alpha < 255).any():
-        log.warning("%s has an alpha channel (%.0f%% of its pixels transparent or partly so): images are read as "
+        return 0.0  # unreadable: the loader's own error names it
+    return float((alpha < 255).mean())
+
+
+def _warn_transparency(paths: Sequence[Path]) -> None:
+    """One warning when photos have transparent pixels: images are read as RGB (as COLMAP reads them), so
+    those pixels train as whatever colour they store."""
+    fractions = [(path, f) for path in paths if (f := _transparent_fraction(path)) > 0]
+    if fractions:
+        path, f = fractions[0]
+        who = (f"{path} has" if len(fractions) == 1 else
+               f"{len(fractions)} of the {len(paths)} photos have")
+        log.warning("%s an alpha channel (%s%.0f%% of its pixels transparent or partly so): images are read as "
                     "RGB, so those pixels train as the colour they store; composite the photos onto a background "
-                    "(or mask them out) first", path, 100 * float((alpha < 255).mean()))
+                    "(or mask them out) first", who, "" if len(fractions) == 1 else f"{path.name}: ", 100 * f)
 
 
 def _read_image_size(path: Path) -> tuple[int, int]:
@@ -280,8 +291,7 @@ class Scene(ScenePriors):
                              f"{distorted.model}; undistort the scene first: `geocues undistort {shlex.quote(str(scene_root))} -o OUT`")
         if err := missing_images_error(model_dir, paths):
             raise err
-        if paths:
-            _warn_transparency(paths[0])
+        _warn_transparency(paths)
         for k, (im, path) in enumerate(zip(raw_images, paths)):
             w, h = _read_image_size(path)
             if (w, h) != (im.width, im.height):
@@ -356,13 +366,13 @@ class Scene(ScenePriors):
                     raise ValueError(f"{kind} prior {path} has shape {tuple(shape)}, expected {want} "
                                      f"({raw.height}x{raw.width} for {cam.image_path.name})")
                 if tuple(shape[:2]) not in {(raw.height, raw.width), (cam.height, cam.width)}:
-                    resized.append(f"{path.name} {shape[1]}x{shape[0]}")
+                    resized.append(f"{kind} {path.name} {shape[1]}x{shape[0]}")
                     if abs(shape[1] / shape[0] - raw.width / raw.height) > 0.02 * raw.width / raw.height:
                         log.warning("%s prior %s is %dx%d but its image %s is %dx%d: another aspect ratio "
                                     "(is it cropped?); it is stretched to the image", kind, path, shape[1],
                                     shape[0], cam.image_path.name, raw.width, raw.height)
         if resized:
-            log.warning("%d priors are not the size of their images and are resized when loaded (%s%s)",
+            log.warning("%d prior maps are not the size of their images and are resized when loaded (%s%s)",
                         len(resized), ", ".join(resized[:3]), ", ..." if len(resized) > 3 else "")
 
     # ------------------------------------------------------------------ views

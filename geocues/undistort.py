@@ -35,6 +35,29 @@ class UndistortConfig:
     """Write the model as .bin (else .txt)."""
 
 
+PER_PIXEL_GT = ("depth", "normal")
+"""gt/ folders of per-pixel maps: they fit the distorted images, so undistort leaves them behind."""
+
+
+def _carry_gt(gt: Path, out_gt: Path, warped: bool) -> None:
+    """OUT/gt links SCENE/gt (the mesh is geometry: undistortion leaves it as it is). When the images were
+    warped, the per-pixel maps in gt/ (exact depth, normals) no longer fit them: OUT/gt is then a folder
+    of links to everything else, and a warning names what stayed behind."""
+    if not gt.is_dir() or out_gt.exists() or out_gt.is_symlink():
+        return
+    left = [name for name in PER_PIXEL_GT if (gt / name).exists()]
+    if not warped or not left:
+        out_gt.symlink_to(gt.resolve())
+        return
+    out_gt.mkdir()
+    for entry in sorted(gt.iterdir()):
+        if entry.name not in left:
+            (out_gt / entry.name).symlink_to(entry.resolve())
+    log.warning("undistort: %s not carried over (per-pixel maps of the distorted images; they would need the "
+                "same warp): `splat ablate`'s floor row and the GT-depth panels of `splat render` need them",
+                ", ".join(str(gt / name) for name in left))
+
+
 def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Undistort ``scene_dir`` into ``out_dir`` (a new scene folder); returns ``out_dir``. Refuses to
     write into SCENE, and into an OUT that holds a model unless ``overwrite``."""
@@ -87,9 +110,7 @@ def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, ove
         shutil.rmtree(tmp, ignore_errors=True)
     if (scene_dir / "scene.json").is_file():
         shutil.copyfile(scene_dir / "scene.json", out_dir / "scene.json")
-    gt = scene_dir / "gt"
-    if gt.is_dir() and not (out_dir / "gt").exists():
-        (out_dir / "gt").symlink_to(gt.resolve())
+    _carry_gt(scene_dir / "gt", out_dir / "gt", warped=not pinhole)
     priors = scene_dir / "priors"
     if pinhole and priors.is_dir() and not (out_dir / "priors").exists():  # nothing warped: they still fit
         (out_dir / "priors").symlink_to(priors.resolve())

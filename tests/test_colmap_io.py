@@ -188,6 +188,23 @@ def test_text_model_mistakes_name_the_file_and_line(tmp_path):
         read_model(model)
 
 
+def test_an_image_camera_edited_without_its_frame_names_the_rigs_and_frames_files(tmp_path):
+    """pycolmap 4 writes rigs.txt and frames.txt; an image moved to another camera in images.txt alone
+    failed with pycolmap's bare 'Check failed: frame->HasDataId(DataId())' (new-user audit)."""
+    model = write_model(tmp_path / "m", _images(3))
+    pycolmap.Reconstruction(str(model)).write_text(str(model))  # the newer format: rigs and frames too
+    assert (model / "rigs.txt").is_file() and (model / "frames.txt").is_file()
+    read_model(model)
+    imgs = model / "images.txt"
+    imgs.write_text(imgs.read_text().replace(" 2 00001.png", " 1 00001.png"))
+    with pytest.raises(ValueError, match=r"could not read COLMAP model in .*: .*its rigs and frames files disagree "
+                                         r"with its images file"):
+        read_model(model)
+    for name in ("rigs.txt", "frames.txt"):
+        (model / name).unlink()
+    assert [im.name for im in read_model(model)[0]] == ["00000.png", "00001.png", "00002.png"]  # as the hint says
+
+
 def test_camera_lines_and_two_models_in_one_folder_are_named(tmp_path, caplog):
     """A camera line with another parameter count than its model's was pycolmap's bare 'Check failed:
     camera.VerifyParams()'; a folder with a binary and an edited text model read the binary in silence."""

@@ -186,7 +186,7 @@ class TestBadInput:
         other = scene_dir / "priors" / "depth" / "00003.npy"
         np.save(other, np.full((H * 2, W * 2), 2.5, np.float32))  # an estimator's output size
         scene = Scene.load(scene_dir)
-        assert "1 priors are not the size of their images" in caplog.text and "00003.npy" in caplog.text
+        assert "1 prior maps are not the size of their images" in caplog.text and "depth 00003.npy" in caplog.text
         prior = scene.depth_prior(3)
         assert prior.shape == (H, W) and np.all(prior == 2.5)
 
@@ -353,20 +353,27 @@ def test_a_reference_mesh_at_the_root_is_the_gt(tmp_path):
 
 
 def test_transparent_photos_are_warned_about(tmp_path, caplog):
-    """RGBA photos with transparent pixels train as the colour those pixels store: one warning; an
-    opaque alpha channel none."""
+    """RGBA photos with transparent pixels train as the colour those pixels store: one warning, counting
+    every such photo, not only the first (a scene whose later photos alone had alpha got none); an opaque
+    alpha channel none."""
     import logging
 
-    for name, alpha in (("clear", 0), ("opaque", 255)):
+    for name, alpha, which in (("clear", 0, (0,)), ("opaque", 255, (0,)), ("later", 0, (1, 2))):
         make_scene(tmp_path / name, n=3)
-        img = cv2.imread(str(tmp_path / name / "images" / "00000.png"))
-        rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
-        rgba[: H // 4, :, 3] = alpha
-        cv2.imwrite(str(tmp_path / name / "images" / "00000.png"), rgba)
+        for k in which:
+            img = cv2.imread(str(tmp_path / name / "images" / f"0000{k}.png"))
+            rgba = np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+            rgba[: H // 4, :, 3] = alpha
+            cv2.imwrite(str(tmp_path / name / "images" / f"0000{k}.png"), rgba)
         caplog.clear()
         with caplog.at_level(logging.WARNING, logger="geocues"):
             Scene.load(tmp_path / name)
-        assert ("alpha channel (25% of its pixels" in caplog.text) == (name == "clear"), caplog.text
+        assert ("alpha channel (" in caplog.text) == (name != "opaque"), caplog.text
+        assert caplog.text.count("alpha channel") <= 1
+        if name == "clear":
+            assert "00000.png has an alpha channel (25% of its pixels" in caplog.text
+        if name == "later":
+            assert "2 of the 3 photos have an alpha channel (00001.png: 25% of its pixels" in caplog.text
 
 
 def test_a_camera_index_outside_the_scene_is_named(tmp_path):
@@ -480,3 +487,26 @@ def test_undistort_of_a_pinhole_scene_keeps_its_priors(tmp_path: Path):
     a, b = Scene.load(root), Scene.load(out)
     assert b.has_depth_priors
     np.testing.assert_array_equal(a.depth_prior(1), b.depth_prior(1))
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_undistort_leaves_gt_depth_of_warped_images_behind(tmp_path: Path, caplog, distorted: bool):
+    """gt/ was linked whole, so a warped scene's exact depth (the ablation's floor, splat render's GT-depth
+    panels) was resized onto the undistorted images without a word (new-user audit): the mesh is carried,
+    the per-pixel maps only where nothing was warped."""
+    from cues_synth import make_room_scene
+    from geocues.undistort import UndistortConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48)
+    (root / "gt" / "depth").mkdir(parents=True)
+    np.save(root / "gt" / "depth" / "00000.npy", np.ones((48, 64), np.float32))
+    (root / "gt" / "mesh.ply").write_text("ply\n")
+    if distorted:
+        (root / "sparse" / "0" / "cameras.txt").write_text("1 SIMPLE_RADIAL 64 48 40 32 24 0.05\n")
+    with caplog.at_level("WARNING", logger="geocues"):
+        out = run(UndistortConfig(), root, tmp_path / "und")
+    gt = out / "gt"
+    assert (gt / "mesh.ply").read_text() == "ply\n"
+    assert (gt / "depth").exists() == (not distorted)
+    assert gt.is_symlink() == (not distorted)  # a real folder of links only when something stayed behind
+    assert ("gt/depth not carried over" in caplog.text) == distorted, caplog.text
