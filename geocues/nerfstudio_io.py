@@ -91,8 +91,12 @@ def _pose(path: Path, where: str, m) -> tuple[np.ndarray, np.ndarray]:
         T = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{path}: {where}: 'transform_matrix' is not a matrix of numbers") from None
-    if T.shape not in ((4, 4), (3, 4)) or not np.isfinite(T).all():
-        raise ValueError(f"{path}: {where} has a 'transform_matrix' of shape {T.shape}, expected 4x4 finite")
+    if T.shape not in ((4, 4), (3, 4)):
+        raise ValueError(f"{path}: {where} has a 'transform_matrix' of shape {T.shape}, expected 4x4")
+    if not np.isfinite(T).all():
+        row, col = np.argwhere(~np.isfinite(T))[0]
+        raise ValueError(f"{path}: {where} has a non-finite 'transform_matrix' (row {row}, column {col}: "
+                         f"{T[row, col]})")
     if T.shape == (4, 4) and not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
         raise ValueError(f"{path}: {where}: the last row of 'transform_matrix' is {T[3].tolist()}, "
                          f"not [0, 0, 0, 1]")

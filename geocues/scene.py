@@ -214,6 +214,17 @@ def _warn_transparency(paths: Sequence[Path]) -> None:
                     "(or mask them out) first", who, "" if len(fractions) == 1 else f"{path.name}: ", 100 * f)
 
 
+def _is_8bit_grey(path: Path) -> bool:
+    """Whether an image file is a one-channel 8-bit (or palette) image (header only)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("1", "L", "P")
+    except OSError:
+        return False  # unreadable: the loader's own error names it
+
+
 def _read_image_size(path: Path) -> tuple[int, int]:
     from PIL import Image, UnidentifiedImageError
 
@@ -223,6 +234,16 @@ def _read_image_size(path: Path) -> tuple[int, int]:
     except (UnidentifiedImageError, OSError) as exc:
         size = path.stat().st_size if path.exists() else 0
         raise ValueError(f"cannot read the image {path} ({'empty file' if size == 0 else type(exc).__name__})") from None
+
+
+_SAID: set[str] = set()
+
+
+def _say_once(sentence: str) -> None:
+    """A warning a command gives once, however often it loads the scene."""
+    if sentence not in _SAID:
+        _SAID.add(sentence)
+        log.warning("%s", sentence)
 
 
 def _has_colmap_model(root: Path) -> bool:
@@ -268,6 +289,9 @@ class Scene(ScenePriors):
         else:
             model_dir = find_model_dir(root)
             scene_root = root
+            if transforms is not None:
+                _say_once(f"{root} holds a COLMAP model ({model_dir}) and {transforms.name}: the COLMAP model is "
+                          f"read; give {shlex.quote(str(transforms))} as the scene to read the other")
             if model_dir == root:  # a model folder given directly: the scene is the folder above sparse/
                 scene_root = next((p for p in (root, root.parent, root.parent.parent)
                                    if (p / "images").is_dir()), root)
@@ -350,14 +374,16 @@ class Scene(ScenePriors):
     def _check_priors(self, raw_images) -> None:
         """Every prior must be a map of the right kind; one of another size than its image is
         resized when loaded (nearest: 0 = invalid stays intact), with a warning here."""
-        resized = []
+        resized, eight_bit = [], []
         for cam, raw in zip(self.cameras, raw_images):
             for kind in ("depth", "normal"):
                 path = self._prior_path(kind, cam.index)
                 if path is None:
                     continue
                 if kind == "depth" and path.suffix != ".npy":
-                    self._depth_png_scale(path)  # a PNG's unit is scene.json's: named here, not mid-extract
+                    scale = self._depth_png_scale(path)  # a PNG's unit is scene.json's: named here, not mid-extract
+                    if self.depth_kind == "depth" and _is_8bit_grey(path):
+                        eight_bit.append(path.name)
                 shape = (load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
                          else _read_image_size(path)[::-1])
                 want = "HxW" + ("x3" if kind == "normal" else "")
@@ -374,6 +400,11 @@ class Scene(ScenePriors):
         if resized:
             log.warning("%d prior maps are not the size of their images and are resized when loaded (%s%s)",
                         len(resized), ", ".join(resized[:3]), ", ..." if len(resized) > 3 else "")
+        if eight_bit:  # a depth visualisation given as depth: read as 0-0.255 m at millimetres, in silence
+            log.warning("%d depth priors are 8-bit PNGs (%s%s): at depth_png_scale %g they hold depths of at most "
+                        "%.3g (255 / %g) scene units; depth maps are 16-bit PNGs or .npy files. Is it a "
+                        "visualisation of the depth?", len(eight_bit), ", ".join(eight_bit[:3]),
+                        ", ..." if len(eight_bit) > 3 else "", scale, 255 / scale, scale)
 
     # ------------------------------------------------------------------ views
     @property

@@ -73,12 +73,17 @@ class TestRead:
         np.testing.assert_array_equal(ns.points.rgb, ref.points.rgb)
         assert ns.points.visible_in and all(len(v) == 0 for v in ns.points.visible_in.values())  # no tracks
 
-    def test_json_beside_a_colmap_model(self, colmap_scene, tmp_path):
-        """A folder with both: the folder is read as COLMAP, the file given directly as nerfstudio."""
+    def test_json_beside_a_colmap_model(self, colmap_scene, tmp_path, caplog):
+        """A folder with both: the folder is read as COLMAP, the file given directly as nerfstudio; the
+        choice is said once (it was silent, new-user audit)."""
         scene_dir = tmp_path / "both"
         shutil.copytree(colmap_scene, scene_dir)
         path = _export(scene_dir, scene_dir)
-        assert Scene.load(scene_dir).model_dir == scene_dir / "sparse" / "0"
+        with caplog.at_level("WARNING", logger="geocues"):
+            assert Scene.load(scene_dir).model_dir == scene_dir / "sparse" / "0"
+            Scene.load(scene_dir)
+        assert caplog.text.count("the COLMAP model is read; give") == 1, caplog.text
+        assert str(path) in caplog.text
         ref, ns = Scene.load(scene_dir), Scene.load(path)
         _assert_same_cameras(ref, ns)
         for i in range(len(ref)):  # priors/ by stem still works
@@ -158,6 +163,9 @@ class TestBadInput:
         (lambda m: m["frames"][0].update(transform_matrix=[[1, 0, 0]]), r"'transform_matrix' of shape \(1, 3\)"),
         (lambda m: m["frames"][0]["transform_matrix"][0].pop(), r"'transform_matrix' is not a matrix of numbers"),
         (lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(0, 2.0), r"not a rotation"),
+        (lambda m: m["frames"][4]["transform_matrix"][1].__setitem__(3, float("nan")),
+         r"frame 4 \(images/00004.png\) has a non-finite 'transform_matrix' \(row 1, column 3: nan\)"),
+        (lambda m: m["frames"][4]["transform_matrix"][2].__setitem__(0, None), r"non-finite 'transform_matrix' \(row 2, column 0"),
         (lambda m: m.update(applied_transform=[[2, 0, 0, 0]]), r"'applied_transform' must be"),
         (lambda m: m["frames"][3].update(depth_file_path="depth/missing.npy"), r"depth_file_path is missing"),
         (lambda m: m.update(ply_file_path="nope.ply"), r"ply_file_path is missing"),

@@ -4,10 +4,65 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from geocues.scene import Scene
+
+
+class TestUndistort:
+    """A SIMPLE_RADIAL scene whose only content is a bright dot at the distorted projection of a known
+    3D point: after undistortion the dot must sit at the PINHOLE projection in the new camera."""
+
+    f, k, w, h = 100.0, 0.25, 160, 120
+
+    def _distort(self, xn: np.ndarray) -> np.ndarray:
+        r2 = (xn ** 2).sum(-1, keepdims=True)
+        return xn * (1 + self.k * r2) * self.f + [self.w / 2, self.h / 2]  # COLMAP SIMPLE_RADIAL
+
+    def _make(self, root: Path, X: np.ndarray) -> None:
+        (root / "images").mkdir(parents=True)
+        (root / "sparse" / "0").mkdir(parents=True)
+        uv = self._distort(X[:2] / X[2])
+        j, i = np.meshgrid(np.arange(self.w) + 0.5, np.arange(self.h) + 0.5)  # pixel centres
+        blob = np.exp(-((j - uv[0]) ** 2 + (i - uv[1]) ** 2) / (2 * 1.5 ** 2))
+        cv2.imwrite(str(root / "images" / "a.png"), np.repeat((blob * 255).round().astype(np.uint8)[..., None], 3, 2))
+        m = root / "sparse" / "0"
+        (m / "cameras.txt").write_text(f"1 SIMPLE_RADIAL {self.w} {self.h} {self.f} {self.w / 2} {self.h / 2} {self.k}\n")
+        (m / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")  # identity pose
+        (m / "points3D.txt").write_text("")
+
+    def test_dot_lands_on_pinhole_projection(self, tmp_path: Path):
+        from geocues.undistort import UndistortConfig, run
+
+        X = np.array([0.45, -0.3, 1.0])  # off-centre, where distortion moves it by several pixels
+        self._make(tmp_path / "d", X)
+        with pytest.raises(ValueError, match="geocues undistort"):
+            Scene.load(tmp_path / "d")
+        run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
+        s = Scene.load(tmp_path / "u")
+        cam = s.cameras[0]
+        img = s.load_image(0)[..., 0]
+        j, i = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        wgt = np.where(img > 0.3, img, 0)
+        dot = np.array([(wgt * j).sum(), (wgt * i).sum()]) / wgt.sum()
+        uv, _ = cam.project(X[None])
+        moved = np.linalg.norm(self._distort(X[:2] / X[2]) - (X[:2] / X[2] * self.f + [self.w / 2, self.h / 2]))
+        assert moved > 3.0  # the test would notice a missing undistortion
+        np.testing.assert_allclose(dot, uv[0], atol=0.3)
+
+    def test_refuses_in_place_and_existing_out(self, tmp_path: Path):
+        from geocues.undistort import UndistortConfig, run
+
+        self._make(tmp_path / "d", np.array([0.1, 0.1, 1.0]))
+        with pytest.raises(ValueError, match="must differ"):
+            run(UndistortConfig(), tmp_path / "d", tmp_path / "d")
+        run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
+        with pytest.raises(ValueError, match=str(tmp_path / "u" / "sparse") + ".*--overwrite"):
+            run(UndistortConfig(), tmp_path / "d", tmp_path / "u")
+        run(UndistortConfig(), tmp_path / "d", tmp_path / "u", overwrite=True)
+        assert sorted(p.name for p in (tmp_path / "u").iterdir()) == ["images", "sparse"]
 
 
 def test_undistort_of_a_pinhole_scene_keeps_its_priors(tmp_path: Path):
