@@ -1,5 +1,6 @@
 """Every relative link of README.md and docs/*.md reaches a file that exists, and a #fragment a
-heading of that file (GitHub's anchor rule), so a page moved or a heading renamed shows here."""
+heading of that file (GitHub's anchor rule), so a page moved or a heading renamed shows here; every test
+a page cites (`tests/FILE.py::Class::test_name`, or `tests/FILE.py` (`test_a`, `test_b`)) exists."""
 
 from __future__ import annotations
 
@@ -65,3 +66,33 @@ def test_relative_links_resolve(page: Path):
         elif fragment and dest.suffix == ".md" and fragment not in anchors(dest):
             bad.append(f"{target} (no heading with that anchor in {dest.name})")
     assert not bad, f"{page.relative_to(REPO)}: " + "; ".join(bad)
+
+
+CITED = re.compile(r"tests/(\w+\.py)((?:::[\w]+)+)")
+CITED_LIST = re.compile(r"tests/(\w+\.py)` \(((?:`\w+`(?:, )?)+)\)")
+
+
+def cited_tests(text: str) -> list[tuple[str, str]]:
+    """(test file, name) for every test a page names, in either way it names them."""
+    found = [(m.group(1), name) for m in CITED.finditer(text) for name in m.group(2).split("::")[1:]]
+    found += [(m.group(1), name) for m in CITED_LIST.finditer(text) for name in re.findall(r"`(\w+)`", m.group(2))]
+    return found
+
+
+def test_cited_tests_are_found_in_either_form():
+    text = "`tests/test_a.py::TestX::test_y` and `tests/test_b.py` (`test_c`, `test_d`)"
+    assert cited_tests(text) == [("test_a.py", "TestX"), ("test_a.py", "test_y"), ("test_b.py", "test_c"),
+                                 ("test_b.py", "test_d")]
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_cited_tests_exist(page: Path):
+    """A test renamed, moved to another file or deleted leaves the page citing it wrong."""
+    bad = []
+    for file, name in cited_tests(page.read_text()):
+        path = REPO / "tests" / file
+        if not path.is_file():
+            bad.append(f"tests/{file} (no such file)")
+        elif not re.search(rf"^\s*(?:def|class) {name}\b", path.read_text(), re.M):
+            bad.append(f"tests/{file}::{name} (not defined there)")
+    assert not bad, f"{page.relative_to(REPO)}: " + "; ".join(sorted(set(bad)))
