@@ -1,8 +1,15 @@
-"""Which files of a scene's images/ folder are photos, and their names as COLMAP gives them."""
+"""Which files of a scene's images/ folder are photos, their names as COLMAP gives them, and what a
+photo or map file holds (its size, an alpha channel, its bit depth, an EXIF rotation)."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+log = logging.getLogger(__name__)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # compared in lower case: .JPG, .Jpeg too
 
@@ -100,3 +107,69 @@ def check_photos(image_dir: Path, names: list[str]) -> dict[tuple[int, int], lis
                              f"'{Path(n).stem}', which names their priors and outputs: rename one "
                              f"(e.g. {n.replace('/', '_')})")
     return sizes
+
+
+def rotation_hint(path: Path, stored: tuple[int, int], model: tuple[int, int]) -> str:
+    """The likely cause when a photo's sides are the model's swapped and it carries an EXIF rotation."""
+    if stored != model[::-1]:
+        return ""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as img:
+            turned = img.getexif().get(0x0112, 1) in (5, 6, 7, 8)  # Orientation: a quarter turn
+    except Exception:  # noqa: BLE001  (a hint only: the size error stands on its own)
+        return ""
+    return ("; the file carries an EXIF rotation tag, which this toolkit does not apply (it reads the stored "
+            "pixels, docs/scenes.md): the model was made from the rotated photos, so save the photos rotated "
+            "(e.g. PIL.ImageOps.exif_transpose) or map the stored ones again") if turned else ""
+
+
+def transparent_fraction(path: Path) -> float:
+    """The fraction of a photo's pixels that are transparent or partly so (0 without an alpha channel;
+    only a photo with one is decoded)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            if "A" not in im.getbands() and "transparency" not in im.info:
+                return 0.0
+            alpha = np.asarray(im.convert("RGBA"))[..., 3]
+    except OSError:
+        return 0.0  # unreadable: the loader's own error names it
+    return float((alpha < 255).mean())
+
+
+def warn_transparency(paths: Sequence[Path]) -> None:
+    """One warning when photos have transparent pixels: images are read as RGB (as COLMAP reads them), so
+    those pixels train as whatever colour they store."""
+    fractions = [(path, f) for path in paths if (f := transparent_fraction(path)) > 0]
+    if fractions:
+        path, f = fractions[0]
+        who = (f"{path} has" if len(fractions) == 1 else
+               f"{len(fractions)} of the {len(paths)} photos have")
+        log.warning("%s an alpha channel (%s%.0f%% of its pixels transparent or partly so): images are read as "
+                    "RGB, so those pixels train as the colour they store; composite the photos onto a background "
+                    "(or mask them out) first", who, "" if len(fractions) == 1 else f"{path.name}: ", 100 * f)
+
+
+def is_8bit_grey(path: Path) -> bool:
+    """Whether an image file is a one-channel 8-bit (or palette) image (header only)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("1", "L", "P")
+    except OSError:
+        return False  # unreadable: the loader's own error names it
+
+
+def read_image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size  # (width, height)
+    except (UnidentifiedImageError, OSError) as exc:
+        size = path.stat().st_size if path.exists() else 0
+        raise ValueError(f"cannot read the image {path} ({'empty file' if size == 0 else type(exc).__name__})") from None

@@ -27,12 +27,12 @@ import logging
 import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
 from geocues.photos import IMAGE_EXTS, is_image, list_images, missing_images_error  # noqa: F401  (re-exported)
+from geocues.photos import is_8bit_grey, read_image_size, rotation_hint, warn_transparency
 from geocues.nerfstudio_io import find_transforms, read_transforms
 from geocues.scene_priors import ScenePriors, load_npy
 
@@ -59,22 +59,6 @@ def no_images_folder(image_dir: Path) -> FileNotFoundError:
            else f"move them into {image_dir}/ and pass {given}")
     return FileNotFoundError(f"no images folder at {image_dir}; {given} holds {len(own)} images itself, but a "
                              f"scene keeps them in images/ (COLMAP's layout): {fix}")
-
-
-def _rotation_hint(path: Path, stored: tuple[int, int], model: tuple[int, int]) -> str:
-    """The likely cause when a photo's sides are the model's swapped and it carries an EXIF rotation."""
-    if stored != model[::-1]:
-        return ""
-    try:
-        from PIL import Image
-
-        with Image.open(path) as img:
-            turned = img.getexif().get(0x0112, 1) in (5, 6, 7, 8)  # Orientation: a quarter turn
-    except Exception:  # noqa: BLE001  (a hint only: the size error stands on its own)
-        return ""
-    return ("; the file carries an EXIF rotation tag, which this toolkit does not apply (it reads the stored "
-            "pixels, docs/scenes.md): the model was made from the rotated photos, so save the photos rotated "
-            "(e.g. PIL.ImageOps.exif_transpose) or map the stored ones again") if turned else ""
 
 
 def _frames_folder(root: Path) -> str:
@@ -186,56 +170,6 @@ class Points3D:
         return len(self.ids)
 
 
-def _transparent_fraction(path: Path) -> float:
-    """The fraction of a photo's pixels that are transparent or partly so (0 without an alpha channel;
-    only a photo with one is decoded)."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            if "A" not in im.getbands() and "transparency" not in im.info:
-                return 0.0
-            alpha = np.asarray(im.convert("RGBA"))[..., 3]
-    except OSError:
-        return 0.0  # unreadable: the loader's own error names it
-    return float((alpha < 255).mean())
-
-
-def _warn_transparency(paths: Sequence[Path]) -> None:
-    """One warning when photos have transparent pixels: images are read as RGB (as COLMAP reads them), so
-    those pixels train as whatever colour they store."""
-    fractions = [(path, f) for path in paths if (f := _transparent_fraction(path)) > 0]
-    if fractions:
-        path, f = fractions[0]
-        who = (f"{path} has" if len(fractions) == 1 else
-               f"{len(fractions)} of the {len(paths)} photos have")
-        log.warning("%s an alpha channel (%s%.0f%% of its pixels transparent or partly so): images are read as "
-                    "RGB, so those pixels train as the colour they store; composite the photos onto a background "
-                    "(or mask them out) first", who, "" if len(fractions) == 1 else f"{path.name}: ", 100 * f)
-
-
-def _is_8bit_grey(path: Path) -> bool:
-    """Whether an image file is a one-channel 8-bit (or palette) image (header only)."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.mode in ("1", "L", "P")
-    except OSError:
-        return False  # unreadable: the loader's own error names it
-
-
-def _read_image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            return im.size  # (width, height)
-    except (UnidentifiedImageError, OSError) as exc:
-        size = path.stat().st_size if path.exists() else 0
-        raise ValueError(f"cannot read the image {path} ({'empty file' if size == 0 else type(exc).__name__})") from None
-
-
 _SAID: set[str] = set()
 
 
@@ -315,12 +249,12 @@ class Scene(ScenePriors):
                              f"{distorted.model}; undistort the scene first: `geocues undistort {shlex.quote(str(scene_root))} -o OUT`")
         if err := missing_images_error(model_dir, paths):
             raise err
-        _warn_transparency(paths)
+        warn_transparency(paths)
         for k, (im, path) in enumerate(zip(raw_images, paths)):
-            w, h = _read_image_size(path)
+            w, h = read_image_size(path)
             if (w, h) != (im.width, im.height):
                 raise ValueError(f"{path} is {w}x{h} but its camera in {model_dir} says "
-                                 f"{im.width}x{im.height}{_rotation_hint(path, (w, h), (im.width, im.height))}")
+                                 f"{im.width}x{im.height}{rotation_hint(path, (w, h), (im.width, im.height))}")
             if not (np.isfinite(im.K).all() and np.isfinite(im.R).all() and np.isfinite(im.t).all()):
                 raise ValueError(f"image {im.name} in {model_dir} has a non-finite pose or intrinsics")
             nw, nh = downscaled_size(im.width, im.height, downscale)
@@ -382,10 +316,10 @@ class Scene(ScenePriors):
                     continue
                 if kind == "depth" and path.suffix != ".npy":
                     scale = self._depth_png_scale(path)  # a PNG's unit is scene.json's: named here, not mid-extract
-                    if self.depth_kind == "depth" and _is_8bit_grey(path):
+                    if self.depth_kind == "depth" and is_8bit_grey(path):
                         eight_bit.append(path.name)
                 shape = (load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
-                         else _read_image_size(path)[::-1])
+                         else read_image_size(path)[::-1])
                 want = "HxW" + ("x3" if kind == "normal" else "")
                 if path.suffix == ".npy" and (len(shape) != (3 if kind == "normal" else 2)
                                               or (kind == "normal" and shape[2] != 3)):
