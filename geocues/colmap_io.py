@@ -251,7 +251,7 @@ def load_reconstruction(model_dir: Path):
             return pycolmap.Reconstruction(tmp)
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on broken files
         hint = ""
-        if "frame" in str(exc).lower() and any((model_dir / f"{n}.{e}").is_file()
+        if "hasdataid" in str(exc).lower() and any((model_dir / f"{n}.{e}").is_file()
                                                 for n in ("rigs", "frames") for e in ("txt", "bin")):
             hint = ("; its rigs and frames files disagree with its images file (an image's camera or id edited "
                     "by hand?): edit them alike, or remove both and COLMAP reads one rig per camera")

@@ -3,13 +3,11 @@ photo or map file holds (its size, an alpha channel, its bit depth, an EXIF rota
 
 from __future__ import annotations
 
-import logging
+import functools
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-
-log = logging.getLogger(__name__)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # compared in lower case: .JPG, .Jpeg too
 
@@ -40,7 +38,7 @@ def missing_images_error(model_dir: Path, paths: list[Path]) -> FileNotFoundErro
     if len(gone) == 1:
         return FileNotFoundError(f"image listed in {model_dir} is missing on disk: {gone[0]}")
     return FileNotFoundError(f"{len(gone)} of {len(paths)} images listed in {model_dir} are missing on disk: "
-                             + _listed([str(p) for p in gone]))
+                             + listed([str(p) for p in gone]))
 
 
 def photos_in_subfolders(image_dir: Path) -> int:
@@ -53,7 +51,8 @@ def photos_in_subfolders(image_dir: Path) -> int:
                and not any(part.startswith(".") for part in p.relative_to(image_dir).parts))
 
 
-def _listed(paths: list[str], more: int = 3) -> str:
+def listed(paths: list[str], more: int = 3) -> str:
+    """The first ``more`` names, then how many more ("a, b, c and 4 more")."""
     return ", ".join(paths[:more]) + (f" and {len(paths) - more} more" if len(paths) > more else "")
 
 
@@ -94,11 +93,11 @@ def check_photos(image_dir: Path, names: list[str]) -> dict[tuple[int, int], lis
     finally:
         Image.MAX_IMAGE_PIXELS = limit
     if bad:
-        raise ValueError(f"cannot read {len(bad)} of {len(names)} photos: {_listed(bad)}; "
+        raise ValueError(f"cannot read {len(bad)} of {len(names)} photos: {listed(bad)}; "
                          "replace or remove them")
     spaced = [n for n in names if any(ch.isspace() for ch in n)]
     if spaced:
-        raise ValueError(f"{len(spaced)} photo names hold a space ({_listed(spaced)}): COLMAP's pair lists are "
+        raise ValueError(f"{len(spaced)} photo names hold a space ({listed(spaced)}): COLMAP's pair lists are "
                          "whitespace-separated, so they cannot be matched; rename them (e.g. spaces to '_')")
     seen: dict[str, str] = {}
     for n in names:
@@ -127,7 +126,16 @@ def rotation_hint(path: Path, stored: tuple[int, int], model: tuple[int, int]) -
 
 def transparent_fraction(path: Path) -> float:
     """The fraction of a photo's pixels that are transparent or partly so (0 without an alpha channel;
-    only a photo with one is decoded)."""
+    only a photo with one is decoded, once per version of the file in a process)."""
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return 0.0  # missing: the loader's own error names it
+    return _transparent_fraction(str(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=4096)
+def _transparent_fraction(path: str, mtime_ns: int, size: int) -> float:
     from PIL import Image
 
     try:
@@ -140,17 +148,17 @@ def transparent_fraction(path: Path) -> float:
     return float((alpha < 255).mean())
 
 
-def warn_transparency(paths: Sequence[Path]) -> None:
-    """One warning when photos have transparent pixels: images are read as RGB (as COLMAP reads them), so
+def transparency_warning(paths: Sequence[Path]) -> str | None:
+    """The warning for photos with transparent pixels: images are read as RGB (as COLMAP reads them), so
     those pixels train as whatever colour they store."""
     fractions = [(path, f) for path in paths if (f := transparent_fraction(path)) > 0]
-    if fractions:
-        path, f = fractions[0]
-        who = (f"{path} has" if len(fractions) == 1 else
-               f"{len(fractions)} of the {len(paths)} photos have")
-        log.warning("%s an alpha channel (%s%.0f%% of its pixels transparent or partly so): images are read as "
-                    "RGB, so those pixels train as the colour they store; composite the photos onto a background "
-                    "(or mask them out) first", who, "" if len(fractions) == 1 else f"{path.name}: ", 100 * f)
+    if not fractions:
+        return None
+    path, f = fractions[0]
+    who = f"{path} has" if len(fractions) == 1 else f"{len(fractions)} of the {len(paths)} photos have"
+    return (f"{who} an alpha channel ({'' if len(fractions) == 1 else f'{path.name}: '}{100 * f:.0f}% of its pixels "
+            "transparent or partly so): images are read as RGB, so those pixels train as the colour they store; "
+            "composite the photos onto a background (or mask them out) first")
 
 
 def is_8bit_grey(path: Path) -> bool:

@@ -32,7 +32,8 @@ import numpy as np
 
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
 from geocues.photos import IMAGE_EXTS, is_image, list_images, missing_images_error  # noqa: F401  (re-exported)
-from geocues.photos import is_8bit_grey, read_image_size, rotation_hint, warn_transparency
+from geocues.once import warn_once
+from geocues.photos import is_8bit_grey, listed, read_image_size, rotation_hint, transparency_warning
 from geocues.nerfstudio_io import find_transforms, read_transforms
 from geocues.scene_priors import ScenePriors, load_npy
 
@@ -170,16 +171,6 @@ class Points3D:
         return len(self.ids)
 
 
-_SAID: set[str] = set()
-
-
-def _say_once(sentence: str) -> None:
-    """A warning a command gives once, however often it loads the scene."""
-    if sentence not in _SAID:
-        _SAID.add(sentence)
-        log.warning("%s", sentence)
-
-
 def _has_colmap_model(root: Path) -> bool:
     try:
         find_model_dir(root)
@@ -224,7 +215,7 @@ class Scene(ScenePriors):
             model_dir = find_model_dir(root)
             scene_root = root
             if transforms is not None:
-                _say_once(f"{root} holds a COLMAP model ({model_dir}) and {transforms.name}: the COLMAP model is "
+                warn_once(log, f"{root} holds a COLMAP model ({model_dir}) and {transforms.name}: the COLMAP model is "
                           f"read; give {shlex.quote(str(transforms))} as the scene to read the other")
             if model_dir == root:  # a model folder given directly: the scene is the folder above sparse/
                 scene_root = next((p for p in (root, root.parent, root.parent.parent)
@@ -249,7 +240,8 @@ class Scene(ScenePriors):
                              f"{distorted.model}; undistort the scene first: `geocues undistort {shlex.quote(str(scene_root))} -o OUT`")
         if err := missing_images_error(model_dir, paths):
             raise err
-        warn_transparency(paths)
+        if alpha := transparency_warning(paths):
+            warn_once(log, alpha)
         for k, (im, path) in enumerate(zip(raw_images, paths)):
             w, h = read_image_size(path)
             if (w, h) != (im.width, im.height):
@@ -316,7 +308,7 @@ class Scene(ScenePriors):
                     continue
                 if kind == "depth" and path.suffix != ".npy":
                     scale = self._depth_png_scale(path)  # a PNG's unit is scene.json's: named here, not mid-extract
-                    if self.depth_kind == "depth" and is_8bit_grey(path):
+                    if is_8bit_grey(path):
                         eight_bit.append(path.name)
                 shape = (load_npy(path, f"{kind} prior", mmap_mode="r").shape if path.suffix == ".npy"
                          else read_image_size(path)[::-1])
@@ -328,17 +320,17 @@ class Scene(ScenePriors):
                 if tuple(shape[:2]) not in {(raw.height, raw.width), (cam.height, cam.width)}:
                     resized.append(f"{kind} {path.name} {shape[1]}x{shape[0]}")
                     if abs(shape[1] / shape[0] - raw.width / raw.height) > 0.02 * raw.width / raw.height:
-                        log.warning("%s prior %s is %dx%d but its image %s is %dx%d: another aspect ratio "
-                                    "(is it cropped?); it is stretched to the image", kind, path, shape[1],
-                                    shape[0], cam.image_path.name, raw.width, raw.height)
-        if resized:
-            log.warning("%d prior maps are not the size of their images and are resized when loaded (%s%s)",
-                        len(resized), ", ".join(resized[:3]), ", ..." if len(resized) > 3 else "")
+                        warn_once(log, f"{kind} prior {path} is {shape[1]}x{shape[0]} but its image "
+                                       f"{cam.image_path.name} is {raw.width}x{raw.height}: another aspect ratio "
+                                       "(is it cropped?); it is stretched to the image")
+        if resized:  # warned once: `splat ablate` loads the scene again for every row
+            warn_once(log, f"{len(resized)} prior maps of {self.root} are not the size of their images and are "
+                           f"resized when loaded ({listed(resized)})")
         if eight_bit:  # a depth visualisation given as depth: read as 0-0.255 m at millimetres, in silence
-            log.warning("%d depth priors are 8-bit PNGs (%s%s): at depth_png_scale %g they hold depths of at most "
-                        "%.3g (255 / %g) scene units; depth maps are 16-bit PNGs or .npy files. Is it a "
-                        "visualisation of the depth?", len(eight_bit), ", ".join(eight_bit[:3]),
-                        ", ..." if len(eight_bit) > 3 else "", scale, 255 / scale, scale)
+            warn_once(log, f"{len(eight_bit)} depth priors of {self.root} are 8-bit PNGs ({listed(eight_bit)}): 256 "
+                           f"levels, read as depth at most {255 / scale:.3g} scene units (255 / depth_png_scale "
+                           f"{scale:g}); depth and disparity maps are 16-bit PNGs or .npy files: is it a "
+                           "visualisation?")
 
     # ------------------------------------------------------------------ views
     @property

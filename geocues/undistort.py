@@ -2,9 +2,9 @@
 into a PINHOLE scene with pycolmap's image undistorter (COLMAP ``image_undistorter``).
 
 OUT gets undistorted ``images/``, the model in ``sparse/0`` (cameras now PINHOLE, points kept),
-``scene.json`` copied and ``gt/`` linked. Priors are per-pixel maps of the distorted images and are
-not carried over (they would need the same warp): a warning says so; a scene already pinhole keeps
-them (linked: nothing was warped).
+``scene.json`` copied and ``gt/`` linked. Priors, and gt/'s exact depth and normals, are per-pixel
+maps of the distorted images and are not carried over (they would need the same warp): a warning says
+so; a scene already pinhole keeps them (linked: nothing was warped).
 """
 
 from __future__ import annotations
@@ -42,20 +42,30 @@ PER_PIXEL_GT = ("depth", "normal")
 def _carry_gt(gt: Path, out_gt: Path, warped: bool) -> None:
     """OUT/gt links SCENE/gt (the mesh is geometry: undistortion leaves it as it is). When the images were
     warped, the per-pixel maps in gt/ (exact depth, normals) no longer fit them: OUT/gt is then a folder
-    of links to everything else, and a warning names what stayed behind."""
-    if not gt.is_dir() or out_gt.exists() or out_gt.is_symlink():
+    of links to everything else (so maps added to SCENE/gt later stay out too), and a warning names what
+    stayed behind. An OUT/gt made of links (an earlier run's) is made again; one holding files is kept."""
+    if not gt.is_dir():
         return
-    left = [name for name in PER_PIXEL_GT if (gt / name).exists()]
-    if not warped or not left:
+    if out_gt.is_symlink():
+        out_gt.unlink()
+    elif out_gt.is_dir():
+        entries = list(out_gt.iterdir())
+        if not all(e.is_symlink() for e in entries):
+            return  # the user's own files
+        for e in entries:
+            e.unlink()
+        out_gt.rmdir()
+    if not warped:
         out_gt.symlink_to(gt.resolve())
         return
     out_gt.mkdir()
     for entry in sorted(gt.iterdir()):
-        if entry.name not in left:
+        if entry.name not in PER_PIXEL_GT:
             (out_gt / entry.name).symlink_to(entry.resolve())
-    log.warning("undistort: %s not carried over (per-pixel maps of the distorted images; they would need the "
-                "same warp): `splat ablate`'s floor row and the GT-depth panels of `splat render` need them",
-                ", ".join(str(gt / name) for name in left))
+    if left := [name for name in PER_PIXEL_GT if (gt / name).exists()]:
+        log.warning("undistort: %s not carried over (per-pixel maps of the distorted images; they would need the "
+                    "same warp): `splat ablate`'s floor row and the GT-depth panels of `splat render` read gt/depth",
+                    ", ".join(str(gt / name) for name in left))
 
 
 def run(cfg: UndistortConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:

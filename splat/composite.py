@@ -52,6 +52,7 @@ import logging
 import torch
 from torch import Tensor
 
+from geocues.once import warn_once
 from splat.contracts import CompositeOut, check_composite_inputs  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)
@@ -100,15 +101,9 @@ def available_backends() -> list[str]:
             + (["cuda"] if cuda_backend_available() else []))
 
 
-_warned: set[str] = set()
-
-
 def _warn_once(msg: str, *args) -> None:
     """A backend fallback is said once per process, not at every render (109 lines in 60 steps)."""
-    text = msg % args
-    if text not in _warned:
-        _warned.add(text)
-        log.warning("%s", text)
+    warn_once(log, msg % args)
 
 
 def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | None = None) -> str:

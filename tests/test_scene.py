@@ -186,7 +186,8 @@ class TestBadInput:
         other = scene_dir / "priors" / "depth" / "00003.npy"
         np.save(other, np.full((H * 2, W * 2), 2.5, np.float32))  # an estimator's output size
         scene = Scene.load(scene_dir)
-        assert "1 prior maps are not the size of their images" in caplog.text and "depth 00003.npy" in caplog.text
+        assert f"1 prior maps of {scene_dir} are not the size of their images" in caplog.text
+        assert "(depth 00003.npy 128x96)" in caplog.text
         prior = scene.depth_prior(3)
         assert prior.shape == (H, W) and np.all(prior == 2.5)
 
@@ -248,18 +249,20 @@ class TestBadInput:
         assert "distorted camera model SIMPLE_RADIAL" in out and f"geocues undistort {scene_dir}" in out
         assert Scene.load(scene_dir, allow_distorted=True).distorted_models == ["SIMPLE_RADIAL"]
 
-    @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
-    def test_an_8bit_depth_png_is_named(self, scene_dir: Path, caplog, dtype):
-        """An 8-bit PNG (a depth visualisation) read as millimetres held 0-0.255 m without a word."""
+    @pytest.mark.parametrize("dtype, kind", [(np.uint8, "depth"), (np.uint16, "depth"), (np.uint8, "disparity")])
+    def test_an_8bit_depth_png_is_named_once(self, scene_dir: Path, caplog, dtype, kind):
+        """An 8-bit PNG (a depth visualisation) read as millimetres held 0-0.255 m without a word; the
+        warning comes once per process (`splat ablate` loads the scene again for every row)."""
         (scene_dir / "priors" / "depth").mkdir(parents=True)
-        (scene_dir / "scene.json").write_text(json.dumps({"depth_png_scale": 1000}))
+        (scene_dir / "scene.json").write_text(json.dumps({"depth_png_scale": 1000, "priors": {"depth_kind": kind}}))
         for k in (0, 1):
             cv2.imwrite(str(scene_dir / "priors" / "depth" / f"0000{k}.png"), np.full((H, W), 200, dtype))
         with caplog.at_level("WARNING", logger="geocues"):
             Scene.load(scene_dir)
-        said = "2 depth priors are 8-bit PNGs (00000.png, 00001.png): at depth_png_scale 1000 they hold depths of " \
-               "at most 0.255 (255 / 1000) scene units"
-        assert (said in caplog.text) == (dtype == np.uint8), caplog.text
+            Scene.load(scene_dir)
+        said = "2 depth priors of %s are 8-bit PNGs (00000.png, 00001.png): 256 levels, read as depth at most " \
+               "0.255 scene units (255 / depth_png_scale 1000)" % scene_dir
+        assert caplog.text.count(said) == (dtype == np.uint8), caplog.text
 
     def test_png_depth_without_scale(self, scene_dir: Path):
         (scene_dir / "priors" / "depth").mkdir(parents=True)

@@ -106,10 +106,10 @@ def test_a_backend_fallback_is_said_once(caplog, monkeypatch):
     """`--backend cuda` on the CPU warned at every render: 109 lines in 60 steps."""
     import torch
 
-    import splat.composite as composite
+    import geocues.once as once
     from splat.composite import resolve_backend
 
-    monkeypatch.setattr(composite, "_warned", set())
+    monkeypatch.setattr(once, "_SAID", set())
     with caplog.at_level(logging.WARNING, logger="splat"):
         for _ in range(5):
             assert resolve_backend("cuda", torch.device("cpu")) == "torch"

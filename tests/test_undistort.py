@@ -99,3 +99,30 @@ def test_undistort_leaves_gt_depth_of_warped_images_behind(tmp_path: Path, caplo
     assert (gt / "depth").exists() == (not distorted)
     assert gt.is_symlink() == (not distorted)  # a real folder of links only when something stayed behind
     assert ("gt/depth not carried over" in caplog.text) == distorted, caplog.text
+
+
+def test_an_overwrite_remakes_gt_and_later_maps_stay_out(tmp_path: Path, caplog):
+    """The first `_carry_gt` kept an existing OUT/gt: an OUT made before (gt/ linked whole, with the
+    distorted images' depth) kept it through --overwrite, and a warped scene without gt/depth at the time
+    got gt/ linked whole, so a gt/depth added later reached OUT (review)."""
+    from cues_synth import make_room_scene
+    from geocues.undistort import UndistortConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=4, w=64, h=48)
+    (root / "gt").mkdir()
+    (root / "gt" / "mesh.ply").write_text("ply\n")
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 SIMPLE_RADIAL 64 48 40 32 24 0.05\n")
+    out = tmp_path / "und"
+    out.mkdir()
+    (out / "gt").symlink_to((root / "gt").resolve())  # what the earlier version left
+    run(UndistortConfig(), root, out)
+    (root / "gt" / "depth").mkdir()  # added after the run
+    np.save(root / "gt" / "depth" / "00000.npy", np.ones((48, 64), np.float32))
+    assert not (out / "gt").is_symlink() and not (out / "gt" / "depth").exists()
+    with caplog.at_level("WARNING", logger="geocues"):
+        run(UndistortConfig(), root, out, overwrite=True)
+    assert not (out / "gt" / "depth").exists() and (out / "gt" / "mesh.ply").read_text() == "ply\n"
+    assert "gt/depth not carried over" in caplog.text
+    (out / "gt" / "notes.txt").write_text("mine")  # a folder holding the user's own files is kept
+    run(UndistortConfig(), root, out, overwrite=True)
+    assert (out / "gt" / "notes.txt").read_text() == "mine"
