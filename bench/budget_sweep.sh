@@ -19,6 +19,7 @@ budgets=()
 while [ $# -gt 0 ] && [ "$1" != -- ]; do budgets+=("$1"); shift; done
 [ $# -gt 0 ] && shift
 extra=("$@")
+[ ${#budgets[@]} -gt 0 ] || { echo "usage: $0 ROOM CUES OUT NAME LABEL BUDGET... [-- ABLATE_OPTION...]: no budget" >&2; exit 2; }
 cd "$(dirname "$0")/.."
 bin=.venv/bin
 mkdir -p "$out"
@@ -26,7 +27,7 @@ runs=()
 for b in "${budgets[@]}"; do
     flag=()
     [ "$b" != auto ] && flag=(--strategy.max-gaussians "$b")
-    $bin/splat ablate "$room" -c "$cues" -o "$out/b_$b" --rows full --seeds "${SEEDS:-1}" --iters 3000 --downscale 2 "${flag[@]}" "${extra[@]}" \
+    $bin/splat ablate "$room" -c "$cues" -o "$out/b_$b" --rows full --seeds "${SEEDS:-1}" --iters 3000 --downscale 2 ${flag[@]+"${flag[@]}"} ${extra[@]+"${extra[@]}"} \
         2> "$out/b_$b.log"
     runs+=("$out/b_$b")
 done
