@@ -67,6 +67,47 @@ def load_gt_depth(folder: Path, stem: str, shape: tuple[int, int], png_scale: fl
     return np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
 
 
+DEPTH_RATIO_OK = (0.8, 1.25)
+"""GT depth over the SfM points' depth at their pixels, median: outside this a PNG scale is wrong (ICL-NUIM's
+TUM-format PNGs are 1/5000 m, the Open3D copy's 1/1000 m), not the points' noise (ICL: 1.00)."""
+
+
+def depth_scale_warning(scene: Scene, folder: Path, png_scale: float, indices: list[int],
+                        n_views: int = 10, min_samples: int = 20) -> str | None:
+    """A sentence when the GT depth disagrees in scale with the scene's SfM points (median ratio of the GT
+    depth at each point's pixel to the point's depth, over up to ``n_views`` views: the points of each
+    view's tracks, else all in front); None when it agrees or too few points are seen."""
+    visible = scene.points.visible_in
+    ratios = []
+    pngs = False
+    for i in indices[:: max(1, len(indices) // n_views)][:n_views]:
+        ids = visible.get(i)
+        if ids is None or len(ids) == 0:  # no tracks (a nerfstudio scene's points): every point in front
+            ids = np.arange(len(scene.points))
+        cam = scene.cameras[i]
+        uv, z = cam.project(scene.points.xyz[ids])
+        depth = load_gt_depth(folder, cam.stem, (cam.height, cam.width), png_scale)
+        with np.errstate(invalid="ignore"):
+            px = np.floor(uv).astype(np.int64, copy=False) if np.isfinite(uv).all() else None
+        if px is None:
+            continue
+        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+        d = depth[px[inside, 1], px[inside, 0]]
+        ok = d > 0
+        ratios.append(d[ok] / z[inside][ok])
+        pngs = not (folder / f"{cam.stem}.npy").is_file()
+    ratios = np.concatenate(ratios) if ratios else np.zeros(0)
+    if len(ratios) < min_samples:
+        return None
+    r = float(np.median(ratios))
+    if DEPTH_RATIO_OK[0] <= r <= DEPTH_RATIO_OK[1]:
+        return None
+    cause = (f"a wrong --gt-depth-png-scale ({png_scale:g} now, about {float(f'{png_scale * r:.2g}'):g} would match; ICL-NUIM's "
+             "TUM-format PNGs are 5000 per metre) or " if pngs else "")
+    return (f"the GT depth in {folder} is {r:.3g}x the depth of the scene's SfM points at their pixels (median of "
+            f"{len(ratios)}): the floor row is fused at that scale. Is it {cause}a scene not in its GT's unit?")
+
+
 def fuse_floor(scene_dir: str | Path, out_mesh: str | Path, *, gt_depth: str | Path | None = None,
                png_scale: float = 1000.0, downscale: float = 1.0, test_every: int = 8,
                mesh_every: int = 1, tsdf: TSDFConfig | None = None) -> Path:
@@ -85,6 +126,8 @@ def fuse_floor(scene_dir: str | Path, out_mesh: str | Path, *, gt_depth: str | P
             depth = load_gt_depth(folder, cam.stem, (cam.height, cam.width), png_scale)
             yield depth, scene.load_image(i), cam.K, cam.world_to_camera
 
+    if odd := depth_scale_warning(scene, folder, png_scale, indices):
+        log.warning("%s", odd)
     tsdf = tsdf or TSDFConfig()
     log.info("floor: fusing the GT depth of %d training views from %s", len(indices), folder)
     return write_mesh(clean_mesh(fuse_views(views(), tsdf), tsdf), out_mesh)
