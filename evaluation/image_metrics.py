@@ -236,8 +236,9 @@ def evaluate_renders(renders_dir: str | Path, scene_dir: str | Path, test_every:
     cam0 = scene.cameras[0]
     downscale = render_downscale(cam0.width, cam0.height, first.shape[1], first.shape[0], renders_dir)
     if downscale is None:
+        bigger = " (larger: the photos would be enlarged into references)" if first.shape[1] > cam0.width else ""
         raise ValueError(f"render {first_path} is {first.shape[1]}x{first.shape[0]}, not a downscale of the "
-                         f"scene's {cam0.width}x{cam0.height}")
+                         f"scene's {cam0.width}x{cam0.height}{bigger}")
     scene = Scene.load(scene_dir, downscale=downscale, test_every=test_every, check_priors=False)
     tests = {scene.cameras[i].stem: i for i in scene.test_indices}
     files = _reference_names(files, list(tests), renders_dir)
@@ -261,16 +262,17 @@ def render_downscale(width: int, height: int, rw: int, rh: int, renders_dir: Pat
     """The ``--downscale`` that makes a ``width`` x ``height`` photo the ``rw`` x ``rh`` render, as training
     rounds each side (geocues.scene.downscaled_size), or None. Tried: the run's own (RUN/report.json beside
     RUN/test_renders), the whole factor, then each side's ratio: 321x239 at --downscale 2 is 160x120, whose
-    width ratio 2.006 gives 160x119."""
+    width ratio 2.006 gives 160x119. A guess under 1 (renders larger than the photos) is none: the photos
+    would be enlarged into references."""
     from geocues.scene import downscaled_size
 
     tries = []
-    try:
+    try:  # a run trained with --downscale below 1 (upsampled photos) rendered larger: its own factor
         tries.append(float(json.loads((Path(renders_dir).parent / "report.json").read_text())["config"]["downscale"]))
     except (OSError, ValueError, KeyError, TypeError):
         pass
-    tries += [float(round(width / rw)), width / rw, height / rh]
-    return next((d for d in tries if d > 0 and downscaled_size(width, height, d) == (rw, rh)), None)
+    guesses = [d for d in (float(round(width / rw)), width / rw, height / rh) if d >= 1]  # else photos enlarged
+    return next((d for d in tries + guesses if d > 0 and downscaled_size(width, height, d) == (rw, rh)), None)
 
 
 def _reference_names(files: dict[str, Path], test_stems: list[str], renders_dir: Path) -> dict[str, Path]:

@@ -115,6 +115,9 @@ def sample_kept_surface(mesh: TriMesh, n: int, rng: np.random.Generator,
     if kept == 0:
         raise ValueError(f"{mesh.name}: no part of the surface survives culling/cropping "
                          f"({drawn} samples drawn, none kept)")
+    if kept < n / 100:  # a few points of a mesh that lies almost wholly elsewhere: figures of noise
+        raise ValueError(f"{mesh.name}: only {kept} of {n} samples survive culling/cropping ({drawn} drawn): too "
+                         "few to score")
     if kept < n:
         log.warning("%s: only %d of %d samples kept after %d rounds", mesh.name, kept, n, max_rounds)
     points = np.concatenate(kept_p)[:n]

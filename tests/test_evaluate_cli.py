@@ -333,3 +333,15 @@ def test_the_downscale_of_renders_of_odd_sized_photos_is_found():
     assert render_downscale(640, 480, 213, 160) == 3.0
     assert render_downscale(1000, 750, 400, 300) == 2.5  # a fractional factor: the ratio
     assert render_downscale(640, 480, 100, 100) is None  # no downscale of the photo
+
+
+def test_renders_larger_than_the_photos_are_refused_unless_the_run_trained_so(tmp_path):
+    """320x240 renders of 160x120 photos were scored (the photos enlarged into references, 'downscale': 0.5)
+    while docs/evaluation.md calls a render of no downscale of the photos an error (researcher audit); a
+    run trained with --downscale 0.5 (warned about) records it and keeps its renders scoreable."""
+    from evaluation.image_metrics import render_downscale
+
+    assert render_downscale(160, 120, 320, 240) is None
+    assert render_downscale(160, 120, 320, 240, tmp_path / "test_renders") is None
+    (tmp_path / "report.json").write_text(json.dumps({"config": {"downscale": 0.5}}))
+    assert render_downscale(160, 120, 320, 240, tmp_path / "test_renders") == 0.5
