@@ -212,15 +212,22 @@ def frame_mismatch(pred: TriMesh, gt: TriMesh, margin: float = 0.05, n: int = 20
     return "; ".join(said) or None
 
 
+FAR_AREA_SHARE = 0.5
+"""Leave the faces outside the crop box out before sampling when they hold more than this share of the
+area; below it the whole mesh is sampled as before (the same samples, the same figures: a run's mesh
+has 0.06 % of its area there on ICL)."""
+
+
 def faces_meeting_box(mesh: TriMesh, lower: np.ndarray, upper: np.ndarray, margin: float) -> np.ndarray | None:
     """Indices of the faces whose bounding box meets ``[lower - margin, upper + margin]`` (the crop: no
-    point of another face is kept), or None when every face does. Rejection sampling on the whole
-    surface kept 20k of 200k samples after 30 rounds when one far triangle held most of the area,
-    and found none at all with it 1e6 m away (researcher audit)."""
+    point of another face is kept) when the others hold more than :data:`FAR_AREA_SHARE` of the area,
+    else None. Rejection sampling on the whole surface kept 20k of 200k samples after 30 rounds when one
+    far triangle held most of the area, and found none at all with it 1e6 m away (researcher audit)."""
     tri = mesh.vertices[mesh.faces]  # [F, 3, 3]
     lo, hi = np.asarray(lower, np.float64) - margin, np.asarray(upper, np.float64) + margin
     meets = np.all((tri.max(axis=1) >= lo) & (tri.min(axis=1) <= hi), axis=1)  # [F]
-    if meets.all() or not mesh.areas[meets].sum() > 0:  # none: sampling names the empty crop as before
+    near = float(mesh.areas[meets].sum())
+    if not near > 0 or near >= (1 - FAR_AREA_SHARE) * float(mesh.areas.sum()):  # none: the crop error as before
         return None
     return np.flatnonzero(meets)
 

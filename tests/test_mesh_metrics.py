@@ -234,6 +234,8 @@ def test_a_far_surface_is_left_out_before_sampling():
     pred = merge((gt.vertices, gt.faces), far)
     lower, upper = gt.bounds
     assert faces_meeting_box(gt, lower, upper, 0.05) is None  # every face meets: sampling as before
+    small = merge((gt.vertices, gt.faces), rect(50, 51, 50, 51, 0.0))  # 1 m^2 far away against 59 m^2
+    assert faces_meeting_box(small, lower, upper, 0.05) is None  # the same samples as before
     assert faces_meeting_box(pred, lower, upper, 0.05).tolist() == list(range(len(gt.faces)))
     cfg = MeshMetricsConfig(n_samples=5_000)
     alone, both = evaluate_meshes(gt, gt, cfg), evaluate_meshes(pred, gt, cfg)
