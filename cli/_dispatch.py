@@ -21,6 +21,7 @@ from typing import Callable
 import tyro
 
 from cli._signals import exit_code, sigterm_as_interrupt
+from geocues.logs import LevelFormatter
 
 
 class _StderrHandler(logging.StreamHandler):
@@ -135,7 +136,7 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     """Route the package loggers to stderr; the library itself never configures logging."""
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     handler = _StderrHandler()
-    handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s] %(message)s", "%H:%M:%S"))
+    handler.setFormatter(LevelFormatter())
     for name in ("geocues", "splat", "evaluation"):
         logger = logging.getLogger(name)
         logger.setLevel(level)

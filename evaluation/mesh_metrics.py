@@ -206,8 +206,9 @@ def frame_mismatch(pred: TriMesh, gt: TriMesh, margin: float = 0.05, n: int = 20
         said.append(f"{pred.name} spans {ratio:.2g} times the GT's size: are both in metres?")
     if inside < FRAME_INSIDE_MIN or ratio > FRAME_SIZE_MAX:
         said.append(f"{100 * (1 - inside):.0f} % of {pred.name} lies outside the bounds of the GT mesh {gt.name} "
-                    f"(cropped away) and it spans {ratio:.2g} times the GT's size{_unit_hint(ratio)}: a mesh in its "
-                    "own frame or unit (geocues sfm from images alone) is scored with `evaluate PRED_MESH SCENE "
+                    f"(cropped away: the figures score the rest) and it spans {ratio:.2g} times the GT's size"
+                    f"{_unit_hint(ratio)}: a far background or floaters, or a mesh in its own frame or unit? One "
+                    "in its own frame (geocues sfm from images alone) is scored with `evaluate PRED_MESH SCENE "
                     "--align-to GT_SCENE`; one in another unit is scaled to metres first")
     return "; ".join(said) or None
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from geocues.colmap_io import PINHOLE_MODELS, RawPoints, find_model_dir, read_model
 from geocues.photos import IMAGE_EXTS, is_image, list_images, missing_images_error  # noqa: F401  (re-exported)
-from geocues.once import warn_once
+from geocues.logs import warn_once
 from geocues.photos import is_8bit_grey, listed, read_image_size, rotation_hint, transparency_warning
 from geocues.nerfstudio_io import find_transforms, read_transforms
 from geocues.scene_priors import ScenePriors, load_npy

@@ -10,6 +10,7 @@ import signal
 from pathlib import Path
 from typing import Callable
 
+from geocues.logs import LevelFormatter
 from splat.checkpoint import TrainingInterrupted
 
 
@@ -130,4 +131,5 @@ def _worker_init(stop=None) -> None:
     os.setsid()  # a terminal's Ctrl-C goes to the parent alone, which stops each worker once (_stop_workers)
 
     tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
-    logging.basicConfig(level=logging.WARNING, format="[%(asctime)s %(name)s] %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(level=logging.WARNING)
+    logging.getLogger().handlers[0].setFormatter(LevelFormatter())

@@ -52,7 +52,7 @@ import logging
 import torch
 from torch import Tensor
 
-from geocues.once import warn_once
+from geocues.logs import warn_once
 from splat.contracts import CompositeOut, check_composite_inputs  # noqa: F401  (re-exported)
 
 log = logging.getLogger(__name__)

@@ -409,3 +409,21 @@ def test_a_scene_sfm_left_most_photos_out_of_is_named_at_every_step(room, capsys
     capsys.readouterr()
     assert evaluate([str(base / "few.ply"), str(root), "--gt", str(base / "few.ply")]) == 0
     assert "warning: `geocues sfm` put only 15 of the 40 photos" in capsys.readouterr().err
+
+
+def test_a_warning_line_says_it_is_one(capsys):
+    """In a run's many info lines a warning looked like the others ('[time module] message'): warnings and
+    errors say so after the module (researcher audit); info lines are unchanged."""
+    import logging
+
+    import re
+
+    from cli._dispatch import setup_logging
+
+    setup_logging()
+    log = logging.getLogger("evaluation.test_format")
+    log.info("an info line")
+    log.warning("a warning line")
+    err = capsys.readouterr().err
+    assert re.search(r"^\[\d\d:\d\d:\d\d evaluation\.test_format\] an info line$", err, re.M), err
+    assert re.search(r"^\[\d\d:\d\d:\d\d evaluation\.test_format\] warning: a warning line$", err, re.M), err

@@ -106,7 +106,7 @@ def test_a_backend_fallback_is_said_once(caplog, monkeypatch):
     """`--backend cuda` on the CPU warned at every render: 109 lines in 60 steps."""
     import torch
 
-    import geocues.once as once
+    import geocues.logs as once
     from splat.composite import resolve_backend
 
     monkeypatch.setattr(once, "_SAID", set())
