@@ -86,12 +86,10 @@ def depth_scale_warning(scene: Scene, folder: Path, png_scale: float, indices: l
             ids = np.arange(len(scene.points))
         cam = scene.cameras[i]
         uv, z = cam.project(scene.points.xyz[ids])
+        front = (z > 0) & np.isfinite(uv).all(axis=1)
+        px, z = np.floor(uv[front]).astype(np.int64), z[front]
+        inside = (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
         depth = load_gt_depth(folder, cam.stem, (cam.height, cam.width), png_scale)
-        with np.errstate(invalid="ignore"):
-            px = np.floor(uv).astype(np.int64, copy=False) if np.isfinite(uv).all() else None
-        if px is None:
-            continue
-        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
         d = depth[px[inside, 1], px[inside, 0]]
         ok = d > 0
         ratios.append(d[ok] / z[inside][ok])
