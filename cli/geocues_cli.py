@@ -99,8 +99,10 @@ def info(scene: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SCE
     print(f"cameras    {len(s)}  sizes {', '.join(f'{w}x{h}' for w, h in sizes)}  "
           f"(first: fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f})")
     if unposed := _photos_not_in_model(s):
-        reg = s.metadata.get("sfm_registered")
-        unmapped = isinstance(reg, dict) and len(unposed) <= reg.get("photos", 0) - reg.get("images", 0)
+        from geocues.advice import sfm_registered
+
+        reg = sfm_registered(s.metadata)
+        unmapped = reg is not None and len(unposed) <= reg["photos"] - reg["images"]
         print(f"photos     {len(unposed)} in {s.root / 'images'} are not in the model and are not used "
               f"({', '.join(unposed[:3])}{', ...' if len(unposed) > 3 else ''}): "
               + ("`geocues sfm` could not register them (its warning said so)" if unmapped

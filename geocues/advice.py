@@ -27,15 +27,22 @@ def few_views_warning(n_views: int, what: str = "images") -> str | None:
 REGISTERED_SHARE = 0.8  # under this share of the photos in the model, every later step says so
 
 
+def sfm_registered(metadata: dict) -> dict | None:
+    """scene.json's ``sfm_registered`` ({"images": N, "photos": M}, written by `geocues sfm --mode map`, kept
+    by undistort, rescale and mvs) when it holds two integers, else None (absent, or edited by hand)."""
+    reg = metadata.get("sfm_registered") if isinstance(metadata, dict) else None
+    if isinstance(reg, dict) and all(isinstance(reg.get(k), int) and not isinstance(reg.get(k), bool)
+                                     for k in ("images", "photos")):
+        return reg
+    return None
+
+
 def registration_warning(metadata: dict) -> str | None:
     """A sentence when `geocues sfm` put under :data:`REGISTERED_SHARE` of the photos it was given into the
-    model (a scene's scene.json ``metadata["sfm_registered"]``, kept by undistort, rescale and mvs), else None: the scene holds
-    only those photos, so the reconstruction covers what they see, and a GT of the whole room counts
-    the rest as missing."""
-    reg = metadata.get("sfm_registered") if isinstance(metadata, dict) else None
-    if not (isinstance(reg, dict) and isinstance(reg.get("images"), int) and isinstance(reg.get("photos"), int)):
-        return None
-    if reg["photos"] <= 0 or reg["images"] >= REGISTERED_SHARE * reg["photos"]:
+    model (:func:`sfm_registered`), else None: the scene holds only those photos, so the reconstruction
+    covers what they see, and a GT of the whole room counts the rest as missing."""
+    reg = sfm_registered(metadata)
+    if reg is None or reg["photos"] <= 0 or reg["images"] >= REGISTERED_SHARE * reg["photos"]:
         return None
     return (f"`geocues sfm` put only {reg['images']} of the {reg['photos']} photos into the model (scene.json "
             f"sfm_registered): the scene holds those, the reconstruction covers what they see, and scored against a "

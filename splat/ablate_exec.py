@@ -131,5 +131,6 @@ def _worker_init(stop=None) -> None:
     os.setsid()  # a terminal's Ctrl-C goes to the parent alone, which stops each worker once (_stop_workers)
 
     tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
-    logging.basicConfig(level=logging.WARNING)
-    logging.getLogger().handlers[0].setFormatter(LevelFormatter())
+    handler = logging.StreamHandler()
+    handler.setFormatter(LevelFormatter())
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])

@@ -101,15 +101,11 @@ def available_backends() -> list[str]:
             + (["cuda"] if cuda_backend_available() else []))
 
 
-def _warn_once(msg: str, *args) -> None:
-    """A backend fallback is said once per process, not at every render (109 lines in 60 steps)."""
-    warn_once(log, msg % args)
-
-
 def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | None = None) -> str:
     """Map "auto" and unavailable choices to a concrete backend name ("torch", "cpu" or "cuda").
 
-    ``dtype`` (of the features, when known): the "cuda" backend takes float32 only.
+    ``dtype`` (of the features, when known): the "cuda" backend takes float32 only. A fallback is said
+    once per process, not at every render (109 lines in 60 steps).
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -118,23 +114,23 @@ def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype | Non
     if device.type == "cuda" and backend in ("cuda", "auto"):
         if dtype is not None and dtype != torch.float32:
             if backend == "cuda":
-                _warn_once("backend 'cuda' takes float32 only, got %s; using torch", dtype)
+                warn_once(log, f"backend 'cuda' takes float32 only, got {dtype}; using torch")
             return "torch"
         if _load_backend("cuda") is None:
             if backend == "cuda":
-                _warn_once("backend 'cuda' requested but unavailable (%s); using torch", _errors["cuda"])
+                warn_once(log, f"backend 'cuda' requested but unavailable ({_errors['cuda']}); using torch")
             return "torch"
         return "cuda"
     if backend == "cuda":
-        _warn_once("backend 'cuda' needs CUDA tensors, got %s; using torch", device)
+        warn_once(log, f"backend 'cuda' needs CUDA tensors, got {device}; using torch")
         return "torch"
     if device.type != "cpu":
         if backend == "cpu":
-            _warn_once("backend 'cpu' needs CPU tensors, got %s; using torch", device)
+            warn_once(log, f"backend 'cpu' needs CPU tensors, got {device}; using torch")
         return "torch"
     if _load_backend("cpu") is None:
         if backend == "cpu":
-            _warn_once("backend 'cpu' requested but unavailable (%s); using torch", _errors["cpu"])
+            warn_once(log, f"backend 'cpu' requested but unavailable ({_errors['cpu']}); using torch")
         return "torch"
     return "cpu"
 

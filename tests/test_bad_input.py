@@ -391,6 +391,13 @@ def test_a_scene_sfm_left_most_photos_out_of_is_named_at_every_step(room, capsys
     (root / "scene.json").write_text(json.dumps({"sfm_registered": {"images": 15, "photos": 40}}))
     assert geocues(["info", str(root)]) == 0
     assert "warning    `geocues sfm` put only 15 of the 40 photos" in capsys.readouterr().out
+    shutil.copyfile(next((root / "images").iterdir()), root / "images" / "zz_unposed.png")  # a photo not in the model
+    assert "could not register them" in (geocues(["info", str(root)]), capsys.readouterr().out)[1]
+    (root / "scene.json").write_text(json.dumps({"sfm_registered": {"images": "15", "photos": 40}}))  # by hand
+    assert geocues(["info", str(root)]) == 0  # was a TypeError traceback
+    assert "photos added after SfM" in capsys.readouterr().out
+    (root / "images" / "zz_unposed.png").unlink()
+    (root / "scene.json").write_text(json.dumps({"sfm_registered": {"images": 15, "photos": 40}}))
     with caplog.at_level("WARNING"):
         assert geocues(["extract", str(root), "-o", str(base / "few_cues"), "--no-lines", "--no-planes"]) == 0
     assert "only 15 of the 40 photos" in caplog.text
