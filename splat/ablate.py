@@ -71,7 +71,8 @@ class AblateConfig:
     gt_depth: Path | None = None
     """Folder of exact depth maps (<stem>.npy in metres or <stem>.png) for the floor row."""
     gt_depth_png_scale: float = 1000.0
-    """PNG depth values per metre (1000: millimetres, as ICL-NUIM)."""
+    """PNG depth values per metre (1000: millimetres, as the ICL-NUIM copy in ../shared; its TUM format: 5000).
+    A scale that disagrees with the scene's SfM points is warned about."""
     checkpoints: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
     """Fractions of each run at which test views are scored and a mesh is fused and scored."""
     scene_label: str = ""
