@@ -34,7 +34,7 @@ import numpy as np
 
 from evaluation.culling import CameraSet, bounds_mask, raycasting_scene, visible_mask
 from evaluation.surfaces import (TriMesh, load_mesh, nearest_sample_distances, sample_kept_surface,  # noqa: F401
-                                 sample_surface, surface_distances)
+                                 sample_surface, surface_distances, surface_near_box)
 from geocues.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -213,26 +213,6 @@ def frame_mismatch(pred: TriMesh, gt: TriMesh, margin: float = 0.05, n: int = 20
     return "; ".join(said) or None
 
 
-FAR_AREA_SHARE = 0.5
-"""Leave the faces outside the crop box out before sampling when they hold more than this share of the
-area; below it the whole mesh is sampled as before (the same samples, the same figures: a run's mesh
-has 0.06 % of its area there on ICL)."""
-
-
-def faces_meeting_box(mesh: TriMesh, lower: np.ndarray, upper: np.ndarray, margin: float) -> np.ndarray | None:
-    """Indices of the faces whose bounding box meets ``[lower - margin, upper + margin]`` (the crop: no
-    point of another face is kept) when the others hold more than :data:`FAR_AREA_SHARE` of the area,
-    else None. Rejection sampling on the whole surface kept 20k of 200k samples after 30 rounds when one
-    far triangle held most of the area, and found none at all with it 1e6 m away (researcher audit)."""
-    tri = mesh.vertices[mesh.faces]  # [F, 3, 3]
-    lo, hi = np.asarray(lower, np.float64) - margin, np.asarray(upper, np.float64) + margin
-    meets = np.all((tri.max(axis=1) >= lo) & (tri.min(axis=1) <= hi), axis=1)  # [F]
-    near = float(mesh.areas[meets].sum())
-    if not near > 0 or near >= (1 - FAR_AREA_SHARE) * float(mesh.areas.sum()):  # none: the crop error as before
-        return None
-    return np.flatnonzero(meets)
-
-
 def _culling_name(cams: CameraSet | None, cfg: MeshMetricsConfig) -> str:
     if cams is None:
         return "none"
@@ -282,15 +262,15 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
     gt_keep = visibility(gt_scene) if cfg.cull_gt else None
 
     rng_pred, rng_gt = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(2))
-    near = faces_meeting_box(pred, lower, upper, cfg.crop_margin) if cfg.crop_to_gt_bounds else None
+    near = surface_near_box(pred, lower, upper, cfg.crop_margin) if cfg.crop_to_gt_bounds else None
     try:
         if near is None:
             p_pts, p_face, p_frac = sample_kept_surface(pred, cfg.n_samples, rng_pred,
                                                         pred_keep if use_pred_keep else None)
-        else:  # far surfaces (a background shell, a floater km away) left out before sampling, not drawn
-            part = TriMesh(pred.vertices, pred.faces[near], name=pred.name)
+        else:  # far surfaces (a background shell, a floater km away, a ground plane's far part) not drawn
+            part, index = near
             p_pts, p_face, p_frac = sample_kept_surface(part, cfg.n_samples, rng_pred, pred_keep)
-            p_face, p_frac = near[p_face], p_frac * float(part.areas.sum() / pred.areas.sum())
+            p_face, p_frac = index[p_face], p_frac * float(part.areas.sum() / pred.areas.sum())
     except ValueError as exc:
         raise ValueError(f"{exc}; {frame_warning}" if frame_warning else str(exc)) from None
     if frame_warning is not None:
@@ -331,8 +311,8 @@ def evaluate_meshes(pred: TriMesh, gt: TriMesh, cfg: MeshMetricsConfig | None = 
         "occlusion_tolerance": cfg.occlusion_tolerance if cams is not None and cfg.occlusion != "none" else None,
         "crop_to_gt_bounds": cfg.crop_to_gt_bounds,
         "crop_margin": cfg.crop_margin if cfg.crop_to_gt_bounds else None,
-        "pred_kept_area_fraction": round(p_frac, 6),
-        "gt_kept_area_fraction": round(g_frac, 6),
+        "pred_kept_area_fraction": float(f"{p_frac:.6g}"),  # 6 digits: a far plane leaves ~1e-7
+        "gt_kept_area_fraction": float(f"{g_frac:.6g}"),
         "seed": cfg.seed,
         "frame_warning": frame_warning,
         "seen_warning": seen_warning,

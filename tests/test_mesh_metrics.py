@@ -227,20 +227,53 @@ def test_a_far_surface_is_left_out_before_sampling():
     """One triangle 1e6 m away held nearly all the area: rejection sampling found no kept sample in 4.2 M
     draws and the error blamed the mesh's frame (researcher audit). Faces outside the crop box are left out
     before sampling: the room scores as it does alone, and the kept fraction still counts the far area."""
-    from evaluation.mesh_metrics import faces_meeting_box
+    from evaluation.surfaces import surface_near_box
 
     gt = TestFrameCheck.room()
     far = (np.array([[1e6, 0, 0], [1e6 + 1e3, 0, 0], [1e6, 1e3, 0]], np.float64), np.array([[0, 1, 2]]))
     pred = merge((gt.vertices, gt.faces), far)
     lower, upper = gt.bounds
-    assert faces_meeting_box(gt, lower, upper, 0.05) is None  # every face meets: sampling as before
+    assert surface_near_box(gt, lower, upper, 0.05) is None  # every face meets: sampling as before
     small = merge((gt.vertices, gt.faces), rect(50, 51, 50, 51, 0.0))  # 1 m^2 far away against 59 m^2
-    assert faces_meeting_box(small, lower, upper, 0.05) is None  # the same samples as before
-    assert faces_meeting_box(pred, lower, upper, 0.05).tolist() == list(range(len(gt.faces)))
+    assert surface_near_box(small, lower, upper, 0.05) is None  # the same samples as before
+    assert surface_near_box(pred, lower, upper, 0.05)[1].tolist() == list(range(len(gt.faces)))
     cfg = MeshMetricsConfig(n_samples=5_000)
     alone, both = evaluate_meshes(gt, gt, cfg), evaluate_meshes(pred, gt, cfg)
     assert both.chamfer_l1 == alone.chamfer_l1 and both.f_score == alone.f_score
     assert both.protocol["pred_kept_area_fraction"] < 1e-3 < alone.protocol["pred_kept_area_fraction"]
+
+
+def test_a_huge_face_through_the_room_is_cut_to_the_box(caplog):
+    """A plane of 8e8 m^2 through the room (a ground plane or backdrop left unbounded) meets the crop box by
+    its bounding box, so leaving out far faces did not help: no sample in 1 M draws, an error blaming
+    the frame. Faces longer than the box's diagonal are cut into pieces near the box before sampling:
+    the mesh scores as the room with the plane cut to the box does, and the kept area is the area in it."""
+    from evaluation.surfaces import split_to_box
+
+    gt = TestFrameCheck.room()
+    big = (np.array([[-1e4, -1e4, 1.0], [3e4, -1e4, 1.0], [-1e4, 3e4, 1.0]]), np.array([[0, 1, 2]]))
+    lower, upper = gt.bounds
+    lo, hi = lower - 0.05, upper + 0.05
+    pieces, parent = split_to_box(big[0][None], lo, hi, float(np.linalg.norm(hi - lo)))
+    assert (parent == 0).all() and 4 <= len(pieces) < 200  # a few pieces, not the 4^14 of a blind split
+    normals = np.cross(pieces[:, 1] - pieces[:, 0], pieces[:, 2] - pieces[:, 0])
+    assert (normals[:, 2] > 0).all()  # wound as their triangle
+    lo_p, hi_p = pieces.min(axis=(0, 1)), pieces.max(axis=(0, 1))
+    assert (lo_p[:2] <= lo[:2]).all() and (hi_p[:2] >= hi[:2]).all()  # they cover the box's cross-section
+
+    cfg = MeshMetricsConfig(n_samples=20_000)
+    pred = merge((gt.vertices, gt.faces), big)
+    cut = merge((gt.vertices, gt.faces), rect(lo[0], hi[0], lo[1], hi[1], 1.0))  # the plane inside the crop
+    with caplog.at_level("WARNING"):
+        r = evaluate_meshes(pred, gt, cfg)
+    assert "samples kept" not in caplog.text  # all 20000 drawn from the pieces
+    ref = evaluate_meshes(cut, gt, cfg)
+    total = float(pred.areas.sum())
+    in_crop = float(cut.areas.sum())
+    assert r.protocol["pred_kept_area_fraction"] * total == pytest.approx(in_crop, rel=0.03)
+    assert r.accuracy == pytest.approx(ref.accuracy, rel=0.05)
+    assert r.completeness == pytest.approx(ref.completeness, rel=0.05)
+    assert r.f_score == pytest.approx(ref.f_score, abs=0.02)
 
 
 def test_too_few_kept_samples_are_an_error_not_figures():
