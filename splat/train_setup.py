@@ -19,6 +19,7 @@ from geocues.advice import few_views_warning, fov_warning, normal_axes_warning, 
 from geocues.atomic import check_output_dir, check_replaceable
 from geocues.cue_io import read_cue_report
 from geocues.depth_align import load_alignments, load_prior_kind
+from geocues.logs import warn_once
 from geocues.plane_anchors import load_plane_anchors
 from geocues.rescale import metric_warning
 from geocues.scene import Scene
@@ -238,11 +239,11 @@ def _load_views(cfg: TrainConfig, scene: Scene, scene_dir: Path, cues_ply: Path,
         raise ValueError(f"the scene {scene_dir} has no training views (test_every={cfg.test_every} holds out "
                          f"every {cfg.test_every}th of its {len(scene)} images): --test-every 0 trains on all of them")
     if few := few_views_warning(len(train_views), "training views"):
-        log.warning("%s: %s", scene_dir, few)
+        warn_once(log, f"{scene_dir}: {few}")
     if cfg.loss.use_depth and not train_views.has_depth_priors:
-        log.warning("%s has no depth priors: L_d and L_a are off. From photos alone, `geocues mvs` computes "
-                    "them without a network; train its scene with `geocues extract --preset mvs` cues and "
-                    "`splat train --preset mvs` (docs/training.md, \"Photos only\")", scene_dir)
+        warn_once(log, f"{scene_dir} has no depth priors: L_d and L_a are off. From photos alone, `geocues mvs` "
+                       "computes them without a network; train its scene with `geocues extract --preset mvs` cues "
+                       "and `splat train --preset mvs` (docs/training.md, \"Photos only\")")
     return train_views, test_views
 
 
@@ -251,14 +252,15 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
     what steps them. Every iteration count of the paper's schedule is scaled to ``cfg.iters``."""
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     warn_large_images(scene, cfg.downscale)
+    # what is said of the scene is said once per process (not once per row of `splat ablate`)
     if odd := fov_warning(scene):
-        log.warning("%s", odd)
+        warn_once(log, odd)
     if few := registration_warning(scene.metadata):
-        log.warning("%s", few)
+        warn_once(log, few)
     if cfg.loss.use_normal and (away := normal_axes_warning(scene)):  # L_n would pull towards them as they are
-        log.warning("%s", away)
+        warn_once(log, away)
     if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
-        log.warning("%s", far)
+        warn_once(log, far)
     train_views, test_views = _load_views(cfg, scene, scene_dir, cues_ply, device)
     cfg = with_budget(cfg, scene)
     init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)

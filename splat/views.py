@@ -26,6 +26,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from geocues.depth_align import DepthAlignment
+from geocues.logs import warn_once
 from geocues.plane_anchors import PlaneAnchors, anchor_depth, anchor_normals
 from geocues.scene import Scene, upsampling_warning
 from splat.camera import Camera
@@ -174,12 +175,12 @@ def warn_large_images(scene: Scene, downscale: float, limit: int = 1600) -> None
     every pixel (a 4032x3024 phone photo is 40x a 640x480 view), and 3DGS trains at most 1600 px wide.
     A ``downscale`` below 1 gets one too: it upsamples the photos (interpolated pixels, no detail)."""
     if up := upsampling_warning(downscale, "work per step", "trains at the photos' own size"):
-        log.warning("%s", up)
+        warn_once(log, up)
     cam = max(scene.cameras, key=lambda c: max(c.width, c.height))
     side = max(cam.width, cam.height)
     if side > limit:
         factor = float(np.ceil(downscale * side / limit * 10) / 10)
-        log.warning("training images are up to %dx%d px (--downscale %g): each step renders every pixel, "
-                    "%.0fx a 640x480 view's work; 3DGS trains at most %d px wide: --downscale %g trains at %dx%d",
-                    cam.width, cam.height, downscale, cam.width * cam.height / (640 * 480), limit, factor,
-                    round(cam.width * downscale / factor), round(cam.height * downscale / factor))
+        warn_once(log, f"training images are up to {cam.width}x{cam.height} px (--downscale {downscale:g}): each "
+                       f"step renders every pixel, {cam.width * cam.height / (640 * 480):.0f}x a 640x480 view's "
+                       f"work; 3DGS trains at most {limit} px wide: --downscale {factor:g} trains at "
+                       f"{round(cam.width * downscale / factor)}x{round(cam.height * downscale / factor)}")

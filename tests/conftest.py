@@ -36,6 +36,16 @@ def restore_log_handlers():
 
 
 @pytest.fixture(autouse=True)
+def _warnings_said_anew():
+    """geocues.logs.warn_once says a sentence once per process: each test starts with none said, so
+    what one test asserts does not depend on what ran before it."""
+    from geocues import logs
+
+    logs._SAID.clear()
+    yield
+
+
+@pytest.fixture(autouse=True)
 def _seed_global_rngs():
     """Every test draws the same global torch/numpy randoms on every run (no flaky tolerances)."""
     import numpy as np
