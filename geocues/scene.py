@@ -100,6 +100,13 @@ class Camera:
     K: np.ndarray  # [3, 3] float64, COLMAP pixel convention (top-left pixel centre = (0.5, 0.5))
     R: np.ndarray  # [3, 3] world-to-camera rotation
     t: np.ndarray  # [3] world-to-camera translation (metres)
+    source_width: int = 0  # the photo's own size before --downscale (0: width / height)
+    source_height: int = 0
+
+    @property
+    def source_size(self) -> tuple[int, int]:
+        """The photo's own (width, height), before any ``--downscale``."""
+        return self.source_width or self.width, self.source_height or self.height
 
     @property
     def stem(self) -> str:
@@ -255,8 +262,8 @@ class Scene(ScenePriors):
                                  f"a side under {MIN_SIDE} px shows no scene: use at most "
                                  f"{min(im.width, im.height) / MIN_SIDE:g}")
             S = np.diag([nw / im.width, nh / im.height, 1.0])  # exact under COLMAP pixel centres
-            cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path,
-                                  width=nw, height=nh, K=S @ im.K, R=im.R, t=im.t))
+            cameras.append(Camera(index=k, image_id=im.image_id, name=im.name, image_path=path, width=nw, height=nh,
+                                  K=S @ im.K, R=im.R, t=im.t, source_width=im.width, source_height=im.height))
         seen: dict[str, str] = {}
         for c in cameras:  # priors, caches and per-view outputs are named by the file stem
             if seen.setdefault(c.stem, c.name) != c.name:

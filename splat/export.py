@@ -68,15 +68,19 @@ def camera_to_json(index: int, cam, refined: tuple[np.ndarray, np.ndarray, np.nd
     """One entry of the reference ``cameras.json`` (``utils/camera_utils.py::camera_to_JSON``):
     position and rotation are camera-to-world (rotation columns = camera axes in the world),
     ``img_name`` is the file name up to its first dot (as the reference's COLMAP reader),
-    width/height/fx/fy in pixels at the training resolution. cam: a geocues.scene.Camera;
-    refined: its (K, R, t) after the run's camera refinement, written instead of the scene's."""
+    width/height/fx/fy in pixels of the photos' own size, as the reference writes them from the COLMAP
+    model whatever its ``-r`` (SIBR and tools pairing the file with the photos read them so), not the
+    training resolution. cam: a geocues.scene.Camera; refined: its (K, R, t) after the run's camera
+    refinement, written instead of the scene's."""
     K, R, t = refined if refined is not None else (cam.K, cam.R, cam.t)
     R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    width, height = cam.source_size
+    K = np.diag([width / cam.width, height / cam.height, 1.0]) @ np.asarray(K, np.float64)  # exact: pixel centres
     return {
         "id": index,
         "img_name": Path(cam.name).name.split(".")[0],
-        "width": int(cam.width),
-        "height": int(cam.height),
+        "width": int(width),
+        "height": int(height),
         "position": (-R.T @ t).tolist(),
         "rotation": [row.tolist() for row in R.T],
         "fy": float(K[1, 1]),

@@ -4,7 +4,6 @@ finished run leaves in its folder (the 3DGS-format model, refined cameras, mesh)
 
 from __future__ import annotations
 
-import os
 import shutil
 import time
 from dataclasses import asdict
@@ -38,15 +37,6 @@ def render_view(params, view: View, sh_degree: int, cfg: TrainConfig, maps: bool
         _BACKGROUNDS[key] = torch.tensor(cfg.background, dtype=torch.float32, device=view.rgb.device)
     return render(params, view.camera, sh_degree=sh_degree, backend=cfg.backend, background=_BACKGROUNDS[key],
                   maps=maps)
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    """``dst`` as a hard link to ``src`` (a copy where the file system has none)."""
-    dst.unlink(missing_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copyfile(src, dst)
 
 
 @torch.no_grad()
@@ -129,9 +119,9 @@ def write_outputs(cfg: TrainConfig, s: TrainingSetup, loop, timings: dict[str, f
         refinement = work / "camera_refinement.npz"
         s.refiner.save(refinement, [s.scene.cameras[i].name for i in s.train_views.indices])
     ply = write_3dgs_run(work, s.params, s.state["cue_type"], s.scene, asdict(cfg), cfg.iters, refinement)
-    for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: linked, written once
-        if src.is_file():
-            _link_or_copy(src, work / src.name)
+    for src in (ply, cue_type_path(ply)):  # RUN/point_cloud.ply is the same model: a copy, not a hard link
+        if src.is_file():  # (a file edited in place would change what SIBR and render.py load as well)
+            shutil.copyfile(src, work / src.name)
     timings["eval_and_save_s"] = time.perf_counter() - t0
     if cfg.mesh:
         t0 = time.perf_counter()

@@ -171,6 +171,8 @@ def tiny_scene(root: Path) -> Scene:
 
 def test_write_3dgs_run(tmp_path):
     scene = tiny_scene(tmp_path / "scene")
+    for cam in scene.cameras[1:]:  # photos of 65x48 trained at --downscale 2 (32x24)
+        cam.source_width, cam.source_height = 65, 48
     params, cue_type = random_params(4, 1), torch.tensor([0, 1, 2, 0])
     run = tmp_path / "out.partial"  # train.py writes into the staging folder, published as out/
     ply = write_3dgs_run(run, params, cue_type, scene, {"downscale": 2.0, "test_every": 8,
@@ -197,9 +199,12 @@ def test_write_3dgs_run(tmp_path):
         c2w = np.eye(4)
         c2w[:3, :3], c2w[:3, 3] = entry["rotation"], entry["position"]
         np.testing.assert_allclose(np.linalg.inv(c2w), cam.world_to_camera, atol=1e-12)
-        assert (entry["width"], entry["height"]) == (32, 24)
-        assert (entry["fx"], entry["fy"]) == (cam.K[0, 0], cam.K[1, 1])
-        assert (entry["cx"], entry["cy"]) == (cam.K[0, 2], cam.K[1, 2])  # extra keys the reference ignores
+        # the photos' own size, as the reference writes it from the COLMAP model whatever its -r (a run at
+        # --downscale 2 wrote half of it, and SIBR / tools pairing the file with the photos read it so)
+        sx, sy = cam.source_size[0] / 32, cam.source_size[1] / 24
+        assert (entry["width"], entry["height"]) == cam.source_size == ((32, 24) if cam.index == 0 else (65, 48))
+        assert (entry["fx"], entry["fy"]) == (cam.K[0, 0] * sx, cam.K[1, 1] * sy)
+        assert (entry["cx"], entry["cy"]) == (cam.K[0, 2] * sx, cam.K[1, 2] * sy)  # extra keys the reference ignores
     assert not (run / "input.ply").exists()  # a scene without SfM points has no proxy to write
 
 

@@ -73,11 +73,14 @@ def test_train_writes_every_output(trained):
     from splat.composite import describe_backend
 
     assert report["rasterizer"] == describe_backend("auto", torch.device(report["device"]))  # which kernels ran
-    # the 3DGS layout holds the same model (SIBR / other tools read it), written once and linked
+    # the 3DGS layout holds the same model (SIBR / other tools read it) in files of its own: a hard link
+    # made an edit in place of RUN/point_cloud.ply change what SIBR loads too (interop audit)
     iters = report["config"]["iters"]
     other = out / "point_cloud" / f"iteration_{iters}" / "point_cloud.ply"
     assert other.read_bytes() == (out / "point_cloud.ply").read_bytes()
     assert (out / "cue_type.npy").read_bytes() == (other.parent / "cue_type.npy").read_bytes()
+    for name in ("point_cloud.ply", "cue_type.npy"):
+        assert not (out / name).samefile(other.parent / name) and (out / name).stat().st_nlink == 1
 
 
 def test_training_reduces_the_loss_and_improves_test_views(trained):
