@@ -310,6 +310,24 @@ def read_lines_npz(path: str | Path) -> dict[str, np.ndarray | list[np.ndarray]]
     return out
 
 
+EXTRACT_FILES = ("cues_by_type.ply", "lines3d.npz", "lines3d.ply", "plane_anchors.npz", "depth_alignments.json")
+"""What `geocues extract` writes beside cues.ply before its report.json, which it writes last."""
+
+
+def unfinished_extract(cues: str | Path) -> str | None:
+    """A sentence when the cue folder (``cues``: the folder or its cues.ply) holds files of `geocues
+    extract` but no report.json: an extract killed among its writes, whose files may mix two runs (an
+    --overwrite with other options); None for a finished extract or a cues.ply made otherwise."""
+    cues = Path(cues)
+    folder = cues if cues.is_dir() else cues.parent
+    found = [name for name in EXTRACT_FILES if (folder / name).exists()]
+    if not found or (folder / "report.json").is_file():
+        return None
+    return (f"{folder} holds files of `geocues extract` ({', '.join(found)}) but not the report.json it writes "
+            "last: an extract killed among its writes? Its files may mix two runs; run the same `geocues extract` "
+            "again")
+
+
 def read_cue_report(cues: str | Path) -> dict:
     """The report.json `geocues extract` wrote beside the cues (``cues``: the folder or its cues.ply);
     {} when there is none or it cannot be read (cue folders made otherwise)."""

@@ -369,6 +369,10 @@ def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite
         swept = filtered
         filtered = fill_textureless(scene, filtered, images, bounds, neighbours, cfg)
         conf = {i: np.where(swept[i] > 0, conf[i], max(0.5 * cfg.min_ncc, 1e-3)).astype(np.float32) for i in conf}
+    # an earlier run's report marks OUT finished: gone before the first file is replaced, so that a kill among
+    # the writes (--overwrite) leaves an unfinished folder (Scene.load warns; the rerun computes it again), not a
+    # mix of two runs that a rerun would take as finished
+    report_path.unlink(missing_ok=True)
     link_scene(scene_dir, out_dir, ("images", "sparse", "gt"))
     meta = json.loads((out_dir / "scene.json").read_text()) if (out_dir / "scene.json").is_file() else {}
     meta.pop("depth_png_scale", None)  # the MVS priors are .npy in the scene's unit

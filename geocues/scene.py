@@ -278,6 +278,10 @@ class Scene(ScenePriors):
         scene.distorted_models = sorted({im.model for im in raw_images if not im.pinhole})
         if zero := sorted({im.model for im in raw_images if im.pinhole and im.model not in PINHOLE_MODELS}):
             log.info("%s: camera model %s with zero distortion, read as a pinhole", model_dir, ", ".join(zero))
+        if (scene_root / "cache" / "mvs_sweep").is_dir() and not (scene_root / "mvs_report.json").is_file():
+            warn_once(log, f"{scene_root} is an unfinished `geocues mvs` output (its sweeps, no mvs_report.json: "
+                           "killed before it ended?): its depth priors may be missing or mix two runs; run the same "
+                           "`geocues mvs` command again (the finished sweeps are cached)")
         if check_priors:
             scene._check_priors(raw_images)
         log.info("scene %s: %d images (%d train / %d test), %d points, priors: depth %d, normal %d",

@@ -7,6 +7,8 @@ import json
 import logging
 import os
 import signal
+import threading
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -113,6 +115,19 @@ def logged_step(spec: dict) -> int:
 _STOP = None  # in a worker: the parent's stop event
 
 
+def exit_with_parent(parent: int, every: float = 1.0, grace: float = 120.0) -> None:
+    """In a worker: once ``parent`` is gone, SIGTERM to itself (a row in training writes its checkpoint
+    and stops), and leave after ``grace`` seconds whatever it does. Killed outright (SIGKILL, the OOM
+    killer), the command sends its workers nothing, and their own sessions keep a group kill from them:
+    they trained on as orphans beside the rerun's workers on the same rows, then waited forever to hand
+    in their results (kill audit)."""
+    while os.getppid() == parent:
+        time.sleep(every)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(grace)
+    os._exit(1)
+
+
 def _start_row(run_row: Callable[[dict], dict], spec: dict) -> dict:
     """``run_row(spec)`` in a worker, unless the command was stopped before the row started."""
     if _STOP is not None and _STOP.is_set():
@@ -129,6 +144,7 @@ def _worker_init(stop=None) -> None:
     _STOP = stop
 
     os.setsid()  # a terminal's Ctrl-C goes to the parent alone, which stops each worker once (_stop_workers)
+    threading.Thread(target=exit_with_parent, args=(os.getppid(),), daemon=True, name="exit-with-parent").start()
 
     tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
     handler = logging.StreamHandler()

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from geocues.advice import few_views_warning, fov_warning, normal_axes_warning, registration_warning
 from geocues.atomic import check_output_dir, check_replaceable
-from geocues.cue_io import read_cue_report
+from geocues.cue_io import read_cue_report, unfinished_extract
 from geocues.depth_align import load_alignments, load_prior_kind
 from geocues.logs import warn_once
 from geocues.plane_anchors import load_plane_anchors
@@ -261,6 +261,8 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
         warn_once(log, away)
     if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
         warn_once(log, far)
+    if unfinished := unfinished_extract(cues_ply):
+        log.warning("%s", unfinished)
     train_views, test_views = _load_views(cfg, scene, scene_dir, cues_ply, device)
     cfg = with_budget(cfg, scene)
     init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)

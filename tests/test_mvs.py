@@ -152,3 +152,37 @@ def test_a_view_with_fewer_neighbours_than_top_k_is_swept(mvs_room):
     images = {i: _gray(scene.load_image(i)) for i in (0, 1)}
     depth, score = sweep_view(scene, 0, [1], depth_bounds(scene, 0), cfg, images)
     assert np.isfinite(depth).all() and np.isfinite(score).all() and (depth > 0).any()
+
+
+def test_an_overwrite_killed_among_its_writes_is_unfinished_not_finished(tmp_path, monkeypatch, caplog):
+    """`geocues mvs --overwrite` with other options, killed while it replaced the priors, left the old
+    mvs_report.json beside a mix of new and old priors: the rerun said "holds MVS priors already" and
+    extract/train took the mix (kill audit). The report goes before the first file is replaced: the
+    folder is unfinished (Scene.load says so), and the rerun computes it again from its cached sweeps."""
+    import geocues.mvs as mvs
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=64, h=48, priors="none")
+    out = tmp_path / "out"
+    run(MvsConfig(max_size=64, n_depths=16), root, out)
+    real, written = np.save, []
+
+    def save(f, arr, *args, **kw):  # the kill after the first prior map of the new run
+        if written:
+            raise KeyboardInterrupt
+        written.append(1)
+        return real(f, arr, *args, **kw)
+
+    monkeypatch.setattr(mvs.np, "save", save)
+    with pytest.raises(KeyboardInterrupt):
+        run(MvsConfig(max_size=64, n_depths=12), root, out, overwrite=True)
+    monkeypatch.setattr(mvs.np, "save", real)
+    assert not (out / "mvs_report.json").exists()
+    with caplog.at_level("WARNING"):
+        Scene.load(out, check_priors=False)
+    assert "is an unfinished `geocues mvs` output" in caplog.text
+    run(MvsConfig(max_size=64, n_depths=12), root, out)  # no "holds MVS priors already": computed again
+    assert json.loads((out / "mvs_report.json").read_text())["config"]["n_depths"] == 12
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        Scene.load(out, check_priors=False)
+    assert "unfinished" not in caplog.text
