@@ -19,10 +19,21 @@ def _umask() -> int:
     return mask
 
 
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, durable: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of ``path``; on success rename it onto ``path`` (atomic on POSIX),
-    on error remove it. The temp name keeps the suffix so writers that append one (np.savez) agree."""
+    on error remove it. The temp name keeps the suffix so writers that append one (np.savez) agree.
+    ``durable``: the file's data reach the disk before the rename, and the rename after it (fsync of
+    the file and its folder), so a power cut leaves the old file or the new one, not an empty one (a
+    training checkpoint: hours of work; the many cache files are not worth the wait)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
@@ -32,7 +43,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp
         if tmp.exists():  # mkstemp makes 0600: give the result the user's umask, as open() would
             os.chmod(tmp, 0o666 & ~_umask())
+            if durable:
+                _fsync(tmp)
         os.replace(tmp, path)
+        if durable and os.name == "posix":
+            _fsync(path.parent)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -113,6 +113,7 @@ def logged_step(spec: dict) -> int:
 
 
 _STOP = None  # in a worker: the parent's stop event
+_PARENT = None  # in a worker: the command's process id
 
 
 def exit_with_parent(parent: int, every: float = 1.0, grace: float = 120.0) -> None:
@@ -129,10 +130,15 @@ def exit_with_parent(parent: int, every: float = 1.0, grace: float = 120.0) -> N
 
 
 def _start_row(run_row: Callable[[dict], dict], spec: dict) -> dict:
-    """``run_row(spec)`` in a worker, unless the command was stopped before the row started."""
+    """``run_row(spec)`` in a worker, unless the command was stopped before the row started; a worker
+    whose command is gone by the end of the row leaves at once (nobody will read its result)."""
     if _STOP is not None and _STOP.is_set():
         raise TrainingInterrupted(f"{spec['row']} seed {spec['seed']} not started: the command was stopped")
-    return run_row(spec)
+    try:
+        return run_row(spec)
+    finally:
+        if _PARENT is not None and os.getppid() != _PARENT:
+            os._exit(1)
 
 
 def _worker_init(stop=None) -> None:
@@ -140,11 +146,11 @@ def _worker_init(stop=None) -> None:
 
     import tqdm
 
-    global _STOP
-    _STOP = stop
+    global _STOP, _PARENT
+    _STOP, _PARENT = stop, os.getppid()
 
     os.setsid()  # a terminal's Ctrl-C goes to the parent alone, which stops each worker once (_stop_workers)
-    threading.Thread(target=exit_with_parent, args=(os.getppid(),), daemon=True, name="exit-with-parent").start()
+    threading.Thread(target=exit_with_parent, args=(_PARENT,), daemon=True, name="exit-with-parent").start()
 
     tqdm.tqdm.__init__ = partialmethod(tqdm.tqdm.__init__, disable=True)  # bars of parallel rows interleave
     handler = logging.StreamHandler()

@@ -61,9 +61,10 @@ def restore(snapshot: dict[str, Any], params, optimizers: dict, strategy_state: 
 
 
 def save(path: str | Path, snapshot: dict[str, Any], config: dict) -> Path:
-    """Write ``snapshot`` and the run's config atomically (torch.save, then rename)."""
+    """Write ``snapshot`` and the run's config atomically and durably (torch.save, fsync, then rename:
+    a power cut leaves the previous checkpoint or this one)."""
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, durable=True) as tmp:
         torch.save({**snapshot, "config": config}, tmp)
     log.info("checkpoint at step %d: %s", snapshot.get("step", -1), path)
     return path

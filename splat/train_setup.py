@@ -5,6 +5,7 @@ the camera refiner and the numerics guard (splat/train.py runs the loop over the
 
 from __future__ import annotations
 
+import json
 import logging
 import shlex
 import shutil
@@ -26,7 +27,7 @@ from geocues.scene import Scene
 from geocues.types import CueType
 from splat import checkpoint, compiled
 from splat.camera_opt import CameraRefiner
-from splat.checkpoint import staging_dir
+from splat.checkpoint import publish, staging_dir
 from splat.gaussians import scene_scale
 from splat.guard import NumericsGuard
 from splat.init_gaussians import initial_gaussians, with_budget
@@ -92,6 +93,8 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
         log.warning("--mesh-at-checkpoints with --no-mesh: no mesh is fused at all (--no-mesh wins), so the "
                     "accuracy-against-time curve has no mesh figures")
     work = staging_dir(out_dir)
+    if (work / "report.json").is_file() and (work / "cfg_args").is_file() and not (out_dir / "cfg_args").is_file():
+        _publish_finished(work, out_dir)
     # cfg_args: only a run writes it (an extract's folder has a report.json too)
     check_replaceable(out_dir, "cfg_args", "a `splat train` run", {"scene": scene_dir, "cues": cues})
     if (out_dir / "cfg_args").is_file() and not overwrite:  # OUT is published whole: a finished run
@@ -112,9 +115,31 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
         if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked
             raise ValueError(f"{work} holds an unfinished run with a checkpoint: pass --resume to continue it "
                              "(same options), or --overwrite to start again")
-        log.warning("removing the unfinished run in %s (pass --resume to continue it instead)", work)
+        log.warning("removing the unfinished run in %s (%s)", work,
+                    "--overwrite" if overwrite else "pass --resume to continue it instead")
         shutil.rmtree(work)
     return work, cues_ply, ckpt, cfg
+
+
+def _publish_finished(work: Path, out_dir: Path) -> None:
+    """``work`` holds a finished run (its report.json, written last, is there) and ``out_dir`` none: the
+    run was killed between its report and the rename onto OUT, or between the two renames of an
+    --overwrite (geocues.atomic.replace_dir). It is published, not removed as an unfinished run (the
+    rerun deleted it and trained again: kill audit); the run it replaced, left aside, goes."""
+    backup = out_dir.with_name(f".{out_dir.name}.old")  # replace_dir's name for the run being replaced
+    if out_dir.exists() and any(out_dir.iterdir()):
+        return  # not a run's folder: check_replaceable says so
+    if out_dir.exists():
+        out_dir.rmdir()
+    publish(work, out_dir)
+    try:
+        keep = bool(json.loads((out_dir / "report.json").read_text())["config"]["keep_ckpt"])
+    except (OSError, ValueError, KeyError, TypeError):
+        keep = True  # unreadable: nothing removed
+    if not keep:  # killed before the checkpoint of the finished run was removed
+        shutil.rmtree(out_dir / "ckpt", ignore_errors=True)
+    shutil.rmtree(backup, ignore_errors=True)
+    log.warning("%s held a finished run (killed while it was moved into place): published to %s", work, out_dir)
 
 
 def _values(config: dict, dotted: list[str]) -> str:

@@ -89,3 +89,46 @@ def test_an_ablate_worker_stops_when_its_command_is_killed_outright(tmp_path):
         time.sleep(0.05)
     else:
         raise AssertionError(f"worker {child} still runs")
+
+
+def test_a_run_killed_while_published_is_published_by_the_rerun(tmp_path, caplog):
+    """Killed between its report.json (written last) and the rename of OUT.partial onto OUT, a finished
+    run was taken for an unfinished one: the rerun removed it ("removing the unfinished run") and trained
+    again; under --overwrite, killed between replace_dir's two renames, the old run stayed as a hidden
+    .OUT.old. The rerun publishes it, and removes what it replaced."""
+    import pytest
+
+    from splat.train import TrainConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=64, h=48)
+    write_cues_ply(tmp_path / "cues" / "cues.ply", surface_cues(root, n_plane=500))
+    cfg = TrainConfig(iters=2, mesh=False, test_every=0, checkpoints=(1.0,), loss=_no_anchor())
+    out = tmp_path / "run"
+    run(cfg, root, tmp_path / "cues", out)
+    made = (out / "point_cloud.ply").read_bytes()
+    (out / "ckpt").mkdir()  # killed before the checkpoint was removed, too
+    out.rename(tmp_path / "run.partial")  # the state of the kill
+    (tmp_path / ".run.old").mkdir()  # and the run an --overwrite was replacing
+    with caplog.at_level("WARNING"), pytest.raises(ValueError, match="holds a finished run; pass --overwrite"):
+        run(cfg, root, tmp_path / "cues", out)
+    assert "run.partial held a finished run (killed while it was moved into place): published to" in caplog.text
+    assert (out / "point_cloud.ply").read_bytes() == made and not (tmp_path / "run.partial").exists()
+    assert not (out / "ckpt").exists() and not (tmp_path / ".run.old").exists()
+
+
+def test_a_checkpoint_reaches_the_disk_before_its_rename(tmp_path, monkeypatch):
+    """A power cut after the rename of an unsynced checkpoint can leave an empty last.pt (the run then
+    cannot resume: "not a readable training checkpoint"): checkpoints are fsynced before the rename and
+    their folder after it; other atomic writes (per-image caches) are not worth the wait."""
+    from geocues import atomic
+    from splat import checkpoint
+
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: (synced.append(os.readlink(f"/proc/self/fd/{fd}")), real(fd)))
+    with atomic.atomic_path(tmp_path / "cache.npy") as tmp:
+        tmp.write_bytes(b"x")
+    assert synced == []
+    checkpoint.save(tmp_path / "ckpt" / "last.pt", {"step": 3}, {})
+    assert len(synced) == 2 and "/ckpt/.last." in synced[0] and synced[1] == str(tmp_path / "ckpt")
+    assert checkpoint.torch.load(tmp_path / "ckpt" / "last.pt", weights_only=False)["step"] == 3
