@@ -24,6 +24,8 @@ sys.path.insert(0, str(REPO))
 
 from bench.doc_markers import replace_block  # noqa: E402
 from geocues.atomic import atomic_path  # noqa: E402
+from geocues.photos import read_image_size  # noqa: E402
+from geocues.scene import downscaled_size  # noqa: E402
 from splat.strategy import resolve_budget  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
@@ -60,7 +62,7 @@ def _row(folder: Path) -> dict:
     budgets = {r["report"].get("gaussian_budget", r["report"]["config"]["strategy"]["max_gaussians"]) for r in runs}
     if len(budgets) != 1:
         raise SystemExit(f"{folder}: its runs trained with other budgets {sorted(budgets)}")
-    pixels = max(c["width"] * c["height"] for c in json.loads((trains[0][0] / "cameras.json").read_text()))
+    pixels = _view_pixels(trains[0][0], report)
     option = report["config"]["strategy"]["max_gaussians"]
     budget = budgets.pop()  # runs from before report.json kept it: the number they were given
     return {"run": str(folder), "budget": budget, "budget_option": option,
@@ -73,6 +75,18 @@ def _row(folder: Path) -> dict:
             "runs": [{k: r[k] for k in ("seed", *_FIGURES)} for r in runs],
             "floor": None if floor is None else {"chamfer_l1_cm": 100 * floor["chamfer_l1"], "f_score": floor["f_score"],
                                                  "normal_consistency": floor["normal_consistency"]}}
+
+
+def _view_pixels(train: Path, report: dict) -> int:
+    """The largest view's pixels at the training resolution (what the 'auto' budget is 2x of): the held-out
+    renders' size; without them cameras.json's through the run's --downscale (cameras.json holds the
+    photos' own size since 2026-11-30, the training resolution before)."""
+    renders = sorted((train / "test_renders").glob("*.png"))
+    if renders:
+        return max(w * h for w, h in map(read_image_size, renders))
+    down = float(report.get("config", {}).get("downscale", 1.0))
+    sizes = [downscaled_size(c["width"], c["height"], down) for c in json.loads((train / "cameras.json").read_text())]
+    return max(w * h for w, h in sizes)
 
 
 def _cell(row: dict, key: str, digits: int, scale: float = 1.0) -> str:

@@ -102,31 +102,43 @@ def _longest_edge(tri: np.ndarray) -> np.ndarray:
     return np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=2).max(axis=1)  # [K]
 
 
-def split_to_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_edge: float,
-                 max_levels: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """The parts of triangles [K, 3, 3] near the box [lo, hi]: each split at its edges' midpoints into four,
-    the pieces whose bounding box misses the box dropped, until no edge is longer than ``max_edge``.
-    Returns the pieces [M, 3, 3] (each wound as its triangle) and the index of each one's triangle [M].
-    The pieces cover every point of the triangles inside the box, so uniform samples on them kept by
-    the crop are uniform on the cropped surface."""
+def _clip_polygon(poly: list[np.ndarray], axis: int, bound: float, keep_above: bool) -> list[np.ndarray]:
+    """Sutherland-Hodgman: the part of the convex polygon ``poly`` (vertices [3]) on one side of the
+    plane ``x[axis] = bound``, its vertices in the same order."""
+    out = []
+    for k, cur in enumerate(poly):
+        prev = poly[k - 1]
+        cur_in = cur[axis] >= bound if keep_above else cur[axis] <= bound
+        prev_in = prev[axis] >= bound if keep_above else prev[axis] <= bound
+        if cur_in != prev_in:  # the edge crosses the plane: its crossing point
+            t = (bound - prev[axis]) / (cur[axis] - prev[axis])
+            cross = prev + t * (cur - prev)
+            cross[axis] = bound
+            out.append(cross)
+        if cur_in:
+            out.append(cur)
+    return out
+
+
+def clip_to_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of triangles [K, 3, 3] inside the box [lo, hi], exactly: each clipped to the box's six
+    planes (a convex polygon of at most 9 vertices) and fanned into triangles wound as their triangle.
+    Returns the pieces [M, 3, 3] and the index of each one's triangle [M] (none for a triangle that
+    misses the box). Uniform samples on the pieces are uniform on the surface inside the box."""
     pieces, parents = [], []
-    parent = np.arange(len(tri))
-    for _ in range(max_levels):
-        done = _longest_edge(tri) <= max_edge
-        pieces.append(tri[done])
-        parents.append(parent[done])
-        tri, parent = tri[~done], parent[~done]
-        if not len(tri):
-            break
-        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
-        kids = np.concatenate([np.stack(k, axis=1) for k in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-        parent = np.tile(parent, 4)
-        meets = _meets_box(kids, lo, hi)
-        tri, parent = kids[meets], parent[meets]
-    pieces.append(tri)
-    parents.append(parent)
-    return np.concatenate(pieces), np.concatenate(parents)
+    for k, t in enumerate(np.asarray(tri, np.float64)):
+        poly = [v.copy() for v in t]
+        for axis in range(3):
+            poly = _clip_polygon(poly, axis, float(lo[axis]), True)
+            poly = _clip_polygon(poly, axis, float(hi[axis]), False) if len(poly) >= 3 else []
+            if len(poly) < 3:
+                break
+        for j in range(1, len(poly) - 1):
+            pieces.append(np.stack([poly[0], poly[j], poly[j + 1]]))
+            parents.append(k)
+    if not pieces:
+        return np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+    return np.stack(pieces), np.asarray(parents, np.int64)
 
 
 def surface_near_box(mesh: TriMesh, lower: np.ndarray, upper: np.ndarray,
@@ -139,19 +151,21 @@ def surface_near_box(mesh: TriMesh, lower: np.ndarray, upper: np.ndarray,
     the faces whose bounding box misses the box are left out when they hold more than
     :data:`FAR_AREA_SHARE` of the area. A face longer than the box's diagonal (a ground plane or a
     backdrop through the room) meets the box by its bounding box however little of it lies inside:
-    such faces are cut into pieces near the box (:func:`split_to_box`) whenever one meets it."""
+    whenever one meets it, such faces are cut exactly to the box (:func:`clip_to_box`), and the part is
+    the faces meeting the box with those cut (the half-area rule then does not apply)."""
     lo, hi = np.asarray(lower, np.float64) - margin, np.asarray(upper, np.float64) + margin
     tri = mesh.vertices[mesh.faces]  # [F, 3, 3]
     meets = _meets_box(tri, lo, hi)  # [F]
+    big = np.zeros_like(meets)
     max_edge = float(np.linalg.norm(hi - lo))  # no face inside the box has a longer edge
-    big = meets & (_longest_edge(tri) > max_edge)
+    big[meets] = (_longest_edge(tri[meets]) > max_edge) & (mesh.areas[meets] > 0)
     if not big.any():
         near = float(mesh.areas[meets].sum())
         if not near > 0 or near >= (1 - FAR_AREA_SHARE) * float(mesh.areas.sum()):  # none: the crop error
             return None
         index = np.flatnonzero(meets)
         return TriMesh(mesh.vertices, mesh.faces[index], name=mesh.name), index
-    pieces, parent = split_to_box(tri[big], lo, hi, max_edge)
+    pieces, parent = clip_to_box(tri[big], lo, hi)
     small = np.flatnonzero(meets & ~big)
     if not len(small) and not len(pieces):
         return None

@@ -19,10 +19,17 @@ def _umask() -> int:
     return mask
 
 
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
+def _fsync(path: Path, folder: bool = False) -> None:
+    """fsync a file (opened for writing: Windows refuses fsync on a read-only one) or, on POSIX, a folder
+    (some FUSE and SMB mounts refuse that: the rename is then as durable as the mount makes it)."""
+    if folder and os.name != "posix":
+        return
+    fd = os.open(path, os.O_RDONLY if folder else os.O_RDWR)
     try:
         os.fsync(fd)
+    except OSError:
+        if not folder:
+            raise
     finally:
         os.close(fd)
 
@@ -46,11 +53,43 @@ def atomic_path(path: str | Path, durable: bool = False) -> Iterator[Path]:
             if durable:
                 _fsync(tmp)
         os.replace(tmp, path)
-        if durable and os.name == "posix":
-            _fsync(path.parent)
+        if durable:
+            _fsync(path.parent, folder=True)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def output_lock(out_dir: str | Path, command: str) -> Iterator[None]:
+    """Within the block this process alone writes ``out_dir``: an exclusive flock on a hidden sibling
+    ``.OUT.lock`` (removed after; the kernel releases it however the process ends). Another process
+    holding it: ValueError naming ``command`` (two runs into one OUT removed or published each other's
+    work). Where the platform or file system has no flock nothing is locked."""
+    out_dir = Path(out_dir)
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        yield
+        return
+    lock = out_dir.with_name(f".{out_dir.name}.lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"another {command} is writing {out_dir} now (it holds {lock}); wait for it to "
+                             "end, or write elsewhere") from None
+        except OSError:  # a file system without locks: as before
+            yield
+            return
+        try:
+            yield
+        finally:
+            lock.unlink(missing_ok=True)
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager

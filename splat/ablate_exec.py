@@ -146,8 +146,11 @@ def _worker_init(stop=None) -> None:
 
     import tqdm
 
+    import multiprocessing
+
     global _STOP, _PARENT
-    _STOP, _PARENT = stop, os.getppid()
+    parent = multiprocessing.parent_process()  # the command, even if it died before this ran (getppid: 1 then)
+    _STOP, _PARENT = stop, parent.pid if parent is not None else os.getppid()
 
     os.setsid()  # a terminal's Ctrl-C goes to the parent alone, which stops each worker once (_stop_workers)
     threading.Thread(target=exit_with_parent, args=(_PARENT,), daemon=True, name="exit-with-parent").start()

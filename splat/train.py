@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from geocues.atomic import atomic_path
+from geocues.atomic import atomic_path, output_lock
 from geocues.scene import Scene
 from splat import checkpoint, run_paths
 from splat.camera_opt import CameraRefiner
@@ -348,6 +348,12 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
         raise TypeError(f"cfg must be a TrainConfig (or None for the defaults; splat.presets.preset_config "
                         f"for a preset), got {type(cfg).__name__}")
     out_dir = Path(out_dir)
+    with output_lock(out_dir, "splat train"):  # a second run into OUT removed or published this one's work
+        return _run_locked(cfg, scene_dir, cues, out_dir, overwrite, resume)
+
+
+def _run_locked(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: Path, overwrite: bool,
+                resume: bool) -> Path:
     work, cues_ply, ckpt, cfg = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
     device = resolve_device(cfg.device)
     rasterizer = describe_backend(cfg.backend, device)  # builds the kernels now, with a message, not in the first step

@@ -278,16 +278,13 @@ def setup_training(cfg: TrainConfig, scene_dir: Path, cues_ply: Path, device: to
     scene = Scene.load(scene_dir, downscale=cfg.downscale, test_every=cfg.test_every)
     warn_large_images(scene, cfg.downscale)
     # what is said of the scene is said once per process (not once per row of `splat ablate`)
-    if odd := fov_warning(scene):
-        warn_once(log, odd)
-    if few := registration_warning(scene.metadata):
-        warn_once(log, few)
-    if cfg.loss.use_normal and (away := normal_axes_warning(scene)):  # L_n would pull towards them as they are
-        warn_once(log, away)
-    if far := metric_warning(scene):  # the TSDF's depth_max, voxels and hole seeds are in metres
-        warn_once(log, far)
+    said = [fov_warning(scene), registration_warning(scene.metadata),
+            normal_axes_warning(scene) if cfg.loss.use_normal else None,  # L_n would pull towards them as they are
+            metric_warning(scene)]  # the TSDF's depth_max, voxels and hole seeds are in metres
+    for sentence in filter(None, said):  # named by the scene: another scene in this process is warned again
+        warn_once(log, sentence if sentence.startswith(str(scene_dir)) else f"{scene_dir}: {sentence}")
     if unfinished := unfinished_extract(cues_ply):
-        log.warning("%s", unfinished)
+        warn_once(log, unfinished)
     train_views, test_views = _load_views(cfg, scene, scene_dir, cues_ply, device)
     cfg = with_budget(cfg, scene)
     init_params, cue_type, seeds = initial_gaussians(cfg, scene, cues_ply, train_views)

@@ -175,12 +175,12 @@ def warn_large_images(scene: Scene, downscale: float, limit: int = 1600) -> None
     every pixel (a 4032x3024 phone photo is 40x a 640x480 view), and 3DGS trains at most 1600 px wide.
     A ``downscale`` below 1 gets one too: it upsamples the photos (interpolated pixels, no detail)."""
     if up := upsampling_warning(downscale, "work per step", "trains at the photos' own size"):
-        warn_once(log, up)
+        warn_once(log, f"{scene.root}: {up}")
     cam = max(scene.cameras, key=lambda c: max(c.width, c.height))
     side = max(cam.width, cam.height)
     if side > limit:
         factor = float(np.ceil(downscale * side / limit * 10) / 10)
-        warn_once(log, f"training images are up to {cam.width}x{cam.height} px (--downscale {downscale:g}): each "
+        warn_once(log, f"{scene.root}: training images are up to {cam.width}x{cam.height} px (--downscale {downscale:g}): each "
                        f"step renders every pixel, {cam.width * cam.height / (640 * 480):.0f}x a 640x480 view's "
                        f"work; 3DGS trains at most {limit} px wide: --downscale {factor:g} trains at "
                        f"{round(cam.width * downscale / factor)}x{round(cam.height * downscale / factor)}")

@@ -286,15 +286,15 @@ def test_budget_rows_give_mean_and_spread_over_seeds(tmp_path):
         train = tmp_path / "rows" / f"full_s{seed}" / "train"
         train.mkdir(parents=True)
         (train / "report.json").write_text(json.dumps({
-            "config": {"seed": seed, "strategy": {"max_gaussians": "auto"}}, "gaussian_budget": 100_000,
+            "config": {"seed": seed, "downscale": 2.0, "strategy": {"max_gaussians": "auto"}}, "gaussian_budget": 100_000,
             "gaussians_final": {"SFM": 60_000, "PLANE": 39_000}, "accuracy_vs_time": [{"step": 30, "train_s": 50.0 + seed, "psnr": psnr}]}))
-        (train / "cameras.json").write_text(json.dumps([{"width": 160, "height": 120}]))
+        (train / "cameras.json").write_text(json.dumps([{"width": 320, "height": 240}]))  # the photos' own size
         runs.append({"seed": seed, "final": {"chamfer_l1": cl1, "f_score": 0.5, "normal_consistency": 0.8}})
     (tmp_path / "ablation.json").write_text(json.dumps({
         "rows": [{"row": "full", "runs": runs}],
         "floor": {"final": {"chamfer_l1": 0.05, "f_score": 0.7, "normal_consistency": 0.9}}}))
     row = mod._row(tmp_path)
-    assert row["n_seeds"] == 2 and row["is_default"] and row["budget"] == 100_000
+    assert row["n_seeds"] == 2 and row["is_default"] and row["budget"] == 100_000 and row["view_pixels"] == 160 * 120
     assert row["chamfer_l1_cm"] == pytest.approx(11.0) and row["std"]["chamfer_l1_cm"] == pytest.approx(1.0)
     lines = mod.table_lines("room", [row])
     assert lines[0] == "| room | auto, 100k | 2 | 99k | 50 | 11.00 ± 1.00 | 0.500 ± 0.000 | 0.800 ± 0.000 | 21.00 ± 1.00 |"

@@ -208,6 +208,22 @@ def test_write_3dgs_run(tmp_path):
     assert not (run / "input.ply").exists()  # a scene without SfM points has no proxy to write
 
 
+def test_cameras_json_of_a_downscaled_scene_is_the_photos_own_camera(tmp_path):
+    """A scene loaded at --downscale 2 (odd photo sizes: 67x51 -> 34x26, each side rounded) writes the
+    cameras of the scene loaded at its own size, to rounding, as the reference writes its COLMAP model."""
+    from cues_synth import make_room_scene
+    from splat.export import camera_to_json
+
+    root = make_room_scene(tmp_path / "room", n_views=3, w=67, h=51)
+    half, full = Scene.load(root, downscale=2.0), Scene.load(root)
+    assert (half.cameras[0].width, half.cameras[0].height) == (34, 26)
+    for i, (h, f) in enumerate(zip(half.cameras, full.cameras)):
+        e = camera_to_json(i, h)
+        assert (e["width"], e["height"]) == (f.width, f.height) == h.source_size == (67, 51)
+        np.testing.assert_allclose([e["fx"], e["fy"], e["cx"], e["cy"]],
+                                   [f.K[0, 0], f.K[1, 1], f.K[0, 2], f.K[1, 2]], rtol=1e-12)
+
+
 def test_the_reference_format_s_limits_are_named_and_input_ply_written(tmp_path, caplog):
     """What SIBR / the reference render.py read differently from the run is warned about when written:
     an off-centre principal point (they project through the centre: a cropped scene rendered from

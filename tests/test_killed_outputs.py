@@ -69,26 +69,30 @@ def test_an_ablate_worker_stops_when_its_command_is_killed_outright(tmp_path):
     forever to hand in their results. A worker whose parent is gone stops as on SIGTERM (a training row
     writes its checkpoint) and leaves."""
     marker = tmp_path / "stopped"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     parent = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, str(marker)], stdout=subprocess.PIPE, text=True,
-                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+                              env=env)
     child = int(parent.stdout.readline())
-    assert not marker.exists()
-    parent.send_signal(signal.SIGKILL)
-    parent.wait()
-    deadline = time.monotonic() + 20
-    while not marker.exists() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert marker.read_text() == "stopped"
-    while time.monotonic() < deadline:  # and it leaves (a zombie of whoever adopted it at most)
+    try:
+        assert not marker.exists()
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 20
+        while not marker.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert marker.read_text() == "stopped"
+    finally:
         try:
-            with open(f"/proc/{child}/status") as f:
-                if "\nState:\tZ" in f.read():
-                    break
-        except FileNotFoundError:
-            break
-        time.sleep(0.05)
-    else:
-        raise AssertionError(f"worker {child} still runs")
+            os.kill(child, signal.SIGKILL)  # gone already, unless the test failed
+        except ProcessLookupError:
+            pass
+    # a worker whose row ends after its command is gone leaves at once (nobody reads the result), one
+    # whose command lives returns it
+    row = ("import os, splat.ablate_exec as m; m._PARENT = {}; "
+           "print('returned', m._start_row(lambda spec: 7, {{'row': 'r', 'seed': 0}}))")
+    gone = subprocess.run([sys.executable, "-c", row.format(-5)], capture_output=True, text=True, env=env)
+    alive = subprocess.run([sys.executable, "-c", row.format("os.getppid()")], capture_output=True, text=True, env=env)
+    assert (gone.returncode, gone.stdout) == (1, "") and (alive.returncode, alive.stdout) == (0, "returned 7\n")
 
 
 def test_a_run_killed_while_published_is_published_by_the_rerun(tmp_path, caplog):
@@ -125,10 +129,31 @@ def test_a_checkpoint_reaches_the_disk_before_its_rename(tmp_path, monkeypatch):
 
     synced = []
     real = os.fsync
-    monkeypatch.setattr(atomic.os, "fsync", lambda fd: (synced.append(os.readlink(f"/proc/self/fd/{fd}")), real(fd)))
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: (synced.append(os.fstat(fd).st_ino), real(fd)))
     with atomic.atomic_path(tmp_path / "cache.npy") as tmp:
         tmp.write_bytes(b"x")
     assert synced == []
     checkpoint.save(tmp_path / "ckpt" / "last.pt", {"step": 3}, {})
-    assert len(synced) == 2 and "/ckpt/.last." in synced[0] and synced[1] == str(tmp_path / "ckpt")
+    assert synced == [(tmp_path / "ckpt" / "last.pt").stat().st_ino, (tmp_path / "ckpt").stat().st_ino]
     assert checkpoint.torch.load(tmp_path / "ckpt" / "last.pt", weights_only=False)["step"] == 3
+
+
+def test_a_second_run_into_the_same_out_is_refused_while_the_first_runs(tmp_path):
+    """Two `splat train -o OUT` at once: the second removed the first's unfinished OUT.partial, or (with
+    the publishing of a finished one) published it under the first, which then failed to and lost it
+    (review). OUT is locked while a run writes it, and the lock goes with the run."""
+    import pytest
+
+    from geocues.atomic import output_lock
+    from splat.train import TrainConfig, run
+
+    root = make_room_scene(tmp_path / "room", n_views=6, w=64, h=48)
+    write_cues_ply(tmp_path / "cues" / "cues.ply", surface_cues(root, n_plane=500))
+    cfg = TrainConfig(iters=2, mesh=False, test_every=0, checkpoints=(1.0,), loss=_no_anchor())
+    out = tmp_path / "run"
+    with output_lock(out, "splat train"):  # the first run, still writing
+        with pytest.raises(ValueError, match=r"another splat train is writing .*run now \(it holds .*\.run\.lock\)"):
+            run(cfg, root, tmp_path / "cues", out)
+        assert not (tmp_path / "run.partial").exists()
+    run(cfg, root, tmp_path / "cues", out)
+    assert (out / "report.json").is_file() and not (tmp_path / ".run.lock").exists()

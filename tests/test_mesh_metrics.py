@@ -248,18 +248,30 @@ def test_a_huge_face_through_the_room_is_cut_to_the_box(caplog):
     its bounding box, so leaving out far faces did not help: no sample in 1 M draws, an error blaming
     the frame. Faces longer than the box's diagonal are cut into pieces near the box before sampling:
     the mesh scores as the room with the plane cut to the box does, and the kept area is the area in it."""
-    from evaluation.surfaces import split_to_box
+    from evaluation.surfaces import clip_to_box
 
     gt = TestFrameCheck.room()
     big = (np.array([[-1e4, -1e4, 1.0], [3e4, -1e4, 1.0], [-1e4, 3e4, 1.0]]), np.array([[0, 1, 2]]))
     lower, upper = gt.bounds
     lo, hi = lower - 0.05, upper + 0.05
-    pieces, parent = split_to_box(big[0][None], lo, hi, float(np.linalg.norm(hi - lo)))
-    assert (parent == 0).all() and 4 <= len(pieces) < 200  # a few pieces, not the 4^14 of a blind split
+    pieces, parent = clip_to_box(big[0][None], lo, hi)
+    assert (parent == 0).all() and len(pieces) == 2  # the box's cross-section, a rectangle: two triangles
     normals = np.cross(pieces[:, 1] - pieces[:, 0], pieces[:, 2] - pieces[:, 0])
     assert (normals[:, 2] > 0).all()  # wound as their triangle
-    lo_p, hi_p = pieces.min(axis=(0, 1)), pieces.max(axis=(0, 1))
-    assert (lo_p[:2] <= lo[:2]).all() and (hi_p[:2] >= hi[:2]).all()  # they cover the box's cross-section
+    np.testing.assert_allclose(0.5 * np.linalg.norm(normals, axis=1).sum(), np.prod(hi[:2] - lo[:2]), rtol=1e-9)
+    np.testing.assert_allclose(pieces.min(axis=(0, 1))[:2], lo[:2]) and np.testing.assert_allclose(
+        pieces.max(axis=(0, 1))[:2], hi[:2])
+    # a sliver 1e6 m long through the room, and a face with one vertex flung 1e6 m away: a few pieces each,
+    # their area what lies in the box (the midpoint splits of a first version made millions of them)
+    sliver = np.array([[-1e6, 1.5, 1.0], [1e6, 1.5, 1.0], [1e6, 1.5 + 1e-3, 1.0]])
+    flung = np.array([[1.0, 1.0, 1.0], [2.0, 1.0, 1.0], [1e6, 2e6, 1.0]])
+    pieces, parent = clip_to_box(np.stack([sliver, flung]), lo, hi)
+    assert len(pieces) <= 14 and set(parent.tolist()) == {0, 1}
+    area = 0.5 * np.linalg.norm(np.cross(pieces[:, 1] - pieces[:, 0], pieces[:, 2] - pieces[:, 0]), axis=1)
+    width = lambda x: 1e-3 * (x + 1e6) / 2e6  # noqa: E731  the sliver's width in y at x
+    np.testing.assert_allclose(area[parent == 0].sum(), (hi[0] - lo[0]) * (width(lo[0]) + width(hi[0])) / 2,
+                               rtol=1e-6)
+    assert clip_to_box(np.array([[[9.0, 9, 9], [10, 9, 9], [9, 10, 9]]]), lo, hi)[0].shape == (0, 3, 3)  # outside
 
     cfg = MeshMetricsConfig(n_samples=20_000)
     pred = merge((gt.vertices, gt.faces), big)
