@@ -72,9 +72,14 @@ def output_lock(out_dir: str | Path, command: str) -> Iterator[None]:
     except ImportError:  # Windows
         yield
         return
-    lock = out_dir.with_name(f".{out_dir.name}.lock")
-    lock.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    lock = out_dir.absolute().with_name(f".{out_dir.name}.lock")
+    made = [p for p in (lock.parent, *lock.parent.parents) if not p.exists()]  # deepest first
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    except OSError:  # no folder to lock in (a file on the path, read-only): the command's own checks say so
+        yield
+        return
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -90,6 +95,11 @@ def output_lock(out_dir: str | Path, command: str) -> Iterator[None]:
             lock.unlink(missing_ok=True)
     finally:
         os.close(fd)
+        for folder in made:  # the folders made for the lock, left empty by a command that failed
+            try:
+                folder.rmdir()
+            except OSError:
+                break
 
 
 @contextlib.contextmanager

@@ -157,3 +157,20 @@ def test_a_second_run_into_the_same_out_is_refused_while_the_first_runs(tmp_path
         assert not (tmp_path / "run.partial").exists()
     run(cfg, root, tmp_path / "cues", out)
     assert (out / "report.json").is_file() and not (tmp_path / ".run.lock").exists()
+
+
+def test_the_lock_leaves_nothing_and_stands_aside_for_the_path_checks(tmp_path):
+    """The lock is made beside OUT before the command's checks: a command that fails leaves neither the
+    lock nor the folders made for it, and an OUT under a file still gets the command's one line (the lock
+    first raised FileExistsError with a traceback)."""
+    import pytest
+
+    from geocues.atomic import check_output_dir, output_lock
+
+    with pytest.raises(ValueError, match="bad scene"), output_lock(tmp_path / "new" / "deep" / "run", "splat train"):
+        assert (tmp_path / "new" / "deep" / ".run.lock").is_file()
+        raise ValueError("bad scene")
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(ValueError, match="afile is a file, not a folder"), output_lock(tmp_path / "afile" / "run", "x"):
+        check_output_dir(tmp_path / "afile" / "run")
