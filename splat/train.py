@@ -48,7 +48,7 @@ from splat.init_gaussians import initial_gaussians, load_init_cloud  # noqa: F40
 from splat.mesh_post import ply_element_counts
 from splat.train_config import LearningRates, TrainConfig  # noqa: F401  (re-exported)
 from splat.train_setup import (TrainingSetup, cue_report_priors, make_optimizers,  # noqa: F401  (re-exported)
-                               open_run, setup_training, started_budget, type_counts)
+                               RunFinished, open_run, setup_training, started_budget, type_counts)
 from splat.train_outputs import (empty_result, evaluate_views, final_warnings, fuse_mesh,  # noqa: F401  (re-exported)
                                  render_view)
 from splat.train_outputs import write_outputs as _write_outputs
@@ -349,7 +349,11 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
                         f"for a preset), got {type(cfg).__name__}")
     out_dir = Path(out_dir)
     with output_lock(out_dir, "splat train"):  # a second run into OUT removed or published this one's work
-        return _run_locked(cfg, scene_dir, cues, out_dir, overwrite, resume)
+        try:
+            return _run_locked(cfg, scene_dir, cues, out_dir, overwrite, resume)
+        except RunFinished:  # killed while publishing its finished run, which this call published
+            log.info("done: the run had finished before the kill; outputs in %s", out_dir)
+            return out_dir
 
 
 def _run_locked(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: Path, overwrite: bool,

@@ -94,7 +94,8 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
                     "accuracy-against-time curve has no mesh figures")
     work = staging_dir(out_dir)
     if (work / "report.json").is_file() and (work / "cfg_args").is_file() and not (out_dir / "cfg_args").is_file():
-        _publish_finished(work, out_dir)
+        if _publish_finished(work, out_dir) and not overwrite and _same_run(out_dir, cfg, scene_dir, cues_ply):
+            raise RunFinished(out_dir)  # this command's run, finished: nothing to train
     # cfg_args: only a run writes it (an extract's folder has a report.json too)
     check_replaceable(out_dir, "cfg_args", "a `splat train` run", {"scene": scene_dir, "cues": cues})
     if (out_dir / "cfg_args").is_file() and not overwrite:  # OUT is published whole: a finished run
@@ -121,14 +122,35 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     return work, cues_ply, ckpt, cfg
 
 
-def _publish_finished(work: Path, out_dir: Path) -> None:
+class RunFinished(Exception):
+    """open_run found this command's run finished (published by this call): nothing to train."""
+
+
+def _same_run(run: Path, cfg: TrainConfig, scene_dir: Path, cues_ply: Path) -> bool:
+    """Whether the finished ``run`` trained with ``cfg`` (but for options that cannot change it) on the
+    same scene and cues (its config.yaml's paths)."""
+    import yaml
+
+    try:
+        done = json.loads((run / "report.json").read_text())["config"]
+        started = yaml.safe_load((run / "config.yaml").read_text())
+    except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError):
+        return False
+    diff = [k for k in checkpoint.config_diff(asdict(cfg), done, asdict(TrainConfig())) if k not in RESUME_FREE]
+    same_inputs = isinstance(started, dict) and all(
+        isinstance(started.get(name), str) and Path(started[name]).resolve() == Path(given).resolve()
+        for name, given in (("scene", scene_dir), ("cues", cues_ply)))
+    return not diff and same_inputs
+
+
+def _publish_finished(work: Path, out_dir: Path) -> bool:
     """``work`` holds a finished run (its report.json, written last, is there) and ``out_dir`` none: the
     run was killed between its report and the rename onto OUT, or between the two renames of an
     --overwrite (geocues.atomic.replace_dir). It is published, not removed as an unfinished run (the
     rerun deleted it and trained again: kill audit); the run it replaced, left aside, goes."""
     backup = out_dir.with_name(f".{out_dir.name}.old")  # replace_dir's name for the run being replaced
     if out_dir.exists() and any(out_dir.iterdir()):
-        return  # not a run's folder: check_replaceable says so
+        return False  # not a run's folder: check_replaceable says so
     if out_dir.exists():
         out_dir.rmdir()
     publish(work, out_dir)
@@ -140,6 +162,7 @@ def _publish_finished(work: Path, out_dir: Path) -> None:
         shutil.rmtree(out_dir / "ckpt", ignore_errors=True)
     shutil.rmtree(backup, ignore_errors=True)
     log.warning("%s held a finished run (killed while it was moved into place): published to %s", work, out_dir)
+    return True
 
 
 def _values(config: dict, dotted: list[str]) -> str:

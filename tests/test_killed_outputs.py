@@ -99,7 +99,8 @@ def test_a_run_killed_while_published_is_published_by_the_rerun(tmp_path, caplog
     """Killed between its report.json (written last) and the rename of OUT.partial onto OUT, a finished
     run was taken for an unfinished one: the rerun removed it ("removing the unfinished run") and trained
     again; under --overwrite, killed between replace_dir's two renames, the old run stayed as a hidden
-    .OUT.old. The rerun publishes it, and removes what it replaced."""
+    .OUT.old. The rerun publishes it and removes what it replaced; the same command then ends as done,
+    one with other options says OUT holds a finished run."""
     import pytest
 
     from splat.train import TrainConfig, run
@@ -113,11 +114,17 @@ def test_a_run_killed_while_published_is_published_by_the_rerun(tmp_path, caplog
     (out / "ckpt").mkdir()  # killed before the checkpoint was removed, too
     out.rename(tmp_path / "run.partial")  # the state of the kill
     (tmp_path / ".run.old").mkdir()  # and the run an --overwrite was replacing
-    with caplog.at_level("WARNING"), pytest.raises(ValueError, match="holds a finished run; pass --overwrite"):
-        run(cfg, root, tmp_path / "cues", out)
+    with caplog.at_level("INFO"):
+        assert run(cfg, root, tmp_path / "cues", out) == out  # no training: no "training 2 iterations"
     assert "run.partial held a finished run (killed while it was moved into place): published to" in caplog.text
+    assert "done: the run had finished before the kill" in caplog.text and "training 2 iterations" not in caplog.text
     assert (out / "point_cloud.ply").read_bytes() == made and not (tmp_path / "run.partial").exists()
     assert not (out / "ckpt").exists() and not (tmp_path / ".run.old").exists()
+    out.rename(tmp_path / "run.partial")
+    with pytest.raises(ValueError, match="holds a finished run; pass --overwrite"):  # another run's options
+        run(TrainConfig(iters=3, mesh=False, test_every=0, checkpoints=(1.0,), loss=_no_anchor()), root,
+            tmp_path / "cues", out)
+    assert (out / "point_cloud.ply").read_bytes() == made
 
 
 def test_a_checkpoint_reaches_the_disk_before_its_rename(tmp_path, monkeypatch):
