@@ -114,10 +114,13 @@ def test_a_run_killed_while_published_is_published_by_the_rerun(tmp_path, caplog
     (out / "ckpt").mkdir()  # killed before the checkpoint was removed, too
     out.rename(tmp_path / "run.partial")  # the state of the kill
     (tmp_path / ".run.old").mkdir()  # and the run an --overwrite was replacing
-    with caplog.at_level("INFO"):
-        assert run(cfg, root, tmp_path / "cues", out) == out  # no training: no "training 2 iterations"
+    folder = (tmp_path / "run.partial").stat().st_ino  # a run trained again would be published as another folder
+    caplog.clear()  # the first training's lines
+    with caplog.at_level("INFO", logger="splat"):  # (an earlier CLI test may have left splat at WARNING)
+        assert run(cfg, root, tmp_path / "cues", out) == out
     assert "run.partial held a finished run (killed while it was moved into place): published to" in caplog.text
     assert "done: the run had finished before the kill" in caplog.text and "training 2 iterations" not in caplog.text
+    assert out.stat().st_ino == folder
     assert (out / "point_cloud.ply").read_bytes() == made and not (tmp_path / "run.partial").exists()
     assert not (out / "ckpt").exists() and not (tmp_path / ".run.old").exists()
     out.rename(tmp_path / "run.partial")
