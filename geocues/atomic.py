@@ -6,11 +6,13 @@ An interrupted stage leaves either the old result or none, never a half-written 
 from __future__ import annotations
 
 import contextlib
+import functools
+import inspect
 import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 
 def _umask() -> int:
@@ -100,6 +102,20 @@ def output_lock(out_dir: str | Path, command: str) -> Iterator[None]:
                 folder.rmdir()
             except OSError:
                 break
+
+
+def locks_output(command: str, arg: str = "out_dir") -> Callable:
+    """Decorator: the function runs holding :func:`output_lock` on its argument ``arg`` (the command's
+    OUT)."""
+    def wrap(fn: Callable) -> Callable:
+        signature = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def locked(*args, **kwargs):
+            with output_lock(signature.bind(*args, **kwargs).arguments[arg], command):
+                return fn(*args, **kwargs)
+        return locked
+    return wrap
 
 
 @contextlib.contextmanager

@@ -32,7 +32,7 @@ import numpy as np
 
 from geocues.advice import normal_axes_warning, registration_warning
 from geocues.anchors import Anchors
-from geocues.atomic import atomic_path, check_not_input, check_output_dir, output_lock
+from geocues.atomic import atomic_path, check_not_input, check_output_dir, locks_output
 from geocues.camera_signature import camera_signature
 from geocues.rescale import metric_warning
 from geocues.cue_io import CueCloud, write_cues_by_type_ply, write_cues_ply, write_lines_npz, write_lines_ply
@@ -188,6 +188,7 @@ def _run_lines(scene: Scene, cfg: ExtractConfig, cache_dir: Path) -> LineCues:
     return extract_line_cues(scene, cfg.line, cache_dir)
 
 
+@locks_output("geocues extract")  # two extracts into one OUT mixed their files
 def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, cache_dir: str | Path | None = None) -> Path:
     """Extract the cues of the scene at ``scene_dir`` into ``out_dir`` with ``cfg`` (None: the
@@ -200,12 +201,6 @@ def run(cfg: ExtractConfig | None, scene_dir: str | Path, out_dir: str | Path, *
     """
     cfg = cfg or ExtractConfig()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
-    with output_lock(out_dir, "geocues extract"):  # two extracts into one OUT mixed their files
-        return _run_locked(cfg, scene_dir, out_dir, overwrite, cache_dir)
-
-
-def _run_locked(cfg: ExtractConfig, scene_dir: Path, out_dir: Path, overwrite: bool,
-                cache_dir: str | Path | None) -> Path:
     if not scene_dir.exists():
         raise FileNotFoundError(f"scene folder does not exist: {scene_dir}")
     check_extract_options(cfg)  # NaN, inf and values that gave empty cues in silence, before any work

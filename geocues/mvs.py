@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from geocues.atomic import atomic_path, check_not_input, check_output_dir, output_lock
+from geocues.atomic import atomic_path, check_not_input, check_output_dir, locks_output
 from geocues.scene import Camera, Scene
 from geocues.sfm import link_scene
 
@@ -327,18 +327,14 @@ def _load_sweep(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         return None
 
 
+@locks_output("geocues mvs")  # two runs into one OUT mixed their priors
 def run(cfg: MvsConfig, scene_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """MVS depth priors of every view of ``scene_dir`` into the scene folder ``out_dir``; returns it."""
-    cfg.validate()
-    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
-    with output_lock(out_dir, "geocues mvs"):  # two runs into one OUT mixed their priors
-        return _run_locked(cfg, scene_dir, out_dir, overwrite)
-
-
-def _run_locked(cfg: MvsConfig, scene_dir: Path, out_dir: Path, overwrite: bool) -> Path:
     import cv2
     from tqdm.auto import tqdm
 
+    cfg.validate()
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     if scene_dir.resolve() == out_dir.resolve():
         raise ValueError("geocues mvs writes a new scene folder: pass an OUT other than SCENE")
     check_not_input(out_dir, {"scene": scene_dir})

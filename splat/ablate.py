@@ -30,7 +30,7 @@ from typing import Any
 
 from evaluation.ablation_report import METRICS, row_stats
 from evaluation.mesh_metrics import MeshMetricsConfig
-from geocues.atomic import atomic_path, check_output_dir, output_lock
+from geocues.atomic import atomic_path, check_output_dir, locks_output
 from splat import ablate_rows
 from splat.ablate_exec import execute
 from splat.ablate_keys import config_key, row_keys, training_keys
@@ -272,20 +272,16 @@ def run_floors(cfg: AblateConfig, scene_dir: Path, out_dir: Path, train_args: li
     return floor, floors
 
 
+@locks_output("splat ablate")  # two ablations into one OUT trained the same rows at once
 def run(cfg: AblateConfig, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, train_args: list[str] | None = None) -> Path:
     """Run the ablation, or resume it (finished rows skipped, a killed row continued from its
     checkpoint); with ``overwrite`` start again from nothing. Writes OUT/ablation.json, report.md
     and the plots; returns OUT. ``train_args``: `splat train` options for every row."""
-    scene_dir, cues, out_dir = Path(scene_dir).resolve(), Path(cues).resolve(), Path(out_dir).resolve()
-    with output_lock(out_dir, "splat ablate"):  # two ablations into one OUT trained the same rows at once
-        return _run_locked(cfg, scene_dir, cues, out_dir, overwrite, list(train_args or []))
-
-
-def _run_locked(cfg: AblateConfig, scene_dir: Path, cues: Path, out_dir: Path, overwrite: bool,
-                train_args: list[str]) -> Path:
     from evaluation.ablation_report import write_reports
 
+    scene_dir, cues, out_dir = Path(scene_dir).resolve(), Path(cues).resolve(), Path(out_dir).resolve()
+    train_args = list(train_args or [])
     check_output_dir(out_dir)
     specs, na = plan(cfg, scene_dir, cues, out_dir, train_args)  # bad options fail before anything is removed
     if overwrite:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 import os
 import signal
 import threading
@@ -145,8 +146,6 @@ def _worker_init(stop=None) -> None:
     from functools import partialmethod
 
     import tqdm
-
-    import multiprocessing
 
     global _STOP, _PARENT
     parent = multiprocessing.parent_process()  # the command, even if it died before this ran (getppid: 1 then)

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from geocues.atomic import atomic_path, output_lock
+from geocues.atomic import atomic_path, locks_output
 from geocues.scene import Scene
 from splat import checkpoint, run_paths
 from splat.camera_opt import CameraRefiner
@@ -332,6 +332,7 @@ class _Loop:
             self.log_bytes = log_file.tell()  # every row: the state after the loop is whole (see run())
 
 
+@locks_output("splat train")  # a second run into OUT removed or published this one's work
 def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_dir: str | Path, *,
         overwrite: bool = False, resume: bool = False) -> Path:
     """Train on the scene in ``scene_dir`` from the cue cloud ``cues`` (a cues.ply or the folder
@@ -348,17 +349,11 @@ def run(cfg: TrainConfig | None, scene_dir: str | Path, cues: str | Path, out_di
         raise TypeError(f"cfg must be a TrainConfig (or None for the defaults; splat.presets.preset_config "
                         f"for a preset), got {type(cfg).__name__}")
     out_dir = Path(out_dir)
-    with output_lock(out_dir, "splat train"):  # a second run into OUT removed or published this one's work
-        try:
-            return _run_locked(cfg, scene_dir, cues, out_dir, overwrite, resume)
-        except RunFinished:  # killed while publishing its finished run, which this call published
-            log.info("done: the run had finished before the kill; outputs in %s", out_dir)
-            return out_dir
-
-
-def _run_locked(cfg: TrainConfig, scene_dir: str | Path, cues: str | Path, out_dir: Path, overwrite: bool,
-                resume: bool) -> Path:
-    work, cues_ply, ckpt, cfg = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
+    try:
+        work, cues_ply, ckpt, cfg = open_run(cfg, out_dir, Path(cues), overwrite, resume, Path(scene_dir))
+    except RunFinished:  # killed while publishing its finished run, which open_run published
+        log.info("done: the run had finished before the kill; outputs in %s", out_dir)
+        return out_dir
     device = resolve_device(cfg.device)
     rasterizer = describe_backend(cfg.backend, device)  # builds the kernels now, with a message, not in the first step
     torch.manual_seed(cfg.seed)

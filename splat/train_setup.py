@@ -105,13 +105,13 @@ def open_run(cfg: TrainConfig, out_dir: Path, cues: Path, overwrite: bool, resum
     if resume:
         ckpt = checkpoint.load(work / checkpoint.CKPT_NAME)
         cfg = _as_started(cfg, ckpt)
-        diff = [k for k in checkpoint.config_diff(asdict(cfg), ckpt["config"], asdict(TrainConfig()))
-                if k not in RESUME_FREE]
-        if diff:
+        if diff := _changed_options(cfg, ckpt["config"]):
             raise ValueError(f"--resume: the options differ from the checkpoint's in {diff} "
                              f"({work / checkpoint.CKPT_NAME}; it has {_values(ckpt['config'], diff)}, "
                              f"this command {_values(asdict(cfg), diff)}); resume with the same options")
-        _check_resumed_inputs(work, {"scene": scene_dir, "cues": cues_ply})
+        if other := _other_input(work, {"scene": scene_dir, "cues": cues_ply}):
+            raise ValueError(f"--resume: the run in {work} started from the {other[0]} {other[1]}, not {other[2]}; "
+                             f"resume with the same {other[0]}")
     elif work.exists():
         if (work / checkpoint.CKPT_NAME).is_file() and not overwrite:  # hours of training: never dropped unasked
             raise ValueError(f"{work} holds an unfinished run with a checkpoint: pass --resume to continue it "
@@ -129,18 +129,12 @@ class RunFinished(Exception):
 def _same_run(run: Path, cfg: TrainConfig, scene_dir: Path, cues_ply: Path) -> bool:
     """Whether the finished ``run`` trained with ``cfg`` (but for options that cannot change it) on the
     same scene and cues (its config.yaml's paths)."""
-    import yaml
-
     try:
         done = json.loads((run / "report.json").read_text())["config"]
-        started = yaml.safe_load((run / "config.yaml").read_text())
-    except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError):
+    except (OSError, ValueError, KeyError, TypeError):
         return False
-    diff = [k for k in checkpoint.config_diff(asdict(cfg), done, asdict(TrainConfig())) if k not in RESUME_FREE]
-    same_inputs = isinstance(started, dict) and all(
-        isinstance(started.get(name), str) and Path(started[name]).resolve() == Path(given).resolve()
-        for name, given in (("scene", scene_dir), ("cues", cues_ply)))
-    return not diff and same_inputs
+    return ((run / "config.yaml").is_file() and not _changed_options(cfg, done)
+            and _other_input(run, {"scene": scene_dir, "cues": cues_ply}) is None)
 
 
 def _publish_finished(work: Path, out_dir: Path) -> bool:
@@ -174,28 +168,35 @@ RESUME_FREE = {"save_every", "log_every", "keep_ckpt"}
 """Options a resumed run may change: when checkpoints are written and how often the log is, not the training."""
 
 
-def _check_resumed_inputs(work: Path, inputs: dict[str, Path | None]) -> None:
-    """--resume with another SCENE or CUES than the run started from (its config.yaml names them)
-    is refused: other cues went on silently from the checkpoint (the report naming the new ones, the
-    config the old), another scene failed with an IndexError. A run moved together with its inputs
-    resumes: the recorded path is gone, or the one recorded relative to the run is the one given."""
+def _changed_options(cfg: TrainConfig, saved: dict) -> list[str]:
+    """The options (dotted) in which ``cfg`` differs from the ``saved`` config of a run, but for those
+    that cannot change the training (:data:`RESUME_FREE`)."""
+    return [k for k in checkpoint.config_diff(asdict(cfg), saved, asdict(TrainConfig())) if k not in RESUME_FREE]
+
+
+def _other_input(run: Path, inputs: dict[str, Path | None]) -> tuple[str, str, Path] | None:
+    """(name, recorded, given) of the first input (SCENE, CUES) given other than the one the run started
+    from (its config.yaml names them), else None. --resume with another is refused: other cues went on
+    silently from the checkpoint (the report naming the new ones, the config the old), another scene
+    failed with an IndexError. A run moved together with its inputs is the same run: the recorded path
+    is gone, or the one recorded relative to the run is the one given."""
     import yaml
 
     try:
-        started = yaml.safe_load((work / "config.yaml").read_text())
+        started = yaml.safe_load((run / "config.yaml").read_text())
     except (OSError, yaml.YAMLError):
-        return
+        return None
     if not isinstance(started, dict):
-        return
+        return None
     for name, given in inputs.items():
         was, rel = started.get(name), started.get(f"{name}_from_run")
         if given is None or not isinstance(was, str):
             continue
         given = Path(given).resolve()
-        same = Path(was).resolve() == given or (isinstance(rel, str) and (work / rel).resolve() == given)
+        same = Path(was).resolve() == given or (isinstance(rel, str) and (run / rel).resolve() == given)
         if not same and Path(was).exists():
-            raise ValueError(f"--resume: the run in {work} started from the {name} {was}, not {given}; "
-                             f"resume with the same {name}")
+            return name, was, given
+    return None
 
 
 def make_optimizers(params: torch.nn.ParameterDict, lr: LearningRates, scale: float,
